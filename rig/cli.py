@@ -1,0 +1,201 @@
+"""The `rig` command: one small function per subcommand.
+
+Every error a user can cause ends as one line on stderr and a non-zero exit status,
+never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from rig import __version__
+from rig.errors import RigError
+
+EXIT_ERROR = 2  # bad input: file, argument, limits
+EXIT_FAULT = 3  # the trial ran but ended on a fault
+EXIT_INTERRUPTED = 130
+
+
+def _positive_or_zero(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return value
+
+
+# ------------------------------------------------------------------ commands
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from rig.config import load_config
+    from rig.protocol import load_protocol
+    from rig.trialrun import RunOptions, run_trial
+
+    config = load_config(args.config)
+    proto = load_protocol(args.protocol, config)  # refused here, before anything moves
+    opts = RunOptions(specimen=args.specimen, operator=args.operator, notes=args.notes,
+                      out_dir=args.out, speed=args.speed, progress=not args.quiet)
+    result = run_trial(proto, config, opts)
+    print(f"trial {result.outcome}: {result.samples} samples in {result.duration_s:.1f} s "
+          f"({result.late_ticks} late, {result.missed_ticks} missed ticks)")
+    if result.fault:
+        print(f"fault: {result.fault}")
+    print(f"log: {result.log_path}")
+    if result.outcome == "fault":
+        return EXIT_FAULT
+    if result.outcome in ("aborted", "estopped", "stopped"):
+        return EXIT_INTERRUPTED
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from rig.logs import export_csv, read_log
+    from rig.replay import format_summary, plot_log, summarize
+
+    log = read_log(args.log)
+    summary = summarize(log)
+    if args.csv:
+        n = export_csv(log, args.csv)
+        summary["csv"] = {"path": str(args.csv), "rows": n}
+    if args.plot:
+        plot_log(log, args.plot)
+        summary["plot"] = str(args.plot)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(format_summary(summary))
+        if args.csv:
+            print(f"csv        {args.csv} ({summary['csv']['rows']} rows)")
+        if args.plot:
+            print(f"plot       {args.plot}")
+    return 0
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from rig.config import load_config
+    from rig.estimator import excitation_order
+    from rig.protocol import load_protocol, plan
+
+    config = load_config(args.config)
+    proto = load_protocol(args.protocol, config)
+    p = plan(proto, config)
+    limits = proto.effective_limits(config.limits)
+    resolution = 1.0 / config.sim.slider.steps_per_mm
+    order = excitation_order(p.position_mm, resolution)
+    info = {
+        "protocol": proto.name,
+        "file": proto.source_path,
+        "valid": True,
+        "steps": [s.kind for _, s in proto.run_steps()],
+        "duration_s": round(p.duration_s, 2),
+        "duration_is_upper_bound": p.upper_bound,
+        "depths_mm": p.depths_mm,
+        "speeds_mm_s": p.speeds_mm_s,
+        "max_position_mm": float(max(p.position_mm)),
+        "limits": {"max_force_N": limits.max_force_N, "max_speed_mm_s": limits.max_speed_mm_s,
+                   "travel_mm": list(limits.travel_mm)},
+        "excitation_order": order,
+    }
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0
+    bound = "up to " if p.upper_bound else ""
+    print(f"{proto.source_path}: OK  '{proto.name}'")
+    if proto.description:
+        print(f"  {proto.description}")
+    print(f"  steps     {' -> '.join(info['steps'])}" + (f"  (x{proto.repeat})" if proto.repeat > 1 else ""))
+    print(f"  duration  {bound}{p.duration_s:.1f} s (including {config.loop.tare_s:g} s tare)")
+    print(f"  depths    {', '.join(f'{d:g}' for d in p.depths_mm) or '-'} mm   "
+          f"speeds {', '.join(f'{v:g}' for v in p.speeds_mm_s) or '-'} mm/s")
+    print(f"  limits    force {limits.max_force_N:g} N, speed {limits.max_speed_mm_s:g} mm/s, "
+          f"travel [{limits.travel_mm[0]:g}, {limits.travel_mm[1]:g}] mm")
+    note = {0: "no motion: nothing is identifiable",
+            1: "ramp-and-hold class: only f(t) = k x(t-1) is identifiable online"}.get(
+        order, "rich enough for a model with more than one input lag")
+    print(f"  excitation order {order} ({note})")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from rig.bench import format_bench, run_bench
+
+    result = run_bench(duration_s=args.duration, rate_Hz=args.rate, progress=not args.json)
+    print(json.dumps(result, indent=2) if args.json else format_bench(result))
+    return 0
+
+
+# ------------------------------------------------------------------ parser
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="rig", description="Soft-tissue indentation rig: run trials, replay logs, check protocols.",
+        epilog="Start with: rig run protocols/demo.yaml   (runs on the built-in simulated rig)")
+    p.add_argument("--version", action="version", version=f"rig {__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+
+    r = sub.add_parser("run", help="run a protocol and log it to MCAP",
+                       description="Run a protocol file on the rig named by --config (default: the "
+                                   "built-in simulated rig) and write one MCAP log.")
+    r.add_argument("protocol", help="protocol file (YAML), e.g. protocols/demo.yaml")
+    r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
+    r.add_argument("--specimen", default="specimen", help="specimen ID recorded in the log")
+    r.add_argument("--operator", default="", help="operator name recorded in the log")
+    r.add_argument("--notes", default="", help="free text recorded in the log")
+    r.add_argument("--out", help="directory for the log (default: the config's recorder.out_dir)")
+    r.add_argument("--speed", type=_positive_or_zero, default=1.0,
+                   help="simulated rig only: 0 = as fast as possible, N = N times real time "
+                        "(default 1: real time)")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.set_defaults(func=cmd_run)
+
+    r = sub.add_parser("replay", help="summarise a log; export CSV; plot",
+                       description="Summarise a trial log (also one cut short by a crash), re-run "
+                                   "the estimator on it, and optionally export CSV or plot.")
+    r.add_argument("log", help="MCAP log file")
+    r.add_argument("--csv", type=Path, help="write samples as CSV (t_s,position_mm,force_N,...)")
+    r.add_argument("--plot", type=Path, help="write a PNG of force, position and stiffness")
+    r.add_argument("--json", action="store_true", help="print the summary as JSON")
+    r.set_defaults(func=cmd_replay)
+
+    r = sub.add_parser("check", help="validate a protocol and show its plan",
+                       description="Validate a protocol against the rig's limits and show the plan: "
+                                   "duration, depths, speeds and the excitation order of the motion.")
+    r.add_argument("protocol")
+    r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
+    r.add_argument("--json", action="store_true")
+    r.set_defaults(func=cmd_check)
+
+    r = sub.add_parser("bench", help="measure loop timing, estimator and logging costs",
+                       description="Loop period jitter and late ticks at the loop rate on the real "
+                                   "clock with in-process simulated devices; RLS update time; "
+                                   "per-sample recording cost; replay speed.")
+    r.add_argument("--duration", type=float, default=60.0, help="real-clock run length, s (default 60)")
+    r.add_argument("--rate", type=float, default=100.0, help="loop rate, Hz (default 100)")
+    r.add_argument("--json", action="store_true")
+    r.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except RigError as exc:
+        print(f"rig {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print(f"rig {args.command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,149 @@
+"""Rig configuration: YAML bound to dataclasses. The defaults are the simulated rig.
+
+`config/sim-rig.yaml` spells the defaults out; any field left out of a file keeps its
+default, so a config names only what differs from the simulated rig.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import yaml
+
+from rig.errors import SpecError
+from rig.yamlspec import bind, load_marked
+from sim_device.params import SimParams
+
+
+@dataclass
+class LoopConfig:
+    rate_Hz: float = field(default=100.0, metadata={"gt": 0, "le": 1000})
+    late_tolerance_ms: float = field(default=2.0, metadata={"gt": 0})
+    status_every: int = field(default=10, metadata={"ge": 1})  # read status/alarm every N ticks
+    tare_s: float = field(default=0.5, metadata={"ge": 0})
+    spin_ms: float = field(default=0.3, metadata={"ge": 0})  # busy-wait before each deadline
+    health_every_s: float = field(default=1.0, metadata={"gt": 0})
+
+
+@dataclass
+class LimitsConfig:
+    max_force_N: float = field(default=20.0, metadata={"gt": 0})
+    travel_mm: tuple[float, float] = (-5.0, 45.0)
+    max_speed_mm_s: float = field(default=10.0, metadata={"gt": 0})
+    loadcell_stale_ms: float = field(default=100.0, metadata={"gt": 0})
+    # Measured speed above max_speed_mm_s * overspeed_factor is a fault (runaway drive).
+    overspeed_factor: float = field(default=1.5, metadata={"ge": 1})
+
+    def __post_init__(self) -> None:
+        lo, hi = self.travel_mm
+        if not lo < hi:
+            raise ValueError(f"travel_mm must be [min, max] with min < max, got [{lo}, {hi}]")
+
+
+@dataclass
+class EstimatorConfig:
+    law: str = field(default="constant_information",
+                     metadata={"choices": ["constant_information", "fixed"]})
+    memory_s: float = field(default=1.0, metadata={"gt": 0})
+    smoothing_s: float = field(default=0.1, metadata={"gt": 0})
+    lambda_min: float = field(default=0.8, metadata={"gt": 0, "le": 1})
+    lambda_max: float = field(default=0.9999, metadata={"gt": 0, "le": 1})
+    noise_N: float = field(default=0.08, metadata={"gt": 0})
+    initial_stiffness_N_per_m: float = 0.0
+    initial_std_N_per_m: float = field(default=1000.0, metadata={"gt": 0})
+    contact_mm: float = field(default=0.2, metadata={"ge": 0})
+    contact_N: float = field(default=0.05, metadata={"ge": 0})
+
+    def __post_init__(self) -> None:
+        if self.lambda_min > self.lambda_max:
+            raise ValueError("lambda_min must not exceed lambda_max")
+
+
+@dataclass
+class SliderConfig:
+    backend: str = field(default="sim", metadata={"choices": ["sim"]})
+    accel_mm_s2: float = field(default=50.0, metadata={"gt": 0})
+    position_tolerance_mm: float = field(default=0.02, metadata={"gt": 0})
+
+
+@dataclass
+class LoadCellConfig:
+    backend: str = field(default="sim", metadata={"choices": ["sim"]})
+
+
+@dataclass
+class RecorderConfig:
+    out_dir: str = "trials"
+    flush_s: float = field(default=1.0, metadata={"gt": 0})
+    compression: str = field(default="zstd", metadata={"choices": ["zstd", "lz4", "none"]})
+
+
+@dataclass
+class RigConfig:
+    name: str = "simulated rig"
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    limits: LimitsConfig = field(default_factory=LimitsConfig)
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    slider: SliderConfig = field(default_factory=SliderConfig)
+    loadcell: LoadCellConfig = field(default_factory=LoadCellConfig)
+    recorder: RecorderConfig = field(default_factory=RecorderConfig)
+    sim: SimParams = field(default_factory=SimParams)
+    source_text: str = field(default="", repr=False, compare=False)
+    source_path: str = field(default="<built-in simulated rig>", repr=False, compare=False)
+
+    def to_yaml(self) -> str:
+        data = asdict(self)
+        data.pop("source_text")
+        data.pop("source_path")
+        return yaml.safe_dump(_plain(data), sort_keys=False)
+
+    def text(self) -> str:
+        """The config exactly as run: the file's text, or the built-in defaults spelled out."""
+        return self.source_text or self.to_yaml()
+
+    def digest(self) -> str:
+        return hashlib.sha256(self.text().encode()).hexdigest()[:16]
+
+
+def _plain(obj: object) -> object:
+    if isinstance(obj, dict):
+        return {k: _plain(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_plain(v) for v in obj]
+    return obj
+
+
+def load_config(path: str | Path | None) -> RigConfig:
+    """Load and validate a rig config; None gives the built-in simulated rig."""
+    if path is None:
+        return RigConfig()
+    return parse_config(_read(path), str(path))
+
+
+def parse_config(text: str, path: str = "<config>") -> RigConfig:
+    node = load_marked(path, text)
+    _refuse_keys(node, ("source_text", "source_path"), path)
+    cfg = bind(RigConfig, node, path)
+    cfg.source_text = text
+    cfg.source_path = path
+    return cfg
+
+
+def _read(path: str | Path) -> str:
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SpecError("config file not found", path=str(path)) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SpecError(f"cannot read config: {exc}", path=str(path)) from None
+
+
+def _refuse_keys(node, keys: tuple[str, ...], path: str) -> None:
+    if isinstance(node.value, dict):
+        for k in keys:
+            if k in node.value:
+                child = node.value[k]
+                raise SpecError(f"unknown key '{k}'", path=path, line=child.key_line,
+                                column=child.key_column)

@@ -1,0 +1,208 @@
+"""MCAP recording: JSON channels with jsonschema schemas, written by a thread of its own.
+
+The loop only puts small dicts on a queue; encoding, compression and disk I/O happen
+on the writer thread. Every `flush_s` the writer finishes the open chunk, flushes and
+fsyncs, so a crash loses at most about one second. Metadata and attachments are
+written at once, outside chunks, so even a log cut short names its trial.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mcap.writer import CompressionType, Writer
+
+from rig import __version__
+
+SAMPLE_TOPIC = "/rig/sample"
+EVENT_TOPIC = "/rig/event"
+HEALTH_TOPIC = "/rig/health"
+
+
+def _num(desc: str) -> dict:
+    return {"type": "number", "description": desc}
+
+
+SAMPLE_SCHEMA = {
+    "title": "rig.Sample",
+    "description": "One loop tick.",
+    "type": "object",
+    "properties": {
+        "seq": {"type": "integer", "minimum": 0, "description": "tick number"},
+        "t_s": _num("time since trial start, s"),
+        "position_mm": _num("feedback position from the trial zero, mm"),
+        "position_cmd_mm": _num("commanded (ideal profile) position from the trial zero, mm"),
+        "force_N": _num("load cell force after tare, N"),
+        "stiffness_N_per_m": _num("online RLS estimate k in f(t) = k x(t-1)"),
+        "force_pred_N": _num("a-priori prediction k(t-1) x(t-1), N"),
+        "error_N": _num("a-priori error f(t) - k(t-1) x(t-1), N"),
+        "forgetting": _num("forgetting factor used this tick (1 = no update)"),
+        "contact": {"type": "boolean", "description": "estimator updated (probe in contact)"},
+        "step": {"type": "integer", "description": "step index (-1 tare)"},
+        "step_kind": {"type": "string", "description": "tare, ramp, hold, return, approach, fault, done"},
+        "late_ms": _num("tick start after its scheduled time, ms"),
+    },
+    "required": ["seq", "t_s", "position_mm", "position_cmd_mm", "force_N", "stiffness_N_per_m",
+                 "force_pred_N", "error_N", "forgetting", "step", "late_ms"],
+}
+
+EVENT_SCHEMA = {
+    "title": "rig.Event",
+    "type": "object",
+    "properties": {
+        "t_s": _num("time since trial start, s"),
+        "kind": {"type": "string", "description": "trial_start, step_start, tare, stop_requested, "
+                                                  "fault, abort, trial_end"},
+        "message": {"type": "string"},
+        "data": {"type": "object"},
+    },
+    "required": ["t_s", "kind", "message"],
+}
+
+HEALTH_SCHEMA = {
+    "title": "rig.Health",
+    "type": "object",
+    "properties": {
+        "t_s": _num("time since trial start, s"),
+        "ticks": {"type": "integer"},
+        "late_ticks": {"type": "integer", "description": "ticks late so far"},
+        "missed_ticks": {"type": "integer", "description": "scheduled ticks skipped so far"},
+        "period_err_p50_ms": _num("median |period - nominal| over the last interval, ms"),
+        "period_err_p99_ms": _num("99th percentile |period - nominal|, ms"),
+        "period_err_max_ms": _num("largest |period - nominal|, ms"),
+        "bus_transactions": {"type": "integer"},
+        "bus_errors": {"type": "integer"},
+        "loadcell_lines_ok": {"type": "integer"},
+        "loadcell_lines_bad": {"type": "integer"},
+        "loadcell_age_ms": _num("age of the newest load-cell reading, ms"),
+        "queue_depth": {"type": "integer", "description": "messages waiting for the writer"},
+    },
+    "required": ["t_s", "ticks", "late_ticks", "period_err_p99_ms"],
+}
+
+SCHEMAS = {SAMPLE_TOPIC: SAMPLE_SCHEMA, EVENT_TOPIC: EVENT_SCHEMA, HEALTH_TOPIC: HEALTH_SCHEMA}
+_COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+_STOP = object()
+
+
+@dataclass
+class TrialInfo:
+    specimen: str = ""
+    operator: str = ""
+    protocol_name: str = ""
+    protocol_path: str = ""
+    config_path: str = ""
+    config_digest: str = ""
+    clock: str = "real"
+    notes: str = ""
+    extra: dict[str, str] = field(default_factory=dict)
+
+
+class Recorder:
+    """Owns one MCAP file. `put` is the only call the loop makes per tick."""
+
+    def __init__(self, path: str | Path, *, flush_s: float = 1.0, compression: str = "zstd") -> None:
+        self.path = Path(path)
+        self.flush_s = flush_s
+        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._file = open(self.path, "wb")  # noqa: SIM115 - closed by the writer thread
+        self._writer = Writer(self._file, chunk_size=256 * 1024, compression=_COMPRESSION[compression])
+        self._writer.start(profile="", library=f"indentation-rig/{__version__}")
+        self._channels: dict[str, int] = {}
+        for topic, schema in SCHEMAS.items():
+            sid = self._writer.register_schema(schema["title"], "jsonschema",
+                                               json.dumps(schema).encode())
+            self._channels[topic] = self._writer.register_channel(topic, "json", sid)
+        self.messages = 0
+        self.flushes = 0
+        self.error: BaseException | None = None
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
+        self._thread.start()
+
+    # ---------------------------------------------------------------- loop side
+    def put(self, topic: str, log_time_ns: int, message: dict[str, Any]) -> None:
+        self._q.put((topic, log_time_ns, message))
+
+    def depth(self) -> int:
+        return self._q.qsize()
+
+    # --------------------------------------------------- written immediately
+    def write_metadata(self, name: str, data: dict[str, str]) -> None:
+        self._q.put(("__metadata__", name, {k: str(v) for k, v in data.items()}))
+
+    def attach(self, name: str, media_type: str, data: bytes, log_time_ns: int) -> None:
+        self._q.put(("__attachment__", (name, media_type, log_time_ns), data))
+
+    def close(self, outcome: dict[str, str] | None = None, timeout_s: float = 30.0) -> None:
+        """Write the outcome, finish the file (summary, footer) and fsync. Safe to call twice."""
+        if self._closed:
+            return
+        self._closed = True
+        if outcome is not None:
+            self.write_metadata("outcome", outcome)
+        self._q.put(_STOP)
+        self._thread.join(timeout_s)
+
+    # --------------------------------------------------------------- writer
+    def _run(self) -> None:
+        last_flush = time.monotonic()
+        dirty = False
+        try:
+            while True:
+                try:
+                    item = self._q.get(timeout=min(self.flush_s, 0.2))
+                except queue.Empty:
+                    item = None
+                if item is _STOP:
+                    break
+                if item is not None:
+                    dirty |= self._write(item)
+                if dirty and time.monotonic() - last_flush >= self.flush_s:
+                    self._sync()
+                    dirty = False
+                    last_flush = time.monotonic()
+            while True:  # drain anything queued after the stop marker
+                try:
+                    item = self._q.get_nowait()
+                except queue.Empty:
+                    break
+                if item is not _STOP:
+                    self._write(item)
+            self._writer.finish()
+            self._file.flush()
+            os.fsync(self._file.fileno())
+        except BaseException as exc:  # disk full, I/O error: keep what is on disk, report it
+            self.error = exc
+        finally:
+            self._file.close()
+
+    def _write(self, item: tuple) -> bool:
+        topic, stamp, payload = item
+        if topic == "__metadata__":
+            self._writer.add_metadata(stamp, payload)
+            self._sync()
+            return False
+        if topic == "__attachment__":
+            name, media_type, log_time_ns = stamp
+            self._writer.add_attachment(log_time_ns, log_time_ns, name, media_type, payload)
+            self._sync()
+            return False
+        self._writer.add_message(self._channels[topic], log_time=stamp, publish_time=stamp,
+                                 data=json.dumps(payload, separators=(",", ":")).encode(),
+                                 sequence=self.messages & 0xFFFFFFFF)
+        self.messages += 1
+        return True
+
+    def _sync(self) -> None:
+        self._writer.flush()
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self.flushes += 1

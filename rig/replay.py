@@ -1,0 +1,210 @@
+"""Replay a trial log: summary, estimator error, a re-run of the estimator, a plot."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from rig.config import RigConfig, parse_config
+from rig.errors import RigError, SpecError
+from rig.estimator import StiffnessRLS
+from rig.logs import TrialLog
+
+
+@dataclass
+class HoldCheck:
+    """Final stiffness estimate against measured force / position over the last second of a hold."""
+
+    stiffness_N_per_m: float
+    measured_N_per_m: float
+
+    @property
+    def rel_diff(self) -> float:
+        return (self.stiffness_N_per_m - self.measured_N_per_m) / self.measured_N_per_m
+
+
+def config_of(log: TrialLog) -> RigConfig | None:
+    """The config the trial ran with (attached to the log), or None if it cannot be read."""
+    text = log.attachments.get("config.yaml")
+    if text is None:
+        return None
+    try:
+        return parse_config(text.decode(), f"{log.path}!config.yaml")
+    except (SpecError, UnicodeDecodeError):
+        return None
+
+
+def rerun_estimator(log: TrialLog, config: RigConfig) -> np.ndarray:
+    """Run the online estimator again over the logged positions and forces."""
+    est = config.estimator
+    rls = StiffnessRLS(rate_Hz=config.loop.rate_Hz, law=est.law, memory_s=est.memory_s,
+                       smoothing_s=est.smoothing_s, lambda_min=est.lambda_min,
+                       lambda_max=est.lambda_max, noise_N=est.noise_N,
+                       initial_stiffness_N_per_m=est.initial_stiffness_N_per_m,
+                       initial_std_N_per_m=est.initial_std_N_per_m,
+                       contact_mm=est.contact_mm, contact_N=est.contact_N)
+    x = log.samples["position_mm"] / 1000.0
+    f = log.samples["force_N"]
+    out = np.empty(log.n)
+    x_prev = 0.0
+    for i in range(log.n):
+        out[i] = rls.update(x_prev, f[i]).stiffness_N_per_m
+        x_prev = x[i]
+    return out
+
+
+def hold_check(log: TrialLog, window_s: float = 1.0) -> HoldCheck | None:
+    kinds = np.array(log.step_kind)
+    idx = np.flatnonzero(kinds == "hold")
+    if len(idx) == 0:
+        return None
+    end = idx[-1]
+    # the last hold segment: walk back while still in the same step
+    step = log.samples["step"]
+    seg = idx[step[idx] == step[end]]
+    t = log.samples["t_s"]
+    sel = seg[t[seg] >= t[end] - window_s]
+    x = float(np.mean(log.samples["position_mm"][sel])) / 1000.0
+    if x <= 0:
+        return None
+    measured = float(np.mean(log.samples["force_N"][sel])) / x
+    return HoldCheck(float(log.samples["stiffness_N_per_m"][end]), measured)
+
+
+def summarize(log: TrialLog) -> dict:
+    if log.n == 0:
+        raise RigError(f"{log.path}: the log holds no samples")
+    s = log.samples
+    meta = log.trial
+    config = config_of(log)
+    tol_ms = config.loop.late_tolerance_ms if config else 2.0
+    contact = log.contact
+    err = s["error_N"][contact] if contact.any() else np.zeros(0)
+    faults = [e for e in log.events if e.get("kind") == "fault"]
+    out: dict = {
+        "log": str(log.path),
+        "complete": log.complete,
+        "outcome": log.outcome,
+        "specimen": meta.get("specimen", ""),
+        "operator": meta.get("operator", ""),
+        "protocol": meta.get("protocol_name", ""),
+        "start_time": meta.get("start_time", ""),
+        "duration_s": float(s["t_s"][-1]),
+        "samples": log.n,
+        "late_ticks": int(np.sum(s["late_ms"] > tol_ms)),
+        "missed_ticks": int(np.sum(np.maximum(np.round(np.diff(s["t_s"]) * (config.loop.rate_Hz
+                                                                              if config else 100.0)) - 1, 0))),
+        "faults": [{"t_s": f["t_s"], "message": f["message"]} for f in faults],
+        "estimator": {
+            "contact_samples": int(contact.sum()),
+            "error_mean_N": float(np.mean(err)) if len(err) else None,
+            "error_std_N": float(np.std(err)) if len(err) else None,
+            "error_max_abs_N": float(np.max(np.abs(err))) if len(err) else None,
+            "final_stiffness_N_per_m": float(s["stiffness_N_per_m"][-1]),
+        },
+        "peak_force_N": float(np.max(s["force_N"])),
+    }
+    if log.read_error and not log.complete:
+        out["truncated"] = log.read_error
+    hc = hold_check(log)
+    if hc:
+        out["estimator"]["hold_end"] = {"stiffness_N_per_m": hc.stiffness_N_per_m,
+                                        "measured_N_per_m": hc.measured_N_per_m,
+                                        "rel_diff": hc.rel_diff}
+    if config is not None:
+        again = rerun_estimator(log, config)
+        diff = float(np.max(np.abs(again - s["stiffness_N_per_m"])))
+        out["estimator"]["rerun_max_diff_N_per_m"] = diff
+        out["estimator"]["reproduced"] = bool(diff <= 1e-6 * max(1.0, float(np.max(np.abs(again)))))
+    return out
+
+
+def format_summary(d: dict) -> str:
+    e = d["estimator"]
+    lines = [
+        f"log        {d['log']}" + ("" if d["complete"] else "   (cut short: read up to the last flush)"),
+        f"specimen   {d['specimen'] or '-'}    operator {d['operator'] or '-'}",
+        f"protocol   {d['protocol']}",
+        f"started    {d['start_time']}",
+        f"outcome    {d['outcome']}",
+        f"duration   {d['duration_s']:.2f} s, {d['samples']} samples, "
+        f"{d['late_ticks']} late, {d['missed_ticks']} missed",
+        f"peak force {d['peak_force_N']:.3f} N",
+    ]
+    for f in d["faults"]:
+        lines.append(f"FAULT      t={f['t_s']:.2f} s: {f['message']}")
+    if e["error_mean_N"] is not None:
+        lines.append(f"estimator  error mean {e['error_mean_N']:+.4f} N, std {e['error_std_N']:.4f} N, "
+                     f"max |e| {e['error_max_abs_N']:.3f} N over {e['contact_samples']} contact samples")
+    if "hold_end" in e:
+        h = e["hold_end"]
+        lines.append(f"hold end   k = {h['stiffness_N_per_m']:.2f} N/m vs measured F/x = "
+                     f"{h['measured_N_per_m']:.2f} N/m ({h['rel_diff'] * 100:+.2f} %)")
+    if "reproduced" in e:
+        verdict = "reproduces" if e["reproduced"] else "DOES NOT reproduce"
+        lines.append(f"re-run     the estimator {verdict} the logged estimates "
+                     f"(max diff {e['rerun_max_diff_N_per_m']:.2e} N/m)")
+    return "\n".join(lines)
+
+
+_STEP_COLOURS = {"tare": "#dddddd", "approach": "#f3e6c0", "ramp": "#cfe3f7", "hold": "#d8f0d2",
+                 "return": "#f7d9d4", "fault": "#ff9e9e"}
+
+
+def shade_steps(ax, t: np.ndarray, kinds: list[str]) -> None:
+    """Shade the background of `ax` by step kind."""
+    if not len(t):
+        return
+    start = 0
+    for i in range(1, len(kinds) + 1):
+        if i == len(kinds) or kinds[i] != kinds[start]:
+            colour = _STEP_COLOURS.get(kinds[start])
+            if colour:
+                ax.axvspan(t[start], t[min(i, len(t) - 1)], color=colour, alpha=0.5, lw=0)
+            start = i
+
+
+def plot_log(log: TrialLog, out: str | Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    s = log.samples
+    t = s["t_s"]
+    fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True, constrained_layout=True)
+    ax = axes[0]
+    shade_steps(ax, t, log.step_kind)
+    ax.plot(t, s["force_N"], lw=0.8, color="k", label="measured")
+    ax.plot(t, s["force_pred_N"], lw=0.8, color="tab:orange", alpha=0.8,
+            label="RLS prediction k(t-1) x(t-1)")
+    ax.set_ylabel("force (N)")
+    handles, labels = ax.get_legend_handles_labels()
+    kinds_present = [k for k in _STEP_COLOURS if k in set(log.step_kind)]
+    handles += [Patch(color=_STEP_COLOURS[k], alpha=0.5) for k in kinds_present]
+    labels += kinds_present
+    ax.legend(handles, labels, loc="upper right", fontsize=8, ncol=2)
+    meta = log.trial
+    ax.set_title(f"{meta.get('protocol_name', '')}  |  specimen {meta.get('specimen', '-')}  |  "
+                 f"{Path(log.path).name}", fontsize=10)
+    ax = axes[1]
+    shade_steps(ax, t, log.step_kind)
+    ax.plot(t, s["position_mm"], lw=1.0, label="feedback")
+    ax.plot(t, s["position_cmd_mm"], lw=0.8, ls="--", label="commanded")
+    ax.set_ylabel("position (mm)")
+    ax.legend(loc="upper right", fontsize=8)
+    ax = axes[2]
+    shade_steps(ax, t, log.step_kind)
+    k = np.where(log.contact, s["stiffness_N_per_m"], np.nan)
+    ax.plot(t, k, lw=1.0, color="tab:green")
+    ax.set_ylabel("stiffness k (N/m)")
+    ax.set_xlabel("time (s)")
+    for e in log.events:
+        if e.get("kind") == "fault":
+            for a in axes:
+                a.axvline(e["t_s"], color="r", lw=1.2)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,214 @@
+"""Step sequencing: which step runs, when it ends, and which move command it issues.
+
+Pure logic, no I/O: the loop feeds it each tick's measurements and carries out the
+`Move`/`Stop` commands it returns. Positions here are absolute (slider coordinates);
+`zero_mm` is the trial's zero (start position, or the contact point of an approach).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+from rig.motion import move_time, position_at
+from rig.protocol import Approach, Hold, Protocol, Ramp, Return, Step
+
+
+@dataclass(frozen=True)
+class Move:
+    to_mm: float  # absolute
+    speed_mm_s: float
+    accel_mm_s2: float
+
+
+@dataclass(frozen=True)
+class Stop:
+    reason: str
+
+
+Command = Move | Stop
+
+
+class Sequencer:
+    def __init__(self, proto: Protocol, *, start_mm: float, accel_mm_s2: float, tare_s: float,
+                 tolerance_mm: float, rate_Hz: float) -> None:
+        self.steps: list[tuple[int, Step]] = proto.run_steps()
+        self.start_mm = start_mm
+        self.zero_mm = start_mm
+        self.accel = accel_mm_s2
+        self.tare_s = tare_s
+        self.tol = tolerance_mm
+        self.rate = rate_Hz
+        self.index = -1  # -1 = taring
+        self.step_t0 = 0.0
+        self.done = False
+        self.fault: str | None = None
+        self._from_mm = start_mm
+        self._target_mm = start_mm
+        self._speed = 0.0
+        self._step_accel = accel_mm_s2
+        self._window: deque[tuple[float, float]] = deque()
+        self._contact_count = 0
+        self._approach_stopping = False
+        self._arrived = 0
+        self._abort_pending = False
+
+    # -------------------------------------------------------------- state
+    @property
+    def kind(self) -> str:
+        if self.done:
+            return "done"
+        return "tare" if self.index < 0 else self.steps[self.index][1].kind
+
+    @property
+    def step(self) -> Step | None:
+        return self.steps[self.index][1] if 0 <= self.index < len(self.steps) else None
+
+    @property
+    def target_mm(self) -> float:
+        return self._target_mm
+
+    def abort_to_start(self, t: float, speed_mm_s: float) -> None:
+        """Drop the remaining steps; once the slider has stopped, return to the start position."""
+        self.steps = self.steps[: max(self.index, -1) + 1] + [(0, Return(speed_mm_s=speed_mm_s))]
+        self.index = len(self.steps) - 2
+        self._speed = 0.0
+        self._abort_pending = True
+        self.done = False
+
+    def position_cmd_mm(self, t: float) -> float:
+        """The ideal commanded position (trapezoidal profile of the current move)."""
+        if self._speed <= 0:
+            return self._target_mm - self.zero_mm
+        return position_at(self._from_mm, self._target_mm, self._speed, self._step_accel,
+                             t - self.step_t0) - self.zero_mm
+
+    def time_left_s(self, t: float) -> float:
+        """Planned time still to run (holds at their longest)."""
+        left = 0.0
+        if self.index < 0:
+            left += max(self.tare_s - t, 0.0)
+        pos = self._target_mm
+        for i, (_, step) in enumerate(self.steps):
+            if i < self.index:
+                continue
+            if i == self.index:
+                elapsed = t - self.step_t0
+                if isinstance(step, Hold):
+                    left += max(step.longest_s - elapsed, 0.0)
+                else:
+                    left += max(move_time(self._from_mm, self._target_mm, self._speed,
+                                           self._step_accel) - elapsed, 0.0)
+                continue
+            if isinstance(step, Hold):
+                left += step.longest_s
+            else:
+                target = self._resolve_target(step)
+                left += move_time(pos, target, step.speed_mm_s, self.accel)
+                pos = target
+        return left
+
+    # -------------------------------------------------------------- ticking
+    def tick(self, t: float, position_mm: float, force_N: float, moving: bool | None) -> list[Command]:
+        """Advance on this tick's measurements; returns commands to carry out now."""
+        if self.done:
+            return []
+        if self._abort_pending:
+            if moving is False:
+                self._abort_pending = False
+                return self._next(t)
+            return []
+        if self.index < 0:
+            return self._next(t) if t >= self.tare_s else []
+        step = self.step
+        if isinstance(step, Hold):
+            return self._tick_hold(step, t, force_N)
+        if isinstance(step, Approach):
+            return self._tick_approach(step, t, position_mm, force_N, moving)
+        # Ramp / Return: done once the slider sits at the target.
+        if abs(position_mm - self._target_mm) <= self.tol and moving is not True:
+            self._arrived += 1
+            if self._arrived >= 2:
+                return self._next(t)
+        else:
+            self._arrived = 0
+        return []
+
+    def _tick_hold(self, step: Hold, t: float, force_N: float) -> list[Command]:
+        elapsed = t - self.step_t0
+        if step.duration_s is not None:
+            return self._next(t) if elapsed >= step.duration_s - 0.5 / self.rate else []
+        if elapsed >= (step.max_s or 0.0):
+            return self._next(t)
+        self._window.append((t, force_N))
+        while self._window and self._window[0][0] < t - step.window_s:
+            self._window.popleft()
+        if elapsed >= step.window_s and abs(_slope(self._window)) < (step.until_rate_N_s or 0.0):
+            return self._next(t)
+        return []
+
+    def _tick_approach(self, step: Approach, t: float, position_mm: float, force_N: float,
+                       moving: bool | None) -> list[Command]:
+        if self._approach_stopping:
+            if moving is False:
+                self.zero_mm = position_mm
+                self._target_mm = position_mm
+                return self._next(t)
+            return []
+        # Three samples in a row above threshold: one noise spike is not contact.
+        self._contact_count = self._contact_count + 1 if force_N > step.contact_N else 0
+        if self._contact_count >= 3:
+            self._approach_stopping = True
+            self._target_mm = position_mm
+            self._speed = 0.0
+            return [Stop("contact found")]
+        if abs(position_mm - self._target_mm) <= self.tol and moving is not True:
+            self.fault = (f"approach reached {step.max_mm:g} mm without force above "
+                          f"{step.contact_N:g} N: no contact")
+        return []
+
+    def _resolve_target(self, step: Step) -> float:
+        if isinstance(step, Return) and step.to_mm is None:
+            return self.start_mm
+        if isinstance(step, Approach):
+            return self.zero_mm + step.max_mm
+        return self.zero_mm + step.to_mm
+
+    def _next(self, t: float) -> list[Command]:
+        self.index += 1
+        self.step_t0 = t
+        self._window.clear()
+        self._contact_count = 0
+        self._approach_stopping = False
+        self._arrived = 0
+        if self.index >= len(self.steps):
+            self.done = True
+            self._speed = 0.0
+            return []
+        step = self.step
+        if isinstance(step, Hold):
+            self._from_mm = self._target_mm
+            self._speed = 0.0
+            return []
+        self._from_mm = self._target_mm
+        self._target_mm = self._resolve_target(step)
+        self._speed = step.speed_mm_s
+        self._step_accel = (step.accel_mm_s2 if isinstance(step, Ramp) else None) or self.accel
+        return [Move(self._target_mm, self._speed, self._step_accel)]
+
+
+def _slope(window: deque[tuple[float, float]]) -> float:
+    n = len(window)
+    if n < 3:
+        return math.inf
+    st = sf = stt = stf = 0.0
+    t0 = window[0][0]
+    for t, f in window:
+        t -= t0
+        st += t
+        sf += f
+        stt += t * t
+        stf += t * f
+    den = n * stt - st * st
+    return (n * stf - st * sf) / den if den > 0 else math.inf

@@ -1,0 +1,75 @@
+"""Run one trial from the command line: config, protocol, devices, clock, progress, Ctrl-C."""
+
+from __future__ import annotations
+
+import signal
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from rig.clock import RealClock, VirtualClock
+from rig.config import RigConfig
+from rig.devices import open_devices
+from rig.loop import StopMode, Trial, TrialResult, default_log_path
+from rig.progress import ProgressBar
+from rig.protocol import Protocol, plan
+from rig.recorder import TrialInfo
+
+
+@dataclass
+class RunOptions:
+    specimen: str = "specimen"
+    operator: str = ""
+    notes: str = ""
+    out_dir: str | None = None
+    speed: float = 1.0  # 1 = real time on the real clock; 0 = as fast as possible
+    progress: bool = True
+    log_path: Path | None = None
+
+
+def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions) -> TrialResult:
+    """Open the devices, run the protocol, close the devices; Ctrl-C aborts safely."""
+    clock = RealClock(config.loop.spin_ms / 1000.0) if opts.speed == 1.0 else VirtualClock(opts.speed)
+    if opts.speed != 1.0 and config.slider.backend != "sim":
+        raise ValueError("--speed other than 1 needs the simulated rig")
+    devices = open_devices(config, clock)
+    log_path = opts.log_path or default_log_path(opts.out_dir or config.recorder.out_dir, proto,
+                                                 opts.specimen)
+    clock_name = "real" if opts.speed == 1.0 else f"virtual x{opts.speed:g}" if opts.speed else "virtual"
+    info = TrialInfo(specimen=opts.specimen, operator=opts.operator, notes=opts.notes,
+                     clock=clock_name)
+    trial = Trial(proto, config, devices.slider, devices.loadcell, clock, log_path, info)
+    bar = ProgressBar(plan(proto, config).duration_s) if opts.progress else None
+    trial.on_tick = bar
+    presses = 0
+
+    def on_sigint(signum, frame):  # first Ctrl-C: abort and retract; second: stop the motor now
+        nonlocal presses
+        presses += 1
+        mode = StopMode.ABORT if presses == 1 else StopMode.ESTOP
+        if presses == 1:
+            print("\nabort: stopping, then returning to the start position "
+                  "(Ctrl-C again stops the motor at once)", file=sys.stderr)
+        else:
+            print("\nemergency stop", file=sys.stderr)
+        trial.request_stop(mode, user="console")
+
+    old = signal.signal(signal.SIGINT, on_sigint) if _main_thread() else None
+    old_switch = sys.getswitchinterval()
+    # The writer thread must not hold the GIL for the default 5 ms while a tick waits.
+    sys.setswitchinterval(0.0005)
+    try:
+        return trial.run()
+    finally:
+        sys.setswitchinterval(old_switch)
+        if old is not None:
+            signal.signal(signal.SIGINT, old)
+        if bar:
+            bar.close()
+        devices.close()
+
+
+def _main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()

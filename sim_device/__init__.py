@@ -1,0 +1,1 @@
+"""The simulated rig: tissue physics, a simulated slider and load cell."""

@@ -1,0 +1,109 @@
+"""Parameters of the simulated rig: tissue, slider mechanics, load cell and hidden effects.
+
+Plain dataclasses so the rig config binds them from YAML with units checked by name.
+Every hidden effect is off (None) by default.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+def _pos(**kw: float) -> dict:
+    return {"metadata": kw}
+
+
+@dataclass
+class TissueParams:
+    """The paper's proposed model: f + tau1 df/dt = k1 x^3 + k2 x^2 + k3 x + tau2 x dx/dt (SI units)."""
+
+    k1_N_per_m3: float = field(default=5.6e4, **_pos(ge=0))
+    k2_N_per_m2: float = field(default=5.5e2, **_pos(ge=0))
+    k3_N_per_m: float = field(default=14.0, **_pos(ge=0))
+    tau1_s: float = field(default=8.0, **_pos(gt=0))
+    tau2_N_s_per_m2: float = field(default=2.3e5, **_pos(ge=0))
+    surface_mm: float = 0.0  # where the tissue surface sits in slider coordinates
+
+
+@dataclass
+class SliderParams:
+    """Stepper slider with a trapezoidal velocity profile."""
+
+    steps_per_mm: float = field(default=100.0, **_pos(gt=0))
+    accel_mm_s2: float = field(default=50.0, **_pos(gt=0))
+    stop_decel_mm_s2: float = field(default=2000.0, **_pos(gt=0))
+    start_mm: float = 0.0
+
+
+@dataclass
+class LoadCellParams:
+    noise_N: float = field(default=0.08, **_pos(ge=0))
+    resolution_N: float = field(default=0.001, **_pos(ge=0))
+
+
+@dataclass
+class Relaxation2Params:
+    """A second Maxwell branch (spring k in series with a dashpot, time constant tau) in parallel."""
+
+    k_N_per_m: float = field(default=60.0, **_pos(ge=0))
+    tau_s: float = field(default=40.0, **_pos(gt=0))
+
+
+@dataclass
+class DriftParams:
+    rate_N_per_s: float = 0.004
+
+
+@dataclass
+class OffsetParams:
+    """A cable pulling on the probe once it has left its start position: a tare error."""
+
+    force_N: float = 0.3
+    after_mm: float = field(default=0.05, **_pos(ge=0))
+
+
+@dataclass
+class ContactOffsetParams:
+    x0_mm: float = field(default=1.5, **_pos(ge=0))
+
+
+@dataclass
+class DelayParams:
+    delay_s: float = field(default=0.08, **_pos(ge=0, le=5))
+
+
+@dataclass
+class ComplianceParams:
+    k_frame_N_per_m: float = field(default=2000.0, **_pos(gt=0))
+
+
+@dataclass
+class FrictionParams:
+    """Coulomb friction in the probe guide; `v_smooth_mm_s` rounds the sign near zero speed."""
+
+    force_N: float = field(default=0.15, **_pos(ge=0))
+    v_smooth_mm_s: float = field(default=0.02, **_pos(gt=0))
+
+
+@dataclass
+class HiddenEffects:
+    relaxation2: Relaxation2Params | None = None
+    drift: DriftParams | None = None
+    offset: OffsetParams | None = None
+    contact_offset: ContactOffsetParams | None = None
+    delay: DelayParams | None = None
+    compliance: ComplianceParams | None = None
+    friction: FrictionParams | None = None
+
+    def active(self) -> list[str]:
+        return [name for name in self.__dataclass_fields__ if getattr(self, name) is not None]
+
+
+@dataclass
+class SimParams:
+    seed: int = 1
+    substep_ms: float = field(default=0.5, **_pos(gt=0, le=1))
+    tissue: TissueParams = field(default_factory=TissueParams)
+    slider: SliderParams = field(default_factory=SliderParams)
+    loadcell: LoadCellParams = field(default_factory=LoadCellParams)
+    effects: HiddenEffects = field(default_factory=HiddenEffects)

@@ -1,0 +1,181 @@
+"""Physics of the simulated rig: slider motion, tissue, and what the load cell sees.
+
+The tissue is the paper's proposed model, integrated in small fixed sub-steps
+(default 0.5 ms). Hidden effects are mechanisms added to that chain, never calls to
+the analysis code: a second Maxwell branch, a frame spring in series, guide
+friction, a cable preload, load-cell drift and a delay line in the sensor.
+
+Everything is lazily advanced: `advance(t_s)` integrates up to time `t_s`, so the
+same object serves the in-process devices (virtual or real clock) and the devices
+on the wire.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections import deque
+
+import numpy as np
+
+from sim_device.params import SimParams
+
+
+class SliderMotion:
+    """A stepper axis executing trapezoidal moves; position in mm, speeds in mm/s."""
+
+    def __init__(self, accel_mm_s2: float, stop_decel_mm_s2: float, start_mm: float = 0.0) -> None:
+        self.position_mm = start_mm
+        self.velocity_mm_s = 0.0
+        self.target_mm = start_mm
+        self.speed_mm_s = 0.0
+        self.accel_mm_s2 = accel_mm_s2
+        self.default_accel_mm_s2 = accel_mm_s2
+        self.stop_decel_mm_s2 = stop_decel_mm_s2
+        self.moving = False
+        self.stopping = False
+        self.moves_started = 0
+
+    def move_to(self, target_mm: float, speed_mm_s: float, accel_mm_s2: float | None = None) -> None:
+        self.target_mm = target_mm
+        self.speed_mm_s = abs(speed_mm_s)
+        self.accel_mm_s2 = accel_mm_s2 or self.default_accel_mm_s2
+        self.stopping = False
+        self.moving = self.speed_mm_s > 0 and (target_mm != self.position_mm or self.velocity_mm_s != 0)
+        self.moves_started += 1
+
+    def stop(self) -> None:
+        """Decelerate at the stop rate; a stop is never cancelled by anything but a new move."""
+        if self.moving:
+            self.stopping = True
+
+    def step(self, dt: float) -> None:
+        if not self.moving:
+            self.velocity_mm_s = 0.0
+            return
+        v = self.velocity_mm_s
+        if self.stopping:
+            dv = self.stop_decel_mm_s2 * dt
+            v = 0.0 if abs(v) <= dv else v - math.copysign(dv, v)
+            self.position_mm += v * dt
+            self.velocity_mm_s = v
+            if v == 0.0:
+                self.moving = self.stopping = False
+                self.target_mm = self.position_mm
+            return
+        d = self.target_mm - self.position_mm
+        # Fastest speed from which we can still stop at the target: v^2 = 2 a d.
+        v_des = math.copysign(min(self.speed_mm_s, math.sqrt(2.0 * self.accel_mm_s2 * abs(d))), d)
+        dv_max = self.accel_mm_s2 * dt
+        v += max(-dv_max, min(dv_max, v_des - v))
+        step = v * dt
+        if abs(step) >= abs(d) or abs(d) < 1e-9:
+            self.position_mm = self.target_mm
+            self.velocity_mm_s = 0.0
+            self.moving = False
+        else:
+            self.position_mm += step
+            self.velocity_mm_s = v
+
+
+class SimRig:
+    """Tissue, slider and sensor chain, integrated to any requested time."""
+
+    def __init__(self, params: SimParams | None = None) -> None:
+        self.params = p = params or SimParams()
+        self.dt = p.substep_ms / 1000.0
+        self.lock = threading.RLock()  # wire servers and in-process devices may share one rig
+        self.n = 0  # sub-steps done; t = n * dt
+        self.slider = SliderMotion(p.slider.accel_mm_s2, p.slider.stop_decel_mm_s2, p.slider.start_mm)
+        self.rng = np.random.default_rng(p.seed)
+        tp = p.tissue
+        self._a1 = math.exp(-self.dt / tp.tau1_s)
+        fx = p.effects
+        self._a2 = math.exp(-self.dt / fx.relaxation2.tau_s) if fx.relaxation2 else 0.0
+        self.f1_N = 0.0  # proposed-model branch (first-order lag state)
+        self.f2_N = 0.0  # second Maxwell branch
+        self.tissue_force_N = 0.0
+        self.indentation_m = 0.0
+        self.probe_velocity_mm_s = 0.0
+        self.sensor_force_N = 0.0  # what the bridge outputs before noise (delayed if configured)
+        self._offset_on = False
+        delay = fx.delay.delay_s if fx.delay else 0.0
+        n_delay = int(round(delay / self.dt))
+        self._delay_line: deque[float] | None = deque([0.0] * (n_delay + 1), maxlen=n_delay + 1) \
+            if n_delay > 0 else None
+        self._surface_mm = tp.surface_mm + (fx.contact_offset.x0_mm if fx.contact_offset else 0.0)
+        self._probe_mm = self.slider.position_mm
+        self.max_tissue_force_N = 0.0
+
+    @property
+    def t_s(self) -> float:
+        return self.n * self.dt
+
+    def advance(self, t_s: float) -> None:
+        """Integrate forward to `t_s` (never backwards)."""
+        n_target = int(math.floor(t_s / self.dt + 1e-9))
+        with self.lock:
+            while self.n < n_target:
+                self._substep()
+                self.n += 1
+
+    def _substep(self) -> None:
+        p, dt = self.params, self.dt
+        fx, tp = p.effects, p.tissue
+        slider = self.slider
+        slider.step(dt)
+        # Frame compliance: the frame spring shortens under load, so the probe lags the slider.
+        probe_mm = slider.position_mm
+        if fx.compliance:
+            probe_mm -= 1000.0 * self.tissue_force_N / fx.compliance.k_frame_N_per_m
+        self.probe_velocity_mm_s = (probe_mm - self._probe_mm) / dt
+        self._probe_mm = probe_mm
+        x = max(probe_mm - self._surface_mm, 0.0) / 1000.0
+        xdot = (x - self.indentation_m) / dt
+        self.indentation_m = x
+        if x > 0.0:
+            drive = ((tp.k1_N_per_m3 * x + tp.k2_N_per_m2) * x + tp.k3_N_per_m) * x \
+                + tp.tau2_N_s_per_m2 * x * xdot
+        else:
+            drive = 0.0
+        # Exact discretisation of f + tau1 df/dt = drive over one sub-step (drive held).
+        f1 = drive + (self.f1_N - drive) * self._a1
+        # The tissue cannot pull on the probe: when it would, the surface separates and the
+        # branch recovers freely instead of storing tension.
+        self.f1_N = max(f1, 0.0)
+        if fx.relaxation2:
+            r2 = fx.relaxation2
+            f2 = self.f2_N * self._a2 + r2.k_N_per_m * (xdot * dt)
+            self.f2_N = max(f2, 0.0) if x > 0.0 else 0.0
+        self.tissue_force_N = self.f1_N + self.f2_N if x > 0.0 else 0.0
+        self.max_tissue_force_N = max(self.max_tissue_force_N, self.tissue_force_N)
+        # What the load cell behind the probe carries.
+        sensed = self.tissue_force_N
+        if fx.friction:
+            fr = fx.friction
+            sensed += fr.force_N * math.tanh(self.probe_velocity_mm_s / fr.v_smooth_mm_s)
+        if fx.offset:
+            if not self._offset_on and abs(slider.position_mm - p.slider.start_mm) > fx.offset.after_mm:
+                self._offset_on = True
+            if self._offset_on:
+                sensed += fx.offset.force_N
+        if fx.drift:
+            sensed += fx.drift.rate_N_per_s * (self.n + 1) * dt
+        if self._delay_line is not None:
+            self._delay_line.append(sensed)
+            sensed = self._delay_line[0]
+        self.sensor_force_N = sensed
+
+    def read_force_N(self) -> float:
+        """One load-cell conversion: the bridge force plus Gaussian noise, quantised."""
+        lc = self.params.loadcell
+        with self.lock:
+            value = self.sensor_force_N + (self.rng.normal(0.0, lc.noise_N) if lc.noise_N else 0.0)
+        if lc.resolution_N:
+            value = round(value / lc.resolution_N) * lc.resolution_N
+        return value
+
+    def feedback_position_mm(self) -> float:
+        """The encoder's view of the slider: whole steps only."""
+        spm = self.params.slider.steps_per_mm
+        return round(self.slider.position_mm * spm) / spm
