@@ -46,7 +46,7 @@ class LimitsConfig:
 class EstimatorConfig:
     law: str = field(default="constant_information",
                      metadata={"choices": ["constant_information", "fixed"]})
-    memory_s: float = field(default=1.0, metadata={"gt": 0})
+    memory_s: float = field(default=0.3, metadata={"gt": 0})
     smoothing_s: float = field(default=0.1, metadata={"gt": 0})
     lambda_min: float = field(default=0.8, metadata={"gt": 0, "le": 1})
     lambda_max: float = field(default=0.9999, metadata={"gt": 0, "le": 1})

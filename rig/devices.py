@@ -30,6 +30,7 @@ def open_devices(config: RigConfig, clock: Clock) -> Devices:
         from sim_device.physics import SimRig
 
         sim = SimRig(config.sim)
-        return Devices(InProcessSlider(sim, clock), InProcessLoadCell(sim, clock), sim)
+        origin = clock.now()
+        return Devices(InProcessSlider(sim, clock, origin), InProcessLoadCell(sim, clock, origin), sim)
     raise RigError(f"no backend pairing slider '{config.slider.backend}' with load cell "
                    f"'{config.loadcell.backend}'")

@@ -42,7 +42,7 @@ class RlsStep:
 
 
 class StiffnessRLS:
-    def __init__(self, *, rate_Hz: float, law: str = "constant_information", memory_s: float = 1.0,
+    def __init__(self, *, rate_Hz: float, law: str = "constant_information", memory_s: float = 0.3,
                  smoothing_s: float = 0.1, lambda_min: float = 0.8, lambda_max: float = 0.9999,
                  noise_N: float = 0.08, initial_stiffness_N_per_m: float = 0.0,
                  initial_std_N_per_m: float = 1000.0, contact_mm: float = 0.2,

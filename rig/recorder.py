@@ -124,6 +124,7 @@ class Recorder:
         self.flushes = 0
         self.error: BaseException | None = None
         self._closed = False
+        self._busy = False
         self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
         self._thread.start()
 
@@ -133,6 +134,15 @@ class Recorder:
 
     def depth(self) -> int:
         return self._q.qsize()
+
+    def wait_idle(self, timeout_s: float = 2.0) -> bool:
+        """Block until the writer has taken everything queued so far (not for the loop)."""
+        deadline = time.monotonic() + timeout_s
+        while not self._q.empty() or self._busy:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.001)
+        return True
 
     # --------------------------------------------------- written immediately
     def write_metadata(self, name: str, data: dict[str, str]) -> None:
@@ -164,7 +174,9 @@ class Recorder:
                 if item is _STOP:
                     break
                 if item is not None:
+                    self._busy = True
                     dirty |= self._write(item)
+                    self._busy = False
                 if dirty and time.monotonic() - last_flush >= self.flush_s:
                     self._sync()
                     dirty = False

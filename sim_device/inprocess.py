@@ -13,14 +13,15 @@ from sim_device.physics import SimRig
 
 
 class InProcessSlider:
-    def __init__(self, rig: SimRig, clock: Clock) -> None:
+    def __init__(self, rig: SimRig, clock: Clock, origin_s: float = 0.0) -> None:
         self.rig = rig
         self.clock = clock
+        self.origin_s = origin_s  # clock time at which the simulation started
         self.stats = LinkStats()
         self.alarm_code = 0  # set non-zero to inject a drive alarm (the drive stops itself)
 
     def _sync(self) -> None:
-        self.rig.advance(self.clock.now())
+        self.rig.advance(self.clock.now() - self.origin_s)
         self.stats.transactions += 1
         if self.alarm_code and self.rig.slider.moving:
             self.rig.slider.stop()
@@ -56,9 +57,10 @@ class InProcessSlider:
 class InProcessLoadCell:
     """Converts once per request, at the requesting tick (a polled device with no latency)."""
 
-    def __init__(self, rig: SimRig, clock: Clock) -> None:
+    def __init__(self, rig: SimRig, clock: Clock, origin_s: float = 0.0) -> None:
         self.rig = rig
         self.clock = clock
+        self.origin_s = origin_s
         self.stats = LinkStats()
         self.silent = False  # set to inject a sensor that stops answering
         self._last: ForceReading | None = None
@@ -69,7 +71,7 @@ class InProcessLoadCell:
             if self._last is None:
                 return None
             return ForceReading(self._last.force_N, self._last.t_s, now - self._last.t_s)
-        self.rig.advance(now)
+        self.rig.advance(now - self.origin_s)
         self._last = ForceReading(self.rig.read_force_N(), now, 0.0)
         self.stats.lines_ok += 1
         return self._last
