@@ -79,7 +79,7 @@ def summarize(log: TrialLog) -> dict:
     s = log.samples
     meta = log.trial
     config = config_of(log)
-    tol_ms = config.loop.late_tolerance_ms if config else 2.0
+    tol_ms = config.loop.late_tolerance_ms if config else 5.0
     contact = log.contact
     err = s["error_N"][contact] if contact.any() else np.zeros(0)
     faults = [e for e in log.events if e.get("kind") == "fault"]

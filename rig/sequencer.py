@@ -156,9 +156,10 @@ class Sequencer:
                 self._target_mm = position_mm
                 return self._next(t)
             return []
-        # Three samples in a row above threshold: one noise spike is not contact.
+        # Five samples in a row (50 ms at 100 Hz) above threshold: with a threshold of about
+        # twice the noise, noise alone does this about once in 10^5 ticks.
         self._contact_count = self._contact_count + 1 if force_N > step.contact_N else 0
-        if self._contact_count >= 3:
+        if self._contact_count >= 5:
             self._approach_stopping = True
             self._target_mm = position_mm
             self._speed = 0.0

@@ -64,10 +64,12 @@ class SliderMotion:
                 self.target_mm = self.position_mm
             return
         d = self.target_mm - self.position_mm
-        # Fastest speed from which we can still stop at the target: v^2 = 2 a d.
-        v_des = math.copysign(min(self.speed_mm_s, math.sqrt(2.0 * self.accel_mm_s2 * abs(d))), d)
-        dv_max = self.accel_mm_s2 * dt
-        v += max(-dv_max, min(dv_max, v_des - v))
+        # Fastest speed from which we can still stop at the target in whole sub-steps (the
+        # discrete form of v^2 = 2 a d, so the last step lands without a velocity jump).
+        a_dt = self.accel_mm_s2 * dt
+        v_brake = math.sqrt(2.0 * self.accel_mm_s2 * abs(d) + 0.25 * a_dt * a_dt) - 0.5 * a_dt
+        v_des = math.copysign(min(self.speed_mm_s, v_brake), d)
+        v += max(-a_dt, min(a_dt, v_des - v))
         step = v * dt
         if abs(step) >= abs(d) or abs(d) < 1e-9:
             self.position_mm = self.target_mm

@@ -1,0 +1,51 @@
+"""Shared fixtures: every test must leave no thread behind (like ophyd-async's task check)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from rig.config import RigConfig
+from rig.protocol import load_protocol, parse_protocol
+from rig.trialrun import RunOptions, run_trial
+
+ROOT = Path(__file__).resolve().parent.parent
+PROTOCOLS = ROOT / "protocols"
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_threads():
+    before = set(threading.enumerate())
+    yield
+    deadline = time.monotonic() + 2.0
+    while True:
+        leaked = [t for t in threading.enumerate() if t not in before and t.is_alive()]
+        if not leaked or time.monotonic() > deadline:
+            break
+        time.sleep(0.01)
+    assert not leaked, f"test leaked threads: {[t.name for t in leaked]}"
+
+
+def run_sim(protocol, config: RigConfig | None = None, tmp_path: Path | None = None,
+            name: str = "trial.mcap", **opts):
+    """Run a protocol (path, YAML text or Protocol) on the in-process simulated rig, virtual time."""
+    config = config or RigConfig()
+    if isinstance(protocol, str) and "\n" in protocol:
+        proto = parse_protocol(protocol, "<test>")
+    elif isinstance(protocol, str | Path):
+        proto = load_protocol(protocol, config)
+    else:
+        proto = protocol
+    log_path = (tmp_path or Path("/tmp")) / name
+    return run_trial(proto, config, RunOptions(speed=0, progress=False, log_path=log_path, **opts))
+
+
+@pytest.fixture(scope="session")
+def paper_075_log(tmp_path_factory):
+    """The paper's slowest protocol on the default simulated rig (shared: it is used a lot)."""
+    tmp = tmp_path_factory.mktemp("paper")
+    result = run_sim(PROTOCOLS / "paper-0.75mm_s.yaml", tmp_path=tmp)
+    return result
