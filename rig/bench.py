@@ -21,10 +21,12 @@ from rig.recorder import SAMPLE_TOPIC, Recorder
 
 
 def _bench_protocol(duration_s: float) -> str:
-    """Ramp-hold-return cycles of about 10 s, repeated to fill the duration."""
+    """Ramp-hold-return cycles of about 10 s (shorter for a short bench) filling the duration."""
     repeats = max(int(duration_s // 10), 1)
-    hold = max(duration_s / repeats - 0.5 - 4.0 - 1.6, 0.5)
-    return (f"name: bench cycles\nsteps:\n  - ramp: {{to_mm: 8, speed_mm_s: 2}}\n"
+    cycle = duration_s / repeats - 0.5 / repeats  # the tare comes once
+    depth = min(8.0, max(cycle / 4.0, 0.5))
+    hold = max(cycle - depth / 2.0 - depth / 5.0 - 0.3, 0.2)
+    return (f"name: bench cycles\nsteps:\n  - ramp: {{to_mm: {depth:.2f}, speed_mm_s: 2}}\n"
             f"  - hold: {{duration_s: {hold:.2f}}}\n  - return: {{to_mm: 0, speed_mm_s: 5}}\n"
             f"repeat: {repeats}\n")
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 from drivers.base import LoadCell, Slider
@@ -18,10 +19,8 @@ class Devices:
 
     def close(self) -> None:
         for dev in (self.slider, self.loadcell):
-            try:
+            with contextlib.suppress(Exception):
                 dev.close()
-            except Exception:  # noqa: BLE001 - closing is best effort; the devices may be gone
-                pass
 
 
 def open_devices(config: RigConfig, clock: Clock) -> Devices:

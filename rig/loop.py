@@ -14,6 +14,7 @@ missed, never silently dropped.
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import socket
 import sys
@@ -108,10 +109,8 @@ class Trial:
             if self._stop_request is None or mode == StopMode.ESTOP:
                 self._stop_request = (mode, user)
         if mode == StopMode.ESTOP:
-            try:
+            with contextlib.suppress(Exception):
                 self.slider.stop()
-            except Exception:  # noqa: BLE001 - the loop will stop it again and log why
-                pass
 
     # ------------------------------------------------------------- the run
     def run(self) -> TrialResult:
@@ -171,10 +170,8 @@ class Trial:
                 {"t_s": round(t, 6), "kind": kind, "message": message, "data": data or {}})
 
     def _safe_stop(self) -> None:
-        try:
+        with contextlib.suppress(Exception):
             self.slider.stop()
-        except Exception:  # noqa: BLE001 - nothing more can be done from here; the drive's timeout is the backstop
-            pass
 
     def _loop(self, rec: Recorder, t0: float) -> tuple[str, str | None]:
         cfg = self.config

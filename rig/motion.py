@@ -44,5 +44,5 @@ def position_at(x0: float, x1: float, speed: float, accel: float, t: float) -> f
 
 def sample_move(x0: float, x1: float, speed: float, accel: float, rate_Hz: float) -> np.ndarray:
     """The move sampled at `rate_Hz`, first sample one period after the start, last at x1."""
-    n = max(int(math.ceil(move_time(x0, x1, speed, accel) * rate_Hz)), 1)
+    n = max(math.ceil(move_time(x0, x1, speed, accel) * rate_Hz), 1)
     return np.array([position_at(x0, x1, speed, accel, (i + 1) / rate_Hz) for i in range(n)])

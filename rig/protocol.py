@@ -16,7 +16,7 @@ import numpy as np
 from rig.config import LimitsConfig, RigConfig
 from rig.errors import LimitError, SpecError
 from rig.motion import sample_move
-from rig.yamlspec import Marked, MapView, load_marked
+from rig.yamlspec import MapView, Marked, load_marked
 
 
 @dataclass(frozen=True)
@@ -279,14 +279,14 @@ def plan(proto: Protocol, config: RigConfig) -> Plan:
     rate = config.loop.rate_Hz
     accel = config.slider.accel_mm_s2
     pos, zero, start = 0.0, 0.0, 0.0
-    segments: list[np.ndarray] = [np.zeros(int(round(config.loop.tare_s * rate)) + 1)]
+    segments: list[np.ndarray] = [np.zeros(round(config.loop.tare_s * rate) + 1)]
     depths: list[float] = []
     speeds: list[float] = []
     upper = False
     for _, step in proto.run_steps():
         if isinstance(step, Hold):
             upper |= step.until_rate_N_s is not None
-            segments.append(np.full(max(int(round(step.longest_s * rate)), 1), pos))
+            segments.append(np.full(max(round(step.longest_s * rate), 1), pos))
             continue
         if isinstance(step, Approach):
             target = zero + step.max_mm / 2.0

@@ -188,8 +188,8 @@ def plot_log(log: TrialLog, out: str | Path) -> None:
     labels += kinds_present
     ax.legend(handles, labels, loc="upper right", fontsize=8, ncol=2)
     meta = log.trial
-    ax.set_title(f"{meta.get('protocol_name', '')}  |  specimen {meta.get('specimen', '-')}  |  "
-                 f"{Path(log.path).name}", fontsize=10)
+    ax.set_title(f"{meta.get('protocol_name', '')}  |  specimen {meta.get('specimen', '-')}\n"
+                 f"{Path(log.path).name}", fontsize=9)
     ax = axes[1]
     shade_steps(ax, t, log.step_kind)
     ax.plot(t, s["position_mm"], lw=1.0, label="feedback")

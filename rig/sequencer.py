@@ -71,7 +71,7 @@ class Sequencer:
 
     def abort_to_start(self, t: float, speed_mm_s: float) -> None:
         """Drop the remaining steps; once the slider has stopped, return to the start position."""
-        self.steps = self.steps[: max(self.index, -1) + 1] + [(0, Return(speed_mm_s=speed_mm_s))]
+        self.steps = [*self.steps[:max(self.index, -1) + 1], (0, Return(speed_mm_s=speed_mm_s))]
         self.index = len(self.steps) - 2
         self._speed = 0.0
         self._abort_pending = True

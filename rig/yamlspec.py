@@ -237,9 +237,9 @@ def _bind_value(tp: Any, child: Marked, view: MapView, name: str, meta: typing.M
         if not isinstance(child.value, list):
             raise view.error(name, f"expected a list, got {_describe(child.value)}")
         item_tp = args[0]
-        if origin is tuple and len(args) > 1 and args[1] is not Ellipsis:
-            if len(child.value) != len(args):
-                raise view.error(name, f"expected a list of {len(args)} values, got {len(child.value)}")
+        fixed = origin is tuple and len(args) > 1 and args[1] is not Ellipsis
+        if fixed and len(child.value) != len(args):
+            raise view.error(name, f"expected a list of {len(args)} values, got {len(child.value)}")
         items = [_scalar(item_tp, c, view.path, f"{field}[{i}]", meta) for i, c in enumerate(child.value)]
         return tuple(items) if origin is tuple else items
     if origin is dict:

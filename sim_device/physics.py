@@ -102,7 +102,7 @@ class SimRig:
         self.sensor_force_N = 0.0  # what the bridge outputs before noise (delayed if configured)
         self._offset_on = False
         delay = fx.delay.delay_s if fx.delay else 0.0
-        n_delay = int(round(delay / self.dt))
+        n_delay = round(delay / self.dt)
         self._delay_line: deque[float] | None = deque([0.0] * (n_delay + 1), maxlen=n_delay + 1) \
             if n_delay > 0 else None
         self._surface_mm = tp.surface_mm + (fx.contact_offset.x0_mm if fx.contact_offset else 0.0)
@@ -115,7 +115,7 @@ class SimRig:
 
     def advance(self, t_s: float) -> None:
         """Integrate forward to `t_s` (never backwards)."""
-        n_target = int(math.floor(t_s / self.dt + 1e-9))
+        n_target = math.floor(t_s / self.dt + 1e-9)
         with self.lock:
             while self.n < n_target:
                 self._substep()

@@ -51,7 +51,7 @@ def base():
 
 
 def test_paper_magnitudes(base):
-    t, x, f, _, t_ramp = base
+    t, _x, f, _, t_ramp = base
     peak = f[t < t_ramp].max()
     relaxed = f[(t > t_ramp + 55) & (t < t_ramp + 59)].mean()
     assert 5.0 <= peak <= 6.5
@@ -147,20 +147,20 @@ def test_offset_appears_once_the_probe_moves():
 
 
 def test_contact_offset_delays_contact():
-    t, x, f, _, _ = ramp_hold(quiet(contact_offset=ContactOffsetParams(x0_mm=2.0)), hold_s=1)
+    _t, x, f, _, _ = ramp_hold(quiet(contact_offset=ContactOffsetParams(x0_mm=2.0)), hold_s=1)
     first = x[np.argmax(f > 0)]
     assert 2.0 <= first <= 2.1
 
 
 def test_delay_shifts_the_force(base):
-    t, _, fd, _, _ = ramp_hold(quiet(delay=DelayParams(delay_s=0.1)))
+    _t, _, fd, _, _ = ramp_hold(quiet(delay=DelayParams(delay_s=0.1)))
     _, _, f, _, _ = base
     # the delayed trace is the base trace 10 samples (0.1 s) later
     assert np.allclose(fd[10:500], f[:490], atol=1e-9)
 
 
 def test_compliance_reduces_indentation(base):
-    _, _, fc, _, t_ramp = ramp_hold(quiet(compliance=ComplianceParams(k_frame_N_per_m=2000)))
+    _, _, fc, _, _t_ramp = ramp_hold(quiet(compliance=ComplianceParams(k_frame_N_per_m=2000)))
     _, _, f, _, _ = base
     assert fc.max() < f.max() - 0.3
 

@@ -118,7 +118,7 @@ def _trial_with_stop(tmp_path, mode: StopMode, at_s: float):
 
 
 def test_abort_stops_then_returns_to_start(tmp_path):
-    result, dev = _trial_with_stop(tmp_path, StopMode.ABORT, 2.5)
+    result, _dev = _trial_with_stop(tmp_path, StopMode.ABORT, 2.5)
     assert result.outcome == "aborted"
     log = read_log(result.log_path)
     ev = next(e for e in log.events if e["kind"] == "stop_requested")
@@ -128,7 +128,7 @@ def test_abort_stops_then_returns_to_start(tmp_path):
 
 
 def test_hold_stop_stays_put(tmp_path):
-    result, dev = _trial_with_stop(tmp_path, StopMode.HOLD, 2.5)
+    result, _dev = _trial_with_stop(tmp_path, StopMode.HOLD, 2.5)
     assert result.outcome == "stopped"
     pos = read_log(result.log_path).samples["position_mm"]
     assert pos[-1] > 3.0 and np.ptp(pos[-20:]) <= 0.01
