@@ -98,7 +98,9 @@ def bench_replay(path: Path) -> dict:
     t0 = time.perf_counter()
     log = read_log(path)
     dt = time.perf_counter() - t0
-    return {"samples": log.n, "samples_per_s": log.n / dt if dt > 0 else float("inf")}
+    late = log.samples["late_ms"]
+    return {"samples": log.n, "samples_per_s": log.n / dt if dt > 0 else float("inf"),
+            "lateness_p99_ms": float(np.percentile(late, 99)), "lateness_max_ms": float(late.max())}
 
 
 def run_bench(duration_s: float = 60.0, rate_Hz: float = 100.0, progress: bool = True) -> dict:
@@ -113,6 +115,8 @@ def format_bench(r: dict) -> str:
         f"in-process simulated devices)",
         f"          period error p50 {lp['period_err_p50_ms']:.3f} ms  p99 {lp['period_err_p99_ms']:.3f} ms"
         f"  max {lp['period_err_max_ms']:.3f} ms",
+        f"          tick start after its slot p99 {lp['replay']['lateness_p99_ms']:.3f} ms  "
+        f"max {lp['replay']['lateness_max_ms']:.3f} ms",
         f"          late ticks {lp['late_ticks']}  missed {lp['missed_ticks']}  "
         f"bus transactions/tick {lp['bus_transactions_per_tick']:.3f}",
         f"rls       {rls['update_us']:.2f} us per update",

@@ -13,7 +13,7 @@ from pathlib import Path
 import yaml
 
 from rig.errors import SpecError
-from rig.yamlspec import bind, load_marked
+from rig.yamlspec import bind, load_marked, read_text
 from sim_device.params import SimParams
 
 
@@ -122,7 +122,7 @@ def load_config(path: str | Path | None) -> RigConfig:
     """Load and validate a rig config; None gives the built-in simulated rig."""
     if path is None:
         return RigConfig()
-    return parse_config(_read(path), str(path))
+    return parse_config(read_text(path, "config file"), str(path))
 
 
 def parse_config(text: str, path: str = "<config>") -> RigConfig:
@@ -132,15 +132,6 @@ def parse_config(text: str, path: str = "<config>") -> RigConfig:
     cfg.source_text = text
     cfg.source_path = path
     return cfg
-
-
-def _read(path: str | Path) -> str:
-    try:
-        return Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise SpecError("config file not found", path=str(path)) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SpecError(f"cannot read config: {exc}", path=str(path)) from None
 
 
 def _refuse_keys(node, keys: tuple[str, ...], path: str) -> None:

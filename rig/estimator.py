@@ -63,6 +63,15 @@ class StiffnessRLS:
         self.contact_m = contact_mm / 1000.0
         self.contact_N = contact_N
 
+    @classmethod
+    def from_config(cls, est, rate_Hz: float) -> StiffnessRLS:
+        """From an `EstimatorConfig` (the `estimator:` section of a rig config)."""
+        return cls(rate_Hz=rate_Hz, law=est.law, memory_s=est.memory_s, smoothing_s=est.smoothing_s,
+                   lambda_min=est.lambda_min, lambda_max=est.lambda_max, noise_N=est.noise_N,
+                   initial_stiffness_N_per_m=est.initial_stiffness_N_per_m,
+                   initial_std_N_per_m=est.initial_std_N_per_m, contact_mm=est.contact_mm,
+                   contact_N=est.contact_N)
+
     def update(self, x_prev_m: float, force_N: float) -> RlsStep:
         """One sample: predict from x(t-1), then update if the probe is in contact."""
         pred = self.k * x_prev_m

@@ -94,12 +94,7 @@ class Trial:
         self._lock = threading.Lock()
         self.snapshot = Snapshot(steps_total=len(proto.run_steps()), log_path=str(log_path))
         est = config.estimator
-        self.rls = StiffnessRLS(rate_Hz=self.rate, law=est.law, memory_s=est.memory_s,
-                                smoothing_s=est.smoothing_s, lambda_min=est.lambda_min,
-                                lambda_max=est.lambda_max, noise_N=est.noise_N,
-                                initial_stiffness_N_per_m=est.initial_stiffness_N_per_m,
-                                initial_std_N_per_m=est.initial_std_N_per_m,
-                                contact_mm=est.contact_mm, contact_N=est.contact_N)
+        self.rls = StiffnessRLS.from_config(est, self.rate)
         self.on_tick = None  # optional callable(Snapshot), called every tick from the loop thread
 
     # ------------------------------------------------------------- control

@@ -16,7 +16,7 @@ import numpy as np
 from rig.config import LimitsConfig, RigConfig
 from rig.errors import LimitError, SpecError
 from rig.motion import sample_move
-from rig.yamlspec import MapView, Marked, load_marked
+from rig.yamlspec import MapView, Marked, load_marked, read_text
 
 
 @dataclass(frozen=True)
@@ -123,14 +123,7 @@ _STEP_KEYS = {
 
 def load_protocol(path: str | Path, config: RigConfig | None = None) -> Protocol:
     """Load a protocol file; with `config`, also refuse it if it exceeds the rig's limits."""
-    path = str(path)
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise SpecError("protocol file not found", path=path) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SpecError(f"cannot read protocol: {exc}", path=path) from None
-    proto = parse_protocol(text, path)
+    proto = parse_protocol(read_text(path, "protocol file"), str(path))
     if config is not None:
         check_limits(proto, config)
     return proto

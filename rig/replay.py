@@ -39,12 +39,7 @@ def config_of(log: TrialLog) -> RigConfig | None:
 def rerun_estimator(log: TrialLog, config: RigConfig) -> np.ndarray:
     """Run the online estimator again over the logged positions and forces."""
     est = config.estimator
-    rls = StiffnessRLS(rate_Hz=config.loop.rate_Hz, law=est.law, memory_s=est.memory_s,
-                       smoothing_s=est.smoothing_s, lambda_min=est.lambda_min,
-                       lambda_max=est.lambda_max, noise_N=est.noise_N,
-                       initial_stiffness_N_per_m=est.initial_stiffness_N_per_m,
-                       initial_std_N_per_m=est.initial_std_N_per_m,
-                       contact_mm=est.contact_mm, contact_N=est.contact_N)
+    rls = StiffnessRLS.from_config(est, config.loop.rate_Hz)
     x = log.samples["position_mm"] / 1000.0
     f = log.samples["force_N"]
     out = np.empty(log.n)

@@ -68,16 +68,21 @@ def _from_node(node: yaml.Node, path: str) -> Marked:
     return Marked(value, line, col)
 
 
+def read_text(path: str | Path, what: str = "file") -> str:
+    """A text file's contents, or a `SpecError` saying why it cannot be read."""
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SpecError(f"{what} not found", path=str(path)) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SpecError(f"cannot read {what}: {exc}", path=str(path)) from None
+
+
 def load_marked(path: str | Path, text: str | None = None) -> Marked:
     """Parse a YAML file into marked nodes. Syntax errors become `SpecError` with file:line:col."""
     path = str(path)
     if text is None:
-        try:
-            text = Path(path).read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise SpecError("file not found", path=path) from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise SpecError(f"cannot read file: {exc}", path=path) from None
+        text = read_text(path)
     try:
         node = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.MarkedYAMLError as exc:

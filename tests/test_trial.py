@@ -65,12 +65,17 @@ def test_force_limit_stops_within_one_tick(tmp_path):
     assert log.events[-1]["kind"] == "trial_end"
 
 
-def test_stale_load_cell_is_a_fault(tmp_path):
+def demo_trial(path):
+    """The demo protocol on in-process devices in virtual time, for tests that poke the devices."""
     cfg = RigConfig()
     proto = parse_protocol((PROTOCOLS / "demo.yaml").read_text(), "demo.yaml")
     clock = VirtualClock(0)
     dev = open_devices(cfg, clock)
-    trial = Trial(proto, cfg, dev.slider, dev.loadcell, clock, tmp_path / "stale.mcap")
+    return Trial(proto, cfg, dev.slider, dev.loadcell, clock, path), dev
+
+
+def test_stale_load_cell_is_a_fault(tmp_path):
+    trial, dev = demo_trial(tmp_path / "stale.mcap")
 
     def silence(snap):
         if snap.t_s >= 2.0:
@@ -87,11 +92,7 @@ def test_stale_load_cell_is_a_fault(tmp_path):
 
 
 def test_drive_alarm_is_a_fault(tmp_path):
-    cfg = RigConfig()
-    proto = parse_protocol((PROTOCOLS / "demo.yaml").read_text(), "demo.yaml")
-    clock = VirtualClock(0)
-    dev = open_devices(cfg, clock)
-    trial = Trial(proto, cfg, dev.slider, dev.loadcell, clock, tmp_path / "alarm.mcap")
+    trial, dev = demo_trial(tmp_path / "alarm.mcap")
     trial.on_tick = lambda snap: setattr(dev.slider, "alarm_code", 0x10) if snap.t_s >= 2.0 else None
     result = trial.run()
     assert result.outcome == "fault"
@@ -101,11 +102,7 @@ def test_drive_alarm_is_a_fault(tmp_path):
 
 
 def _trial_with_stop(tmp_path, mode: StopMode, at_s: float):
-    cfg = RigConfig()
-    proto = parse_protocol((PROTOCOLS / "demo.yaml").read_text(), "demo.yaml")
-    clock = VirtualClock(0)
-    dev = open_devices(cfg, clock)
-    trial = Trial(proto, cfg, dev.slider, dev.loadcell, clock, tmp_path / f"{mode.value}.mcap")
+    trial, dev = demo_trial(tmp_path / f"{mode.value}.mcap")
     fired = threading.Event()
 
     def stopper(snap):
