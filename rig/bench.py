@@ -31,20 +31,23 @@ def _bench_protocol(duration_s: float) -> str:
             f"repeat: {repeats}\n")
 
 
-def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True) -> dict:
+def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: str = "none") -> dict:
     from rig.trialrun import RunOptions, run_trial
 
     config = RigConfig()
     config.loop.rate_Hz = rate_Hz
+    config.sim.wire = wire
     proto = parse_protocol(_bench_protocol(duration_s), "<bench>")
     with tempfile.TemporaryDirectory() as tmp:
         log = Path(tmp) / "bench.mcap"
         if progress:
-            print(f"bench: {duration_s:g} s real-clock trial at {rate_Hz:g} Hz ...", file=sys.stderr)
+            where = "in-process devices" if wire == "none" else f"simulated devices over Modbus {wire.upper()}"
+            print(f"bench: {duration_s:g} s real-clock trial at {rate_Hz:g} Hz, {where} ...", file=sys.stderr)
         result = run_trial(proto, config, RunOptions(speed=1.0, progress=False, log_path=log))
         err = result.period_errors_ms
         replay = bench_replay(log)
     return {
+        "devices": "in-process" if wire == "none" else f"modbus-{wire} + serial load cell",
         "rate_Hz": rate_Hz,
         "duration_s": round(result.duration_s, 2),
         "ticks": result.samples,
@@ -103,16 +106,36 @@ def bench_replay(path: Path) -> dict:
             "lateness_p99_ms": float(np.percentile(late, 99)), "lateness_max_ms": float(late.max())}
 
 
-def run_bench(duration_s: float = 60.0, rate_Hz: float = 100.0, progress: bool = True) -> dict:
-    return {"loop": bench_loop(duration_s, rate_Hz, progress), "rls": bench_rls(),
-            "record": bench_record()}
+def max_rate(wire: str, rates=(100, 200, 400, 600, 800, 1000), seconds: float = 5.0,
+             progress: bool = True) -> dict:
+    """The highest loop rate with no late or missed tick over a short run, per transport."""
+    tried = []
+    best = None
+    for rate in rates:
+        r = bench_loop(seconds, float(rate), progress, wire)
+        ok = r["late_ticks"] == 0 and r["missed_ticks"] == 0 and r["outcome"] == "completed"
+        tried.append({"rate_Hz": rate, "ok": ok, "late_ticks": r["late_ticks"],
+                      "missed_ticks": r["missed_ticks"], "period_err_p99_ms": r["period_err_p99_ms"]})
+        if not ok:
+            break
+        best = rate
+    return {"wire": wire, "max_rate_Hz": best, "tried": tried}
+
+
+def run_bench(duration_s: float = 60.0, rate_Hz: float = 100.0, progress: bool = True,
+              wire: str = "none", find_max_rate: bool = False) -> dict:
+    out = {"loop": bench_loop(duration_s, rate_Hz, progress, wire), "rls": bench_rls(),
+           "record": bench_record()}
+    if find_max_rate:
+        out["max_rate"] = max_rate(wire, progress=progress)
+    return out
 
 
 def format_bench(r: dict) -> str:
     lp, rls, rec = r["loop"], r["rls"], r["record"]
     return "\n".join([
         f"loop      {lp['ticks']} ticks at {lp['rate_Hz']:g} Hz over {lp['duration_s']:.1f} s (real clock, "
-        f"in-process simulated devices)",
+        f"{lp['devices']} simulated devices)",
         f"          period error p50 {lp['period_err_p50_ms']:.3f} ms  p99 {lp['period_err_p99_ms']:.3f} ms"
         f"  max {lp['period_err_max_ms']:.3f} ms",
         f"          tick start after its slot p99 {lp['replay']['lateness_p99_ms']:.3f} ms  "
@@ -123,4 +146,6 @@ def format_bench(r: dict) -> str:
         f"record    {rec['put_us']:.2f} us per sample on the loop side; writer "
         f"{rec['writer_us_per_sample']:.1f} us/sample; {rec['bytes_per_sample']:.1f} bytes/sample on disk",
         f"replay    {lp['replay']['samples_per_s']:,.0f} samples/s",
-    ])
+    ] + ([f"max rate  {r['max_rate']['max_rate_Hz']} Hz without a late tick over "
+          f"{r['max_rate']['wire']} (tried {', '.join(str(t['rate_Hz']) for t in r['max_rate']['tried'])})"]
+         if "max_rate" in r else []))

@@ -121,10 +121,20 @@ def cmd_check(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_sim(args: argparse.Namespace) -> int:
+    from rig.config import load_config
+    from sim_device.control import serve_sim
+
+    config = load_config(args.config)
+    return serve_sim(config, json_out=args.json, exit_with_parent=args.exit_with_parent,
+                     tcp_port=args.tcp_port)
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from rig.bench import format_bench, run_bench
 
-    result = run_bench(duration_s=args.duration, rate_Hz=args.rate, progress=not args.json)
+    result = run_bench(duration_s=args.duration, rate_Hz=args.rate, progress=not args.json,
+                       wire=args.wire, find_max_rate=args.max_rate)
     print(json.dumps(result, indent=2) if args.json else format_bench(result))
     return 0
 
@@ -171,12 +181,28 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--json", action="store_true")
     r.set_defaults(func=cmd_check)
 
+    r = sub.add_parser("sim", help="start the simulated slider and load cell on real wires",
+                       description="Serve the simulated drive over Modbus TCP (loopback) and Modbus RTU "
+                                   "(a pseudo-terminal), and the simulated load cell on a pseudo-terminal, "
+                                   "until Ctrl-C. Prints the ports to put in a rig config. Faults can be "
+                                   'switched on stdin with JSON lines, e.g. {"faults": {"drop_replies": 1}}.')
+    r.add_argument("--config", help="rig config whose sim: section describes the rig (default: built-in)")
+    r.add_argument("--tcp-port", type=int, default=0, help="Modbus TCP port on 127.0.0.1 (default: a free one)")
+    r.add_argument("--json", action="store_true", help="print the endpoints as one JSON line")
+    r.add_argument("--exit-with-parent", action="store_true", help="exit when stdin closes")
+    r.set_defaults(func=cmd_sim)
+
     r = sub.add_parser("bench", help="measure loop timing, estimator and logging costs",
                        description="Loop period jitter and late ticks at the loop rate on the real "
                                    "clock with in-process simulated devices; RLS update time; "
                                    "per-sample recording cost; replay speed.")
     r.add_argument("--duration", type=float, default=60.0, help="real-clock run length, s (default 60)")
     r.add_argument("--rate", type=float, default=100.0, help="loop rate, Hz (default 100)")
+    r.add_argument("--wire", choices=["none", "rtu", "tcp"], default="none",
+                   help="devices: in-process (none, default) or the simulated devices over Modbus "
+                        "RTU on a pseudo-terminal / Modbus TCP on loopback")
+    r.add_argument("--max-rate", action="store_true",
+                   help="also find the highest loop rate without late ticks (5 s runs)")
     r.add_argument("--json", action="store_true")
     r.set_defaults(func=cmd_bench)
     return p

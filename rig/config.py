@@ -66,14 +66,43 @@ class EstimatorConfig:
 
 @dataclass
 class SliderConfig:
-    backend: str = field(default="sim", metadata={"choices": ["sim"]})
+    # sim: the simulated rig (on the wire at --speed 1 unless sim.wire is none);
+    # modbus-rtu / modbus-tcp: a real drive.
+    backend: str = field(default="sim", metadata={"choices": ["sim", "modbus-rtu", "modbus-tcp"]})
     accel_mm_s2: float = field(default=50.0, metadata={"gt": 0})
     position_tolerance_mm: float = field(default=0.02, metadata={"gt": 0})
+    port: str = ""  # modbus-rtu: serial device (or pyserial URL)
+    baudrate: int = field(default=115200, metadata={"gt": 0})
+    parity: str = field(default="N", metadata={"choices": ["N", "E", "O"]})
+    stopbits: int = field(default=1, metadata={"ge": 1, "le": 2})
+    host: str = "127.0.0.1"  # modbus-tcp
+    tcp_port: int = field(default=502, metadata={"ge": 1, "le": 65535})
+    device_id: int = field(default=1, metadata={"ge": 0, "le": 247})
+    timeout_s: float = field(default=0.02, metadata={"gt": 0})  # per transaction
+    retries: int = field(default=0, metadata={"ge": 0, "le": 3})
+    max_consecutive_errors: int = field(default=5, metadata={"ge": 1})
+    steps_per_mm: float = field(default=100.0, metadata={"gt": 0})
+    profile: str = "oriental_az"  # register map (drivers/registers.py)
+    registers: dict[str, int] = field(default_factory=dict)  # overrides of the profile
+    current_percent: float = field(default=100.0, metadata={"gt": 0, "le": 100})
+    # Written to the drive on connect (profiles that know the register): the drive stops by
+    # itself when the controller falls silent this long.
+    comm_timeout_s: float = field(default=0.5, metadata={"ge": 0})
 
 
 @dataclass
 class LoadCellConfig:
-    backend: str = field(default="sim", metadata={"choices": ["sim"]})
+    backend: str = field(default="sim", metadata={"choices": ["sim", "serial"]})
+    port: str = ""  # serial device or pyserial URL (e.g. loop://)
+    baudrate: int = field(default=115200, metadata={"gt": 0})
+    mode: str = field(default="stream", metadata={"choices": ["stream", "poll"]})
+    request: str = "?\r\n"  # poll mode: sent once per tick
+    pattern: str = ""  # regular expression with a group 'value' (and optional 'unit'); "" = default
+    unit: str = "N"  # when lines carry no unit: N, kN, mN, lbf, kgf, g
+    counts: bool = False  # raw counts: force = gain_N_per_count * (value - offset_counts)
+    gain_N_per_count: float = 1.0
+    offset_counts: float = 0.0
+    max_abs_N: float = field(default=500.0, metadata={"gt": 0})
 
 
 @dataclass

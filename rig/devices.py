@@ -1,35 +1,144 @@
-"""Open the slider and load cell a config names, behind the driver interfaces."""
+"""Open the slider and load cell a config names, behind the driver interfaces.
+
+Backends: the simulated rig in-process (virtual or real time), the simulated rig on the
+wire (started in a process of its own, reached through the real drivers), or real
+hardware over Modbus RTU/TCP and a serial port.
+"""
 
 from __future__ import annotations
 
 import contextlib
-from dataclasses import dataclass
+import re
+from dataclasses import dataclass, field
 
 from drivers.base import LoadCell, Slider
 from rig.clock import Clock
 from rig.config import RigConfig
-from rig.errors import RigError
+from rig.errors import DeviceError, RigError
 
 
 @dataclass
 class Devices:
     slider: Slider
     loadcell: LoadCell
-    rig: object | None = None  # the SimRig behind simulated devices (for tests and fault injection)
+    rig: object | None = None  # the SimRig behind in-process devices (tests, fault injection)
+    sim: object | None = None  # the SimProcess behind simulated devices on the wire
+    description: str = ""
+    _closers: list = field(default_factory=list)
 
     def close(self) -> None:
         for dev in (self.slider, self.loadcell):
+            # closing is best effort; the devices may be gone
             with contextlib.suppress(Exception):
                 dev.close()
+        if self.sim is not None:
+            self.sim.close()
 
 
-def open_devices(config: RigConfig, clock: Clock) -> Devices:
-    if config.slider.backend == "sim" and config.loadcell.backend == "sim":
+def uses_wire(config: RigConfig, speed: float) -> bool:
+    if config.slider.backend != "sim":
+        return True
+    return speed == 1.0 and config.sim.wire != "none"
+
+
+def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0) -> Devices:
+    """Devices for a run at `speed` (1 = real time; the simulated rig goes on the wire then)."""
+    sb, lb = config.slider.backend, config.loadcell.backend
+    if (sb == "sim") != (lb == "sim"):
+        raise RigError(f"slider backend '{sb}' and load-cell backend '{lb}': the simulated rig "
+                       "provides both devices, so use 'sim' for both or for neither")
+    if sb == "sim" and not uses_wire(config, speed):
         from sim_device.inprocess import InProcessLoadCell, InProcessSlider
         from sim_device.physics import SimRig
 
         sim = SimRig(config.sim)
         origin = clock.now()
-        return Devices(InProcessSlider(sim, clock, origin), InProcessLoadCell(sim, clock, origin), sim)
-    raise RigError(f"no backend pairing slider '{config.slider.backend}' with load cell "
-                   f"'{config.loadcell.backend}'")
+        return Devices(InProcessSlider(sim, clock, origin), InProcessLoadCell(sim, clock, origin), sim,
+                       description="simulated rig, in-process")
+    sim_proc = None
+    cfg = config
+    if sb == "sim":
+        from sim_device.process import SimProcess
+
+        sim_proc = SimProcess(config.text())
+        cfg = wire_config(config, sim_proc.endpoints)
+    try:
+        slider = open_slider(cfg)
+        try:
+            loadcell = open_loadcell(cfg, clock)
+        except BaseException:
+            slider.close()
+            raise
+    except BaseException:
+        if sim_proc is not None:
+            sim_proc.close()
+        raise
+    desc = f"{slider.link.describe()}; load cell {cfg.loadcell.port}"
+    if sim_proc is not None:
+        desc = f"simulated rig on the wire: {desc}"
+    return Devices(slider, loadcell, sim=sim_proc, description=desc)
+
+
+def wire_config(config: RigConfig, endpoints: dict) -> RigConfig:
+    """The config with the drivers pointed at the simulated devices' wires."""
+    import copy
+
+    cfg = copy.deepcopy(config)
+    s = cfg.slider
+    if config.sim.wire == "tcp":
+        host, port = endpoints["modbus_tcp"].rsplit(":", 1)
+        s.backend, s.host, s.tcp_port = "modbus-tcp", host, int(port)
+    else:
+        s.backend, s.port, s.parity = "modbus-rtu", endpoints["modbus_rtu"], "N"
+    if s.profile == "oriental_az":
+        s.profile = "oriental_az_sim"  # the simulated drive exposes its comm-timeout parameter
+    s.steps_per_mm = config.sim.slider.steps_per_mm
+    s.device_id = config.sim.drive.device_id
+    lc = cfg.loadcell
+    lc.backend, lc.port, lc.mode = "serial", endpoints["loadcell"], config.sim.loadcell.mode
+    return cfg
+
+
+def open_slider(config: RigConfig):
+    from drivers.modbus_slider import ModbusLink, ModbusSlider
+    from drivers.registers import PROFILES
+
+    s = config.slider
+    if s.profile not in PROFILES:
+        raise RigError(f"unknown slider profile '{s.profile}' (known: {', '.join(PROFILES)})")
+    try:
+        regs = PROFILES[s.profile].with_overrides(s.registers)
+    except ValueError as exc:
+        raise RigError(f"slider.registers: {exc}") from None
+    link = ModbusLink("tcp" if s.backend == "modbus-tcp" else "rtu", port=s.port, baudrate=s.baudrate,
+                      parity=s.parity, stopbits=s.stopbits, host=s.host, tcp_port=s.tcp_port,
+                      device_id=s.device_id, timeout_s=s.timeout_s, retries=s.retries)
+    if link.transport == "rtu" and not s.port:
+        raise RigError("slider.port is empty: name the serial device of the drive")
+    slider = ModbusSlider(link, regs, s.steps_per_mm, current_percent=s.current_percent,
+                          max_consecutive_errors=s.max_consecutive_errors)
+    try:
+        slider.read_position_mm()
+        if s.comm_timeout_s > 0:
+            slider.set_comm_timeout(s.comm_timeout_s)
+    except DeviceError:
+        slider.close()
+        raise
+    return slider
+
+
+def open_loadcell(config: RigConfig, clock: Clock):
+    from drivers.serial_loadcell import DEFAULT_PATTERN, LineFormat, SerialLoadCell
+
+    lc = config.loadcell
+    if not lc.port:
+        raise RigError("loadcell.port is empty: name the serial device of the load cell")
+    fmt = LineFormat(pattern=lc.pattern or DEFAULT_PATTERN, unit=lc.unit, counts=lc.counts,
+                     gain_N_per_count=lc.gain_N_per_count, offset_counts=lc.offset_counts,
+                     max_abs_N=lc.max_abs_N)
+    try:
+        fmt.compile()
+    except (ValueError, re.error) as exc:
+        raise RigError(f"loadcell.pattern: {exc}") from None
+    return SerialLoadCell(lc.port, baudrate=lc.baudrate, mode=lc.mode, request=lc.request.encode(),
+                          fmt=fmt, clock=clock)

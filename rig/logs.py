@@ -98,7 +98,7 @@ def read_log(path: str | Path, keep_raw: bool = False) -> TrialLog:
             error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
             if not seen_any:
                 raise RigError(f"{path}: not a readable MCAP log ({error})") from None
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - a corrupt chunk (e.g. zstd) ends the readable part
             error = f"{type(exc).__name__}: {exc}"
             if not seen_any:
                 raise RigError(f"{path}: not a readable MCAP log ({error})") from None

@@ -104,6 +104,7 @@ class Trial:
             if self._stop_request is None or mode == StopMode.ESTOP:
                 self._stop_request = (mode, user)
         if mode == StopMode.ESTOP:
+            # best effort from this thread; the loop stops it again on its next tick and logs why
             with contextlib.suppress(Exception):
                 self.slider.stop()
 
@@ -165,6 +166,7 @@ class Trial:
                 {"t_s": round(t, 6), "kind": kind, "message": message, "data": data or {}})
 
     def _safe_stop(self) -> None:
+        # nothing more can be done from here if this fails: the drive's comm timeout is the backstop
         with contextlib.suppress(Exception):
             self.slider.stop()
 

@@ -191,7 +191,7 @@ class Recorder:
             self._writer.finish()
             self._file.flush()
             os.fsync(self._file.fileno())
-        except BaseException as exc:  # disk full, I/O error: keep what is on disk, report it
+        except BaseException as exc:  # noqa: BLE001 - disk full, I/O error: keep what is on disk, report it
             self.error = exc
         finally:
             self._file.close()

@@ -10,6 +10,7 @@ from pathlib import Path
 from rig.clock import RealClock, VirtualClock
 from rig.config import RigConfig
 from rig.devices import open_devices
+from rig.errors import RigError
 from rig.loop import StopMode, Trial, TrialResult, default_log_path
 from rig.progress import ProgressBar
 from rig.protocol import Protocol, plan
@@ -31,13 +32,13 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions) -> TrialResu
     """Open the devices, run the protocol, close the devices; Ctrl-C aborts safely."""
     clock = RealClock(config.loop.spin_ms / 1000.0) if opts.speed == 1.0 else VirtualClock(opts.speed)
     if opts.speed != 1.0 and config.slider.backend != "sim":
-        raise ValueError("--speed other than 1 needs the simulated rig")
-    devices = open_devices(config, clock)
+        raise RigError("--speed other than 1 needs the simulated rig (slider.backend: sim)")
+    devices = open_devices(config, clock, speed=opts.speed)
     log_path = opts.log_path or default_log_path(opts.out_dir or config.recorder.out_dir, proto,
                                                  opts.specimen)
     clock_name = "real" if opts.speed == 1.0 else f"virtual x{opts.speed:g}" if opts.speed else "virtual"
     info = TrialInfo(specimen=opts.specimen, operator=opts.operator, notes=opts.notes,
-                     clock=clock_name)
+                     clock=clock_name, extra={"devices": devices.description})
     trial = Trial(proto, config, devices.slider, devices.loadcell, clock, log_path, info)
     bar = ProgressBar(plan(proto, config).duration_s) if opts.progress else None
     trial.on_tick = bar

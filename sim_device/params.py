@@ -39,6 +39,32 @@ class SliderParams:
 class LoadCellParams:
     noise_N: float = field(default=0.08, **_pos(ge=0))
     resolution_N: float = field(default=0.001, **_pos(ge=0))
+    # On the wire: streamed lines at rate_Hz, or one line per request ("poll").
+    mode: str = field(default="stream", metadata={"choices": ["stream", "poll"]})
+    rate_Hz: float = field(default=200.0, **_pos(gt=0, le=2000))
+    line_format: str = "{force_N:+.4f} N"
+
+
+@dataclass
+class DriveParams:
+    """The simulated drive on the wire."""
+
+    comm_timeout_s: float = field(default=0.5, **_pos(ge=0))  # 0 = off; alarm 0x85 when exceeded
+    home_speed_mm_s: float = field(default=5.0, **_pos(gt=0))
+    device_id: int = field(default=1, **_pos(ge=1, le=247))
+
+
+@dataclass
+class FaultParams:
+    """Faults of the simulated devices on the wire; also switchable at run time."""
+
+    drop_replies: int = field(default=0, **_pos(ge=0))  # the next N Modbus replies are lost
+    corrupt_replies: int = field(default=0, **_pos(ge=0))  # the next N RTU replies have a bad CRC
+    reply_delay_ms: float = field(default=0.0, **_pos(ge=0))  # every reply is this late
+    alarm_code: int = field(default=0, **_pos(ge=0))  # raise this drive alarm now
+    loadcell_silent: bool = False  # the load cell stops sending
+    garbage_every: int = field(default=0, **_pos(ge=0))  # every Nth line is garbage (0 = never)
+    loadcell_disconnect: bool = False  # the load cell's port goes away
 
 
 @dataclass
@@ -103,7 +129,12 @@ class HiddenEffects:
 class SimParams:
     seed: int = 1
     substep_ms: float = field(default=0.5, **_pos(gt=0, le=1))
+    # How `rig run` reaches the simulated rig at --speed 1: Modbus RTU on a pseudo-terminal,
+    # Modbus TCP on loopback, or "none" for the in-process devices.
+    wire: str = field(default="rtu", metadata={"choices": ["rtu", "tcp", "none"]})
     tissue: TissueParams = field(default_factory=TissueParams)
     slider: SliderParams = field(default_factory=SliderParams)
     loadcell: LoadCellParams = field(default_factory=LoadCellParams)
     effects: HiddenEffects = field(default_factory=HiddenEffects)
+    drive: DriveParams = field(default_factory=DriveParams)
+    faults: FaultParams = field(default_factory=FaultParams)

@@ -1,0 +1,190 @@
+"""Slider driver: Modbus RTU (serial) or Modbus TCP, register map from `drivers.registers`.
+
+Bus budget per loop tick: one FC03 read of the feedback position; status and alarm
+together in one FC03 read when the loop asks (about 10 Hz); a move is one FC16 write of
+the direct-data block that the drive then executes itself. Every call is bounded by
+`timeout_s` x (1 + `retries`). One failed read is ridden through (the last good
+value is returned and the error counted); `max_consecutive_errors` in a row raise
+`DeviceError`, which the loop turns into a fault.
+
+The client is owned by one thread (pymodbus does not allow parallel calls on a client).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from dataclasses import dataclass
+
+from pymodbus import FramerType
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.exceptions import ModbusException
+
+from drivers.base import LinkStats, SliderStatus
+from drivers.registers import RegisterMap, from_words, to_words
+from rig.errors import DeviceError
+
+# pymodbus logs every timeout at ERROR level; we count and report them ourselves.
+logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
+
+@dataclass(frozen=True)
+class ModbusLink:
+    """Where the drive is and how to talk to it."""
+
+    transport: str  # "rtu" or "tcp"
+    port: str = ""  # RTU: serial device or pyserial URL
+    baudrate: int = 115200
+    parity: str = "N"
+    stopbits: int = 1
+    host: str = "127.0.0.1"  # TCP
+    tcp_port: int = 502
+    device_id: int = 1
+    timeout_s: float = 0.02
+    retries: int = 0
+
+    def describe(self) -> str:
+        if self.transport == "tcp":
+            return f"Modbus TCP {self.host}:{self.tcp_port} unit {self.device_id}"
+        return f"Modbus RTU {self.port} {self.baudrate} 8{self.parity}{self.stopbits} unit {self.device_id}"
+
+
+def open_client(link: ModbusLink) -> ModbusSerialClient | ModbusTcpClient:
+    if link.transport == "tcp":
+        client = ModbusTcpClient(link.host, port=link.tcp_port, timeout=link.timeout_s,
+                                 retries=link.retries, reconnect_delay=0)
+    elif link.transport == "rtu":
+        client = ModbusSerialClient(link.port, framer=FramerType.RTU, baudrate=link.baudrate,
+                                    bytesize=8, parity=link.parity, stopbits=link.stopbits,
+                                    timeout=link.timeout_s, retries=link.retries, reconnect_delay=0)
+    else:
+        raise DeviceError(f"unknown Modbus transport '{link.transport}' (rtu or tcp)")
+    try:
+        ok = client.connect()
+    except Exception as exc:  # noqa: BLE001 - pyserial/socket errors vary by platform
+        raise DeviceError(f"cannot open {link.describe()}: {exc}") from None
+    if not ok:
+        raise DeviceError(f"cannot open {link.describe()}: no connection")
+    return client
+
+
+class ModbusSlider:
+    def __init__(self, link: ModbusLink, registers: RegisterMap, steps_per_mm: float, *,
+                 current_percent: float = 100.0, stop_decel_mm_s2: float = 2000.0,
+                 max_consecutive_errors: int = 5, client=None) -> None:
+        self.link = link
+        self.regs = registers
+        self.steps_per_mm = steps_per_mm
+        self.current_percent = current_percent
+        self.stop_decel_mm_s2 = stop_decel_mm_s2
+        self.max_consecutive_errors = max_consecutive_errors
+        self.stats = LinkStats()
+        self.client = client or open_client(link)
+        self._consecutive = 0
+        self._position_mm: float | None = None
+        self._status = SliderStatus(ready=False, moving=False, in_position=False, alarm=False)
+        self._stop_latched = False
+        self.last_error = ""
+
+    # ------------------------------------------------------------ bus calls
+    def _call(self, what: str, fn, *args, **kwargs):
+        self.stats.transactions += 1
+        try:
+            reply = fn(*args, device_id=self.link.device_id, **kwargs)
+        except ModbusException as exc:
+            return self._failed(what, str(exc).strip() or type(exc).__name__)
+        except OSError as exc:
+            return self._failed(what, f"link error: {exc}")
+        if reply is None or reply.isError():
+            return self._failed(what, f"exception reply {getattr(reply, 'exception_code', '?')}")
+        self._consecutive = 0
+        return reply
+
+    def _failed(self, what: str, why: str) -> None:
+        self.stats.errors += 1
+        self._consecutive += 1
+        self.last_error = f"{what}: {why}"
+        if self._consecutive >= self.max_consecutive_errors:
+            raise DeviceError(f"slider ({self.link.describe()}): {self._consecutive} failed "
+                              f"transactions in a row; last: {self.last_error}")
+        return None
+
+    def _write(self, what: str, address: int, values: list[int]) -> bool:
+        return self._call(what, self.client.write_registers, address, values) is not None
+
+    # ------------------------------------------------------------ interface
+    def read_position_mm(self) -> float:
+        reply = self._call("read position", self.client.read_holding_registers,
+                           self.regs.feedback_position, count=2)
+        if reply is not None:
+            self._position_mm = from_words(*reply.registers[:2]) / self.steps_per_mm
+        if self._position_mm is None:
+            raise DeviceError(f"slider ({self.link.describe()}): no position read yet "
+                              f"({self.last_error})")
+        return self._position_mm
+
+    def read_status(self) -> SliderStatus:
+        address, count = self.regs.status_block
+        reply = self._call("read status", self.client.read_holding_registers, address, count=count)
+        if reply is None:
+            return self._status
+        words = reply.registers
+        bits = words[1]
+        code = from_words(words[2], words[3]) if count == 4 else self.read_alarm_code()
+        r = self.regs
+        self._status = SliderStatus(
+            ready=bool(bits >> r.bit_ready & 1), moving=bool(bits >> r.bit_move & 1),
+            in_position=bool(bits >> r.bit_in_pos & 1),
+            alarm=bool(bits >> r.bit_alarm & 1) or code != 0, alarm_code=code)
+        return self._status
+
+    def read_alarm_code(self) -> int:
+        reply = self._call("read alarm", self.client.read_holding_registers, self.regs.alarm, count=2)
+        return from_words(*reply.registers[:2]) if reply is not None else self._status.alarm_code
+
+    def move_to(self, position_mm: float, speed_mm_s: float, accel_mm_s2: float | None = None) -> None:
+        """One FC16 write of the direct-data block with trigger 1 (apply and start)."""
+        if self._stop_latched:  # STOP is level-sensitive: release it before the next move
+            self._write("release stop", self.regs.input_command, [0, 0])
+            self._stop_latched = False
+        spm = self.steps_per_mm
+        accel = accel_mm_s2 or 50.0
+        block = [0, 0,  # operation data No. 0
+                 *to_words(self.regs.type_absolute),
+                 *to_words(round(position_mm * spm)),
+                 *to_words(max(round(abs(speed_mm_s) * spm), 1)),
+                 *to_words(max(round(accel * spm), 1)),  # 1 = 0.001 kHz/s = 1 step/s^2
+                 *to_words(max(round(accel * spm), 1)),
+                 *to_words(round(self.current_percent * 10)),  # 1 = 0.1 %
+                 *to_words(1)]  # trigger: apply all and start
+        if not self._write("move", self.regs.direct_data, block):
+            raise DeviceError(f"slider ({self.link.describe()}): move command not acknowledged "
+                              f"({self.last_error})")
+
+    def stop(self) -> None:
+        """STOP bit on the input command: one transaction; released by the next move."""
+        self._stop_latched = True
+        if not self._write("stop", self.regs.input_command, [0, 1 << self.regs.bit_stop]):
+            # Try once more at once: a stop must not be lost to one dropped reply.
+            self._write("stop", self.regs.input_command, [0, 1 << self.regs.bit_stop])
+
+    def home(self) -> None:
+        """The drive's return-to-home operation (ZHOME)."""
+        self._write("release", self.regs.input_command, [0, 0])
+        self._write("home", self.regs.input_command, [0, 1 << self.regs.bit_zhome])
+        self._stop_latched = True  # the ZHOME level must be released before the next move
+
+    def reset_alarm(self) -> None:
+        self._write("alarm reset", self.regs.alarm_reset, [0, 1])
+        self._write("alarm reset", self.regs.alarm_reset, [0, 0])
+
+    def set_comm_timeout(self, timeout_s: float) -> bool:
+        """Write the drive's communication timeout (if the profile knows its register)."""
+        if self.regs.comm_timeout_ms is None:
+            return False
+        return self._write("comm timeout", self.regs.comm_timeout_ms, to_words(round(timeout_s * 1000)))
+
+    def close(self) -> None:
+        # closing a dead link must not raise
+        with contextlib.suppress(Exception):
+            self.client.close()

@@ -1,0 +1,84 @@
+"""`rig sim`: serve the simulated devices on the wire until told to stop.
+
+Commands arrive on stdin as JSON lines: {"faults": {"drop_replies": 2}} switches faults
+(any field of `FaultParams`), {"status": true} prints the drive's state as a JSON line.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import threading
+from dataclasses import fields
+
+from rig.config import RigConfig
+from sim_device.server import WireSim
+
+
+def serve_sim(config: RigConfig, *, json_out: bool = False, exit_with_parent: bool = False,
+              tcp_port: int = 0) -> int:
+    sim = WireSim(config.sim, tcp_port=tcp_port)
+    ep = sim.start()
+    done = threading.Event()
+    out_lock = threading.Lock()
+
+    def say(obj: dict) -> None:
+        with out_lock:
+            print(json.dumps(obj), flush=True)
+
+    if json_out:
+        say(ep.as_dict())
+    else:
+        host, port = ep.modbus_tcp.rsplit(":", 1)
+        print(f"simulated drive   Modbus TCP {ep.modbus_tcp}  |  Modbus RTU {ep.modbus_rtu} "
+              f"(115200 8N1, unit {config.sim.drive.device_id})\n"
+              f"simulated load cell  {ep.loadcell}  ({config.sim.loadcell.mode}, "
+              f"{config.sim.loadcell.rate_Hz:g} lines/s)\n\n"
+              "For a rig config (RTU):\n"
+              f"  slider:   {{backend: modbus-rtu, port: {ep.modbus_rtu}, profile: oriental_az_sim}}\n"
+              f"  loadcell: {{backend: serial, port: {ep.loadcell}}}\n"
+              "or TCP:\n"
+              f"  slider:   {{backend: modbus-tcp, host: {host}, tcp_port: {port}, profile: oriental_az_sim}}\n"
+              "Ctrl-C stops.", flush=True)
+
+    fault_names = {f.name: f.type for f in fields(config.sim.faults)}
+
+    def handle(line: str) -> None:
+        try:
+            cmd = json.loads(line)
+        except json.JSONDecodeError:
+            say({"error": "not JSON"})
+            return
+        if not isinstance(cmd, dict):
+            say({"error": "expected a JSON object"})
+            return
+        for name, value in (cmd.get("faults") or {}).items():
+            if name not in fault_names:
+                say({"error": f"unknown fault '{name}'", "known": sorted(fault_names)})
+                continue
+            setattr(config.sim.faults, name, value)
+        if cmd.get("status"):
+            with sim.rig.lock:
+                sim.drive.sync()
+                m = sim.rig.slider
+                say({"position_mm": m.position_mm, "moving": m.moving,
+                     "alarm_code": config.sim.faults.alarm_code, "requests": sim.drive.requests,
+                     "moves": sim.drive.moves, "stops": sim.drive.stops,
+                     "comm_timeout_s": sim.drive.comm_timeout_s})
+
+    def read_stdin() -> None:
+        for line in sys.stdin:
+            if line.strip():
+                handle(line)
+        if exit_with_parent:
+            done.set()
+
+    threading.Thread(target=read_stdin, name="sim-stdin", daemon=True).start()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: done.set())
+    try:
+        done.wait()
+    finally:
+        sim.stop()
+    return 0

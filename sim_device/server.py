@@ -1,0 +1,419 @@
+"""The simulated rig on real wires: a Modbus drive (TCP on loopback, RTU on a pseudo-terminal)
+and an ASCII load cell on a pseudo-terminal, all in front of one `SimRig`.
+
+The drive implements the register map of `drivers.registers` (Oriental AZ style):
+direct-data moves executed with the slider physics, STOP, return-to-home, READY /
+MOVE / IN-POS / ALM-A status bits, alarm codes and reset, and the communication
+timeout: when a move is running and the master has been silent for longer than the
+configured timeout the drive stops and raises alarm 0x85, like the real one.
+
+RTU runs through a byte bridge between two pseudo-terminals (server side, client
+side); the bridge is also where line faults are injected: lost replies, corrupted
+CRCs, late replies. Faults are fields of `FaultParams` and can be changed while the
+devices run.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import os
+import pty
+import select
+import socket
+import threading
+import time
+import tty
+from dataclasses import dataclass
+
+from pymodbus import FramerType
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from drivers.registers import PROFILES, RegisterMap, from_words, to_words
+from sim_device.params import SimParams
+from sim_device.physics import SimRig
+
+ALARM_COMM_TIMEOUT = 0x85
+N_REGISTERS = 0x400
+
+
+@dataclass(frozen=True)
+class Endpoints:
+    modbus_tcp: str | None  # "host:port"
+    modbus_rtu: str | None  # client-side pseudo-terminal path
+    loadcell: str | None  # pseudo-terminal path
+
+    def as_dict(self) -> dict[str, str | None]:
+        return {"modbus_tcp": self.modbus_tcp, "modbus_rtu": self.modbus_rtu, "loadcell": self.loadcell}
+
+
+class SimDrive:
+    """Register semantics of the drive, in front of the shared physics."""
+
+    def __init__(self, rig: SimRig, regs: RegisterMap, params: SimParams, origin_s: float) -> None:
+        self.rig = rig
+        self.regs = regs
+        self.params = params
+        self.origin_s = origin_s
+        self.spm = params.slider.steps_per_mm
+        self.comm_timeout_s = params.drive.comm_timeout_s
+        self.last_request_s = time.monotonic()
+        self.requests = 0
+        self.moves = 0
+        self.stops = 0
+        self.first_stop_s: float | None = None  # monotonic time the first STOP arrived
+
+    @property
+    def alarm_code(self) -> int:
+        return self.params.faults.alarm_code
+
+    def sync(self) -> None:
+        self.rig.advance(time.monotonic() - self.origin_s)
+        if self.alarm_code and self.rig.slider.moving and not self.rig.slider.stopping:
+            self.rig.slider.stop()
+
+    async def action(self, function_code: int, start_address: int, address: int, count: int,
+                     current_registers: list[int], set_values: list[int] | None):
+        self.requests += 1
+        self.last_request_s = time.monotonic()
+        with self.rig.lock:
+            self.sync()
+            if set_values is None:
+                self._fill(current_registers, start_address, address, count)
+            else:
+                self._written(address, list(set_values))
+        return None
+
+    async def tcp_action(self, *args):
+        """TCP has no bridge: a lost reply is one that comes too late; a slow one comes late."""
+        f = self.params.faults
+        if f.drop_replies > 0:
+            f.drop_replies -= 1
+            await asyncio.sleep(1.0)
+        elif f.reply_delay_ms > 0:
+            await asyncio.sleep(f.reply_delay_ms / 1000.0)
+        return await self.action(*args)
+
+    def _fill(self, regs: list[int], start: int, address: int, count: int) -> None:
+        r = self.regs
+        m = self.rig.slider
+        code = self.alarm_code
+        bits = 0
+        if not m.moving and not code:
+            bits |= 1 << r.bit_ready
+        if code:
+            bits |= 1 << r.bit_alarm
+        if m.moving:
+            bits |= 1 << r.bit_move
+        if not m.moving and abs(m.position_mm - m.target_mm) < 0.5 / self.spm:
+            bits |= 1 << r.bit_in_pos
+        values = {
+            r.feedback_position: to_words(round(self.rig.feedback_position_mm() * self.spm)),
+            r.output_status: [0, bits],
+            r.alarm: to_words(code),
+        }
+        if r.comm_timeout_ms is not None:
+            values[r.comm_timeout_ms] = to_words(round(self.comm_timeout_s * 1000))
+        for base, words in values.items():
+            for i, w in enumerate(words):
+                if address <= base + i < address + count:
+                    regs[base + i - start] = w
+
+    def _written(self, address: int, values: list[int]) -> None:
+        r = self.regs
+        end = address + len(values)
+
+        def word32(base: int) -> int | None:
+            if address <= base and base + 1 < end:
+                return from_words(values[base - address], values[base + 1 - address])
+            return None
+
+        # trigger 1: apply all the direct data and start
+        if address <= r.direct_data + 14 and r.direct_data + 15 < end and word32(r.direct_data + 14) == 1:
+            self._start_move(word32(r.direct_data + 2), word32(r.direct_data + 4),
+                             word32(r.direct_data + 6), word32(r.direct_data + 8))
+        if address <= r.input_command + 1 < end:
+            bits = values[r.input_command + 1 - address]
+            if bits & (1 << r.bit_stop):
+                self.stops += 1
+                self.first_stop_s = self.first_stop_s or time.monotonic()
+                self.rig.slider.stop()
+            elif bits & (1 << r.bit_zhome) and not self.alarm_code:
+                self.rig.slider.move_to(0.0, self.params.drive.home_speed_mm_s)
+            if bits & (1 << r.bit_alarm_reset):
+                self.params.faults.alarm_code = 0
+        if word32(r.alarm_reset) == 1:
+            self.params.faults.alarm_code = 0
+        if r.comm_timeout_ms is not None and (ms := word32(r.comm_timeout_ms)) is not None:
+            self.comm_timeout_s = max(ms, 0) / 1000.0
+
+    def _start_move(self, op_type, position_steps, speed_hz, accel) -> None:
+        if self.alarm_code or position_steps is None or not speed_hz:
+            return
+        target = position_steps / self.spm
+        if op_type == 2:  # incremental from the command position
+            target += self.rig.slider.target_mm
+        accel_mm_s2 = accel / self.spm if accel else None
+        self.rig.slider.move_to(target, abs(speed_hz) / self.spm, accel_mm_s2)
+        self.moves += 1
+
+    def watchdog(self) -> None:
+        """The drive's own communication timeout: a silent master stops a running move."""
+        with self.rig.lock:
+            self.sync()
+            silent = time.monotonic() - self.last_request_s
+            if (self.comm_timeout_s > 0 and silent > self.comm_timeout_s and self.rig.slider.moving
+                    and not self.alarm_code):
+                self.params.faults.alarm_code = ALARM_COMM_TIMEOUT
+                self.rig.slider.stop()
+
+
+def _raw_pty() -> tuple[int, int, str]:
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    tty.setraw(master)
+    os.set_blocking(master, False)
+    return master, slave, os.ttyname(slave)
+
+
+class RtuBridge:
+    """Copies bytes between the server's and the client's pseudo-terminals, injecting line faults."""
+
+    def __init__(self, faults) -> None:
+        self.faults = faults
+        self.server_master, self._server_slave, self.server_path = _raw_pty()
+        self.client_master, self._client_slave, self.client_path = _raw_pty()
+        self._stop = threading.Event()
+        self.dropped = self.corrupted = 0
+        self._thread = threading.Thread(target=self._run, name="rtu-bridge", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        sm, cm = self.server_master, self.client_master
+        while not self._stop.is_set():
+            try:
+                ready, _, _ = select.select([sm, cm], [], [], 0.05)
+            except (OSError, ValueError):
+                return
+            for fd in ready:
+                data = _read_all(fd)
+                if not data:
+                    continue
+                if fd == cm:
+                    _write_all(sm, data)
+                    continue
+                f = self.faults
+                if f.drop_replies > 0:
+                    f.drop_replies -= 1
+                    self.dropped += 1
+                    continue
+                if f.corrupt_replies > 0:
+                    f.corrupt_replies -= 1
+                    self.corrupted += 1
+                    data = data[:-1] + bytes([data[-1] ^ 0xFF])
+                if f.reply_delay_ms > 0:
+                    time.sleep(f.reply_delay_ms / 1000.0)
+                _write_all(cm, data)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        for fd in (self.server_master, self._server_slave, self.client_master, self._client_slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+def _read_all(fd: int) -> bytes:
+    out = bytearray()
+    while True:
+        try:
+            chunk = os.read(fd, 4096)
+        except BlockingIOError:
+            break
+        except OSError as exc:
+            if exc.errno == errno.EIO:  # the other side is closed for now
+                break
+            raise
+        if not chunk:
+            break
+        out += chunk
+    return bytes(out)
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    deadline = time.monotonic() + 0.5
+    while view:
+        try:
+            n = os.write(fd, view)
+            view = view[n:]
+        except BlockingIOError:
+            if time.monotonic() > deadline:  # nobody reads: drop rather than block the bridge
+                return
+            time.sleep(0.0005)
+
+
+class LoadCellPort:
+    """An ASCII load cell on a pseudo-terminal: streams lines, or answers requests."""
+
+    def __init__(self, rig: SimRig, params: SimParams, origin_s: float) -> None:
+        self.rig = rig
+        self.params = params
+        self.origin_s = origin_s
+        self.master, self._slave, self.path = _raw_pty()
+        self.lines = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="loadcell-pty", daemon=True)
+        self._thread.start()
+
+    def _line(self) -> bytes:
+        f = self.params.faults
+        self.lines += 1
+        if f.garbage_every and self.lines % f.garbage_every == 0:
+            return b"#\x07garb@ge%%\r\n"
+        self.rig.advance(time.monotonic() - self.origin_s)
+        force = self.rig.read_force_N()
+        return (self.params.loadcell.line_format.format(force_N=force) + "\r\n").encode()
+
+    def _run(self) -> None:
+        lc = self.params.loadcell
+        period = 1.0 / lc.rate_Hz
+        next_t = time.monotonic()
+        pending = bytearray()
+        while not self._stop.is_set():
+            f = self.params.faults
+            if f.loadcell_disconnect:
+                self._disconnect()
+                return
+            if lc.mode == "poll":
+                ready, _, _ = select.select([self.master], [], [], 0.02)
+                if ready:
+                    pending += _read_all(self.master)
+                    while b"\n" in pending or b"\r" in pending:
+                        cut = min(i for i in (pending.find(b"\n"), pending.find(b"\r")) if i >= 0)
+                        req = bytes(pending[:cut]).strip()
+                        del pending[: cut + 1]
+                        if req and not f.loadcell_silent:
+                            _write_all(self.master, self._line())
+                continue
+            next_t += period
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+            else:
+                next_t = time.monotonic()
+            if not f.loadcell_silent:
+                _write_all(self.master, self._line())
+
+    def _disconnect(self) -> None:
+        for fd in (self.master, self._slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self.master = self._slave = -1
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self._disconnect()
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class WireSim:
+    """The simulated drive and load cell on real wires, run by an asyncio loop in a thread."""
+
+    def __init__(self, params: SimParams | None = None, *, tcp: bool = True, rtu: bool = True,
+                 loadcell: bool = True, tcp_port: int = 0, profile: str = "oriental_az_sim",
+                 baudrate: int = 115200) -> None:
+        self.params = params or SimParams()
+        self.rig = SimRig(self.params)
+        self.origin_s = time.monotonic()
+        self.drive = SimDrive(self.rig, PROFILES[profile], self.params, self.origin_s)
+        self.want = {"tcp": tcp, "rtu": rtu, "loadcell": loadcell}
+        self.tcp_port = tcp_port or (free_tcp_port() if tcp else 0)
+        self.baudrate = baudrate
+        self.bridge: RtuBridge | None = None
+        self.loadcell: LoadCellPort | None = None
+        self.endpoints: Endpoints | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop_async: asyncio.Event | None = None
+
+    def start(self, timeout_s: float = 10.0) -> Endpoints:
+        self._thread = threading.Thread(target=self._thread_main, name="wire-sim", daemon=True)
+        self._thread.start()
+        if not self._ready.wait(timeout_s):
+            raise RuntimeError("simulated devices did not start in time")
+        if self._error is not None:
+            raise RuntimeError(f"simulated devices failed to start: {self._error}")
+        return self.endpoints
+
+    def __enter__(self) -> WireSim:
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def _thread_main(self) -> None:
+        try:
+            asyncio.run(self._main())
+        except BaseException as exc:  # noqa: BLE001 - reported to start()
+            self._error = exc
+            self._ready.set()
+
+    async def _main(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._stop_async = asyncio.Event()
+        def device(action) -> SimDevice:
+            return SimDevice(id=self.params.drive.device_id,
+                             simdata=[SimData(address=0, count=N_REGISTERS, values=0,
+                                              datatype=DataType.REGISTERS)],
+                             action=action)
+
+        servers = []
+        rtu_path = tcp = None
+        if self.want["tcp"]:
+            server = ModbusTcpServer(device(self.drive.tcp_action), address=("127.0.0.1", self.tcp_port))
+            await server.serve_forever(background=True)
+            servers.append(server)
+            tcp = f"127.0.0.1:{self.tcp_port}"
+        if self.want["rtu"]:
+            self.bridge = RtuBridge(self.params.faults)
+            server = ModbusSerialServer(device(self.drive.action), framer=FramerType.RTU,
+                                        port=self.bridge.server_path,
+                                        baudrate=self.baudrate, bytesize=8, parity="N", stopbits=1)
+            await server.serve_forever(background=True)
+            servers.append(server)
+            rtu_path = self.bridge.client_path
+        if self.want["loadcell"]:
+            self.loadcell = LoadCellPort(self.rig, self.params, self.origin_s)
+        self.endpoints = Endpoints(tcp, rtu_path, self.loadcell.path if self.loadcell else None)
+        self._ready.set()
+        try:
+            while not self._stop_async.is_set():
+                self.drive.watchdog()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._stop_async.wait(), 0.005)
+        finally:
+            for server in servers:
+                with contextlib.suppress(Exception):
+                    await server.shutdown()
+            if self.bridge:
+                self.bridge.close()
+            if self.loadcell:
+                self.loadcell.close()
+
+    def stop(self) -> None:
+        if self._loop is not None and self._stop_async is not None and self._thread.is_alive():
+            self._loop.call_soon_threadsafe(self._stop_async.set)
+        if self._thread is not None:
+            self._thread.join(5.0)
