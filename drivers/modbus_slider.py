@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import socket
 from dataclasses import dataclass
 
 from pymodbus import FramerType
@@ -65,7 +66,20 @@ def open_client(link: ModbusLink) -> ModbusSerialClient | ModbusTcpClient:
         raise DeviceError(f"cannot open {link.describe()}: {exc}") from None
     if not ok:
         raise DeviceError(f"cannot open {link.describe()}: no connection")
+    _no_delay(client)
     return client
+
+
+def _no_delay(client) -> object:
+    """TCP_NODELAY on the client's socket (pymodbus makes a new one on every reconnect).
+
+    Without it, a request after a lost reply waits for the delayed ACK of the last one
+    (Nagle): about 40 ms, i.e. two more failed ticks.
+    """
+    sock = getattr(client, "socket", None)
+    if isinstance(sock, socket.socket):
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    return sock
 
 
 class ModbusSlider:
@@ -85,10 +99,13 @@ class ModbusSlider:
         self._status = SliderStatus(ready=False, moving=False, in_position=False, alarm=False)
         self._stop_latched = False
         self.last_error = ""
+        self._sock = getattr(self.client, "socket", None)
 
     # ------------------------------------------------------------ bus calls
     def _call(self, what: str, fn, *args, **kwargs):
         self.stats.transactions += 1
+        if self.link.transport == "tcp" and getattr(self.client, "socket", None) is not self._sock:
+            self._sock = _no_delay(self.client)
         try:
             reply = fn(*args, device_id=self.link.device_id, **kwargs)
         except ModbusException as exc:

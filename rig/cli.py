@@ -121,6 +121,40 @@ def cmd_check(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_position(args: argparse.Namespace) -> int:
+    from rig.config import load_config
+    from rig.manual import position
+
+    info = position(load_config(args.config))
+    if args.json:
+        print(json.dumps(info, indent=2))
+    else:
+        force = "-" if info["force_N"] is None else f"{info['force_N']:.3f} N (untared)"
+        state = "moving" if info["moving"] else "ready" if info["ready"] else "not ready"
+        alarm = f", ALARM 0x{info['alarm_code']:02X}" if info["alarm_code"] else ""
+        print(f"position {info['position_mm']:.3f} mm, {state}{alarm}; force {force}\n"
+              f"devices  {info['devices']}")
+    return 0
+
+
+def cmd_move(args: argparse.Namespace) -> int:
+    from rig.config import load_config
+    from rig.manual import move
+
+    r = move(load_config(args.config), args.to_mm, args.speed_mm_s)
+    print(f"moved from {r['from_mm']:.3f} mm to {r['position_mm']:.3f} mm")
+    return 0
+
+
+def cmd_home(args: argparse.Namespace) -> int:
+    from rig.config import load_config
+    from rig.manual import move
+
+    r = move(load_config(args.config), 0.0, 0.0, home=True)
+    print(f"homed: from {r['from_mm']:.3f} mm to {r['position_mm']:.3f} mm")
+    return 0
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     from rig.config import load_config
     from sim_device.control import serve_sim
@@ -180,6 +214,23 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
     r.add_argument("--json", action="store_true")
     r.set_defaults(func=cmd_check)
+
+    r = sub.add_parser("position", help="read the slider position, status and force")
+    r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
+    r.add_argument("--json", action="store_true")
+    r.set_defaults(func=cmd_position)
+
+    r = sub.add_parser("move", help="move the probe to a position (under the rig's limits)",
+                       description="Move the slider to an absolute position, watching force, travel, "
+                                   "speed and drive alarms as a trial does. Ctrl-C stops.")
+    r.add_argument("--to-mm", type=float, required=True, help="target position, mm (slider coordinates)")
+    r.add_argument("--speed-mm-s", type=float, default=2.0, help="speed, mm/s (default 2)")
+    r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
+    r.set_defaults(func=cmd_move)
+
+    r = sub.add_parser("home", help="run the drive's return-to-home operation")
+    r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
+    r.set_defaults(func=cmd_home)
 
     r = sub.add_parser("sim", help="start the simulated slider and load cell on real wires",
                        description="Serve the simulated drive over Modbus TCP (loopback) and Modbus RTU "

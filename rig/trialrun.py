@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import signal
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from rig.clock import RealClock, VirtualClock
 from rig.config import RigConfig
-from rig.devices import open_devices
+from rig.devices import Devices, open_devices
 from rig.errors import RigError
-from rig.loop import StopMode, Trial, TrialResult, default_log_path
+from rig.loop import Snapshot, StopMode, Trial, TrialResult, default_log_path
 from rig.progress import ProgressBar
 from rig.protocol import Protocol, plan
 from rig.recorder import TrialInfo
@@ -26,6 +27,8 @@ class RunOptions:
     speed: float = 1.0  # 1 = real time on the real clock; 0 = as fast as possible
     progress: bool = True
     log_path: Path | None = None
+    on_tick: Callable[[Snapshot], None] | None = None  # called every tick from the loop thread
+    on_start: Callable[[Trial, Devices], None] | None = None  # after the devices open
 
 
 def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions) -> TrialResult:
@@ -41,7 +44,10 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions) -> TrialResu
                      clock=clock_name, extra={"devices": devices.description})
     trial = Trial(proto, config, devices.slider, devices.loadcell, clock, log_path, info)
     bar = ProgressBar(plan(proto, config).duration_s) if opts.progress else None
-    trial.on_tick = bar
+    hooks = [h for h in (bar, opts.on_tick) if h is not None]
+    trial.on_tick = (lambda snap: [h(snap) for h in hooks]) if hooks else None
+    if opts.on_start is not None:
+        opts.on_start(trial, devices)
     presses = 0
 
     def on_sigint(signum, frame):  # first Ctrl-C: abort and retract; second: stop the motor now

@@ -63,7 +63,7 @@ class FaultParams:
     reply_delay_ms: float = field(default=0.0, **_pos(ge=0))  # every reply is this late
     alarm_code: int = field(default=0, **_pos(ge=0))  # raise this drive alarm now
     loadcell_silent: bool = False  # the load cell stops sending
-    garbage_every: int = field(default=0, **_pos(ge=0))  # every Nth line is garbage (0 = never)
+    garbage_lines: int = field(default=0, **_pos(ge=0))  # the next N load-cell lines are garbage
     loadcell_disconnect: bool = False  # the load cell's port goes away
 
 

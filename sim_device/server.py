@@ -8,8 +8,8 @@ timeout: when a move is running and the master has been silent for longer than t
 configured timeout the drive stops and raises alarm 0x85, like the real one.
 
 RTU runs through a byte bridge between two pseudo-terminals (server side, client
-side); the bridge is also where line faults are injected: lost replies, corrupted
-CRCs, late replies. Faults are fields of `FaultParams` and can be changed while the
+side), TCP through a loopback proxy; the bridges are where line faults are injected:
+lost replies, corrupted CRCs (RTU), late replies. Faults are fields of `FaultParams` and can be changed while the
 devices run.
 """
 
@@ -86,16 +86,6 @@ class SimDrive:
                 self._written(address, list(set_values))
         return None
 
-    async def tcp_action(self, *args):
-        """TCP has no bridge: a lost reply is one that comes too late; a slow one comes late."""
-        f = self.params.faults
-        if f.drop_replies > 0:
-            f.drop_replies -= 1
-            await asyncio.sleep(1.0)
-        elif f.reply_delay_ms > 0:
-            await asyncio.sleep(f.reply_delay_ms / 1000.0)
-        return await self.action(*args)
-
     def _fill(self, regs: list[int], start: int, address: int, count: int) -> None:
         r = self.regs
         m = self.rig.slider
@@ -170,6 +160,75 @@ class SimDrive:
                 self.rig.slider.stop()
 
 
+def reply_faults(faults, data: bytes, *, corrupt: bool) -> bytes | None:
+    """A reply on its way back to the master: lost (None), corrupted or late, as switched."""
+    if faults.drop_replies > 0:
+        faults.drop_replies -= 1
+        return None
+    if corrupt and faults.corrupt_replies > 0:
+        faults.corrupt_replies -= 1
+        data = data[:-1] + bytes([data[-1] ^ 0xFF])  # the CRC no longer matches
+    if faults.reply_delay_ms > 0:
+        time.sleep(faults.reply_delay_ms / 1000.0)
+    return data
+
+
+class TcpBridge:
+    """A loopback TCP proxy in front of the Modbus TCP server: where TCP replies get lost or late."""
+
+    def __init__(self, faults, listen_port: int, target_port: int) -> None:
+        self.faults = faults
+        self.target_port = target_port
+        self._listener = socket.create_server(("127.0.0.1", listen_port))
+        self._listener.settimeout(0.05)
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._accept = threading.Thread(target=self._run, name="tcp-bridge", daemon=True)
+        self._accept.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                client, _ = self._listener.accept()
+            except (TimeoutError, OSError):
+                continue
+            try:
+                upstream = socket.create_connection(("127.0.0.1", self.target_port), timeout=2)
+            except OSError:
+                client.close()
+                continue
+            t = threading.Thread(target=self._pump, args=(client, upstream), name="tcp-pump", daemon=True)
+            self._threads.append(t)
+            t.start()
+
+    def _pump(self, client: socket.socket, upstream: socket.socket) -> None:
+        for sock in (client, upstream):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        with client, upstream:
+            while not self._stop.is_set():
+                ready, _, _ = select.select([client, upstream], [], [], 0.05)
+                for sock in ready:
+                    try:
+                        data = sock.recv(4096)
+                    except OSError:
+                        return
+                    if not data:
+                        return
+                    if sock is client:
+                        upstream.sendall(data)
+                        continue
+                    data = reply_faults(self.faults, data, corrupt=False)
+                    if data is not None:
+                        client.sendall(data)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._accept.join(2.0)
+        for t in self._threads:
+            t.join(2.0)
+        self._listener.close()
+
+
 def _raw_pty() -> tuple[int, int, str]:
     master, slave = pty.openpty()
     tty.setraw(slave)
@@ -186,7 +245,6 @@ class RtuBridge:
         self.server_master, self._server_slave, self.server_path = _raw_pty()
         self.client_master, self._client_slave, self.client_path = _raw_pty()
         self._stop = threading.Event()
-        self.dropped = self.corrupted = 0
         self._thread = threading.Thread(target=self._run, name="rtu-bridge", daemon=True)
         self._thread.start()
 
@@ -204,18 +262,9 @@ class RtuBridge:
                 if fd == cm:
                     _write_all(sm, data)
                     continue
-                f = self.faults
-                if f.drop_replies > 0:
-                    f.drop_replies -= 1
-                    self.dropped += 1
-                    continue
-                if f.corrupt_replies > 0:
-                    f.corrupt_replies -= 1
-                    self.corrupted += 1
-                    data = data[:-1] + bytes([data[-1] ^ 0xFF])
-                if f.reply_delay_ms > 0:
-                    time.sleep(f.reply_delay_ms / 1000.0)
-                _write_all(cm, data)
+                data = reply_faults(self.faults, data, corrupt=True)
+                if data is not None:
+                    _write_all(cm, data)
 
     def close(self) -> None:
         self._stop.set()
@@ -271,7 +320,8 @@ class LoadCellPort:
     def _line(self) -> bytes:
         f = self.params.faults
         self.lines += 1
-        if f.garbage_every and self.lines % f.garbage_every == 0:
+        if f.garbage_lines > 0:
+            f.garbage_lines -= 1
             return b"#\x07garb@ge%%\r\n"
         self.rig.advance(time.monotonic() - self.origin_s)
         force = self.rig.read_force_N()
@@ -339,6 +389,7 @@ class WireSim:
         self.tcp_port = tcp_port or (free_tcp_port() if tcp else 0)
         self.baudrate = baudrate
         self.bridge: RtuBridge | None = None
+        self.tcp_bridge: TcpBridge | None = None
         self.loadcell: LoadCellPort | None = None
         self.endpoints: Endpoints | None = None
         self._ready = threading.Event()
@@ -382,9 +433,11 @@ class WireSim:
         servers = []
         rtu_path = tcp = None
         if self.want["tcp"]:
-            server = ModbusTcpServer(device(self.drive.tcp_action), address=("127.0.0.1", self.tcp_port))
+            inner_port = free_tcp_port()
+            server = ModbusTcpServer(device(self.drive.action), address=("127.0.0.1", inner_port))
             await server.serve_forever(background=True)
             servers.append(server)
+            self.tcp_bridge = TcpBridge(self.params.faults, self.tcp_port, inner_port)
             tcp = f"127.0.0.1:{self.tcp_port}"
         if self.want["rtu"]:
             self.bridge = RtuBridge(self.params.faults)
@@ -409,6 +462,8 @@ class WireSim:
                     await server.shutdown()
             if self.bridge:
                 self.bridge.close()
+            if self.tcp_bridge:
+                self.tcp_bridge.close()
             if self.loadcell:
                 self.loadcell.close()
 

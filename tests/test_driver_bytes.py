@@ -1,0 +1,105 @@
+"""Protocol-level tests: the exact bytes the drivers send, and how they parse replies."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import pytest
+
+from drivers.modbus_slider import ModbusLink, ModbusSlider
+from drivers.registers import PROFILES
+from drivers.serial_loadcell import SerialLoadCell
+from tests.wire_helpers import ScriptedDevice, crc16, raw_pty, read_exactly, rtu
+
+
+def test_crc_of_a_textbook_frame():
+    assert crc16(bytes.fromhex("010300000001")) == bytes.fromhex("840A")
+
+
+def slider_on(dev: ScriptedDevice) -> ModbusSlider:
+    link = ModbusLink("rtu", port=dev.path, timeout_s=0.5)
+    return ModbusSlider(link, PROFILES["oriental_az"], steps_per_mm=100.0)
+
+
+def run_script(exchanges, action):
+    dev = ScriptedDevice(exchanges)
+    slider = slider_on(dev)
+    try:
+        result = action(slider)
+    finally:
+        slider.close()
+        dev.close()
+    assert dev.received == [e[0] for e in exchanges]
+    return result, slider
+
+
+def test_position_read_bytes():
+    pos, slider = run_script(
+        [(rtu("01 03 00CC 0002"), rtu("01 03 04 FFFF CFC7"))],  # -12345 steps
+        lambda s: s.read_position_mm())
+    assert pos == pytest.approx(-123.45)
+    assert slider.stats.transactions == 1 and slider.stats.errors == 0
+
+
+def test_status_and_alarm_in_one_read():
+    # READY (bit 5) + IN-POS (bit 14), alarm code 0x30
+    status, _ = run_script(
+        [(rtu("01 03 007E 0004"), rtu("01 03 08 0000 4020 0000 0030"))],
+        lambda s: s.read_status())
+    assert status.ready and status.in_position and not status.moving
+    assert status.alarm and status.alarm_code == 0x30
+
+
+def test_move_is_one_direct_data_write():
+    # 30 mm at 0.75 mm/s, 50 mm/s^2, 100 steps/mm: absolute, 3000 steps, 75 Hz, rate 5000, 100 %
+    request = rtu("01 10 0058 0010 20"
+                  "00000000 00000001 00000BB8 0000004B 00001388 00001388 000003E8 00000001")
+    run_script([(request, rtu("01 10 0058 0010"))], lambda s: s.move_to(30.0, 0.75, 50.0))
+
+
+def test_stop_then_next_move_releases_stop():
+    stop = rtu("01 10 007C 0002 04 0000 0020")
+    release = rtu("01 10 007C 0002 04 0000 0000")
+    move = rtu("01 10 0058 0010 20"
+               "00000000 00000001 00000000 000001F4 00001388 00001388 000003E8 00000001")
+
+    def act(s):
+        s.stop()
+        s.move_to(0.0, 5.0, 50.0)
+
+    run_script([(stop, rtu("01 10 007C 0002")), (release, rtu("01 10 007C 0002")),
+                (move, rtu("01 10 0058 0010"))], act)
+
+
+def test_exception_reply_is_counted_and_ridden_through():
+    exchanges = [(rtu("01 03 00CC 0002"), rtu("01 03 04 0000 0064")),  # 100 steps = 1 mm
+                 (rtu("01 03 00CC 0002"), rtu("01 83 02"))]  # illegal data address
+    dev = ScriptedDevice(exchanges)
+    slider = slider_on(dev)
+    try:
+        assert slider.read_position_mm() == 1.0
+        assert slider.read_position_mm() == 1.0  # last good value, error counted
+        assert slider.stats.errors == 1
+    finally:
+        slider.close()
+        dev.close()
+
+
+def test_load_cell_poll_request_and_parse():
+    master, slave, path = raw_pty()
+    cell = SerialLoadCell(path, mode="poll", request=b"W\r")
+    try:
+        assert cell.latest() is None  # nothing has answered yet
+        assert read_exactly(master, 2) == b"W\r"
+        os.write(master, b"  -18.78 lbF\r\n")
+        deadline = time.monotonic() + 2
+        while cell.stats.lines_ok == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        reading = cell.latest()
+        assert reading.force_N == pytest.approx(-18.78 * 4.4482216152605)
+        assert cell.stats.transactions == 2
+    finally:
+        cell.close()
+        os.close(master)
+        os.close(slave)
