@@ -62,6 +62,23 @@ def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: s
     }
 
 
+def bench_baseline(duration_s: float, rate_Hz: float) -> dict:
+    """A loop that only sleeps to its deadlines: how much jitter the machine itself adds."""
+    from rig.clock import RealClock
+
+    clock = RealClock()
+    period = 1.0 / rate_Hz
+    n = max(int(duration_s * rate_Hz), 2)
+    t0 = clock.now()
+    late = np.empty(n)
+    for k in range(n):
+        clock.sleep_until(t0 + k * period)
+        late[k] = clock.now() - (t0 + k * period)
+    late_ms = late * 1000.0
+    return {"duration_s": duration_s, "ticks": n, "lateness_p99_ms": float(np.percentile(late_ms, 99)),
+            "lateness_max_ms": float(late_ms.max()), "over_5ms": int(np.sum(late_ms > 5.0))}
+
+
 def bench_rls(n: int = 200_000) -> dict:
     rls = StiffnessRLS(rate_Hz=100.0)
     rng = np.random.default_rng(0)
@@ -125,7 +142,7 @@ def max_rate(wire: str, rates=(100, 200, 400, 600, 800, 1000), seconds: float = 
 def run_bench(duration_s: float = 60.0, rate_Hz: float = 100.0, progress: bool = True,
               wire: str = "none", find_max_rate: bool = False) -> dict:
     out = {"loop": bench_loop(duration_s, rate_Hz, progress, wire), "rls": bench_rls(),
-           "record": bench_record()}
+           "record": bench_record(), "baseline": bench_baseline(min(duration_s, 30.0), rate_Hz)}
     if find_max_rate:
         out["max_rate"] = max_rate(wire, progress=progress)
     return out
@@ -146,6 +163,9 @@ def format_bench(r: dict) -> str:
         f"record    {rec['put_us']:.2f} us per sample on the loop side; writer "
         f"{rec['writer_us_per_sample']:.1f} us/sample; {rec['bytes_per_sample']:.1f} bytes/sample on disk",
         f"replay    {lp['replay']['samples_per_s']:,.0f} samples/s",
+        f"machine   a loop that only sleeps, {r['baseline']['duration_s']:g} s: lateness p99 "
+        f"{r['baseline']['lateness_p99_ms']:.3f} ms, max {r['baseline']['lateness_max_ms']:.3f} ms, "
+        f"{r['baseline']['over_5ms']} ticks over 5 ms",
     ] + ([f"max rate  {r['max_rate']['max_rate_Hz']} Hz without a late tick over "
           f"{r['max_rate']['wire']} (tried {', '.join(str(t['rate_Hz']) for t in r['max_rate']['tried'])})"]
          if "max_rate" in r else []))

@@ -16,9 +16,11 @@ from __future__ import annotations
 
 import contextlib
 import enum
+import gc
 import socket
 import sys
 import threading
+import time
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -115,6 +117,11 @@ class Trial:
                        compression=cfg.recorder.compression)
         self.recorder = rec
         _warm_up()
+        self._prime_loadcell()
+        # A full collection mid-trial walks every object the interpreter holds (numpy, pymodbus,
+        # ...): milliseconds. Collect now and freeze what exists, so later passes are short.
+        gc.collect()
+        gc.freeze()
         self._t0 = self.clock.now()
         self._write_header(rec, self._t0)
         # Let the writer put the header on disk before the first tick is due.
@@ -139,11 +146,18 @@ class Trial:
                        "end_time": datetime.now(UTC).isoformat()})
             self.snapshot = _replace(self.snapshot, state=outcome if outcome != "completed" else "done",
                                      fault=fault_msg or "")
+            gc.unfreeze()
         periods = np.diff(np.asarray(self._tick_times)) if len(self._tick_times) > 1 else np.zeros(0)
         return TrialResult(outcome, self.log_path, self._seq, self._late, self._missed,
                            self.clock.now() - t0, fault_msg,
                            np.abs(periods - self.period) * 1000.0,
                            self.slider.stats.transactions)
+
+    def _prime_loadcell(self, timeout_s: float = 1.0) -> None:
+        """Wait (real time) for a first reading: a polled cell answers only after a request."""
+        deadline = time.monotonic() + timeout_s
+        while self.loadcell.latest() is None and time.monotonic() < deadline:
+            time.sleep(0.002)
 
     def _write_header(self, rec: Recorder, t0: float) -> None:
         info = self.info

@@ -6,6 +6,7 @@ Commands arrive on stdin as JSON lines: {"faults": {"drop_replies": 2}} switches
 
 from __future__ import annotations
 
+import gc
 import json
 import signal
 import sys
@@ -18,8 +19,13 @@ from sim_device.server import WireSim
 
 def serve_sim(config: RigConfig, *, json_out: bool = False, exit_with_parent: bool = False,
               tcp_port: int = 0) -> int:
+    # Like the controller: no thread may hold the interpreter for the default 5 ms while
+    # a Modbus reply is due.
+    sys.setswitchinterval(0.0005)
     sim = WireSim(config.sim, tcp_port=tcp_port)
     ep = sim.start()
+    gc.collect()
+    gc.freeze()  # keep full collections short while serving (see rig.loop)
     done = threading.Event()
     out_lock = threading.Lock()
 

@@ -9,8 +9,8 @@ configured timeout the drive stops and raises alarm 0x85, like the real one.
 
 RTU runs through a byte bridge between two pseudo-terminals (server side, client
 side), TCP through a loopback proxy; the bridges are where line faults are injected:
-lost replies, corrupted CRCs (RTU), late replies. Faults are fields of `FaultParams` and can be changed while the
-devices run.
+lost replies, corrupted CRCs (RTU), late replies. Faults are fields of `FaultParams`
+and can be changed while the devices run.
 """
 
 from __future__ import annotations
