@@ -155,6 +155,98 @@ def cmd_home(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------ daemon and its clients
+
+def _socket(args: argparse.Namespace) -> Path:
+    from rig.config import load_config
+    from rig.daemon import default_socket_path
+
+    if args.socket:
+        return Path(args.socket)
+    return default_socket_path(load_config(args.config) if getattr(args, "config", None) else None)
+
+
+def _reply(reply: dict) -> dict:
+    if not reply.get("ok"):
+        raise RigError(reply.get("error", "the daemon refused the request"))
+    return reply
+
+
+def cmd_daemon(args: argparse.Namespace) -> int:
+    from rig.config import load_config
+    from rig.daemon import run_daemon
+
+    config = load_config(args.config)
+    return run_daemon(config, Path(args.socket) if args.socket else None)
+
+
+def cmd_start(args: argparse.Namespace) -> int:
+    from rig.client import request
+    from rig.yamlspec import read_text
+
+    path = Path(args.protocol).resolve()
+    text = read_text(path, "protocol file")
+    reply = _reply(request(_socket(args), {"cmd": "start", "protocol_text": text, "protocol_path": str(path),
+                                           "specimen": args.specimen, "operator": args.operator,
+                                           "notes": args.notes}))
+    print(f"started '{reply['protocol']}'; log {reply['log']}")
+    return 0
+
+
+def cmd_stop(args: argparse.Namespace) -> int:
+    from rig.client import request
+
+    mode = "hold" if args.hold else "abort"
+    _reply(request(_socket(args), {"cmd": "stop", "mode": mode}))
+    print("stopping and staying in place" if args.hold else "stopping, then returning to the start position")
+    return 0
+
+
+def cmd_estop(args: argparse.Namespace) -> int:
+    from rig.client import request
+
+    _reply(request(_socket(args), {"cmd": "estop"}))
+    print("emergency stop sent")
+    return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from rig.client import request
+    from rig.watch import format_status
+
+    reply = _reply(request(_socket(args), {"cmd": "status"}))
+    print(json.dumps(reply, indent=2) if args.json else format_status(reply))
+    return 0
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    from rig.client import stream
+    from rig.watch import Watcher
+
+    watcher = Watcher(sys.stdout)
+    for msg in stream(_socket(args), {"cmd": "watch", "rate_Hz": args.rate}, timeout_s=30.0):
+        _reply(msg)
+        if msg.get("end"):
+            watcher.finish(msg.get("last"))
+            return 0
+        watcher.update(msg["snapshot"], msg.get("trial", {}))
+    return 0
+
+
+def cmd_logs(args: argparse.Namespace) -> int:
+    from rig.config import load_config
+    from rig.recovery import list_trials
+    from rig.watch import format_logs
+
+    out_dir = Path(args.dir) if args.dir else Path(load_config(args.config).recorder.out_dir)
+    entries = list_trials(out_dir)
+    if args.json:
+        print(json.dumps([e.as_dict() for e in entries], indent=2))
+    else:
+        print(format_logs(entries, out_dir))
+    return 0
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     from rig.config import load_config
     from sim_device.control import serve_sim
@@ -231,6 +323,42 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("home", help="run the drive's return-to-home operation")
     r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
     r.set_defaults(func=cmd_home)
+
+    r = sub.add_parser("daemon", help="run the control service (owns the devices; one trial at a time)",
+                       description="Own the slider and load cell and serve trial requests on a Unix socket "
+                                   "(mode 0660: owner and the config's daemon.group). Recovers logs left "
+                                   "unfinished by a crash at start. Speaks sd_notify when NOTIFY_SOCKET "
+                                   "is set.")
+    r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
+    r.add_argument("--socket", help="control socket path (default: daemon.socket, $RIG_SOCKET, "
+                                    "/run/rig/rigd.sock as root, else $XDG_RUNTIME_DIR/rig/rigd.sock)")
+    r.set_defaults(func=cmd_daemon)
+
+    def client(name: str, help_text: str, func) -> argparse.ArgumentParser:
+        c = sub.add_parser(name, help=help_text, description=help_text)
+        c.add_argument("--socket", help="the daemon's control socket")
+        c.add_argument("--config", help="rig config naming the socket (daemon.socket)")
+        c.set_defaults(func=func)
+        return c
+
+    r = client("start", "start a protocol on the daemon", cmd_start)
+    r.add_argument("protocol", help="protocol file (YAML)")
+    r.add_argument("--specimen", default="specimen")
+    r.add_argument("--operator", default="", help="default: your user name")
+    r.add_argument("--notes", default="")
+    r = client("stop", "stop the running trial, then return to the start position", cmd_stop)
+    r.add_argument("--hold", action="store_true", help="stop and stay where it is")
+    client("estop", "emergency stop: stop the motor now, nothing else", cmd_estop)
+    r = client("status", "what the daemon is doing", cmd_status)
+    r.add_argument("--json", action="store_true")
+    r = client("watch", "live view of the running trial until it ends", cmd_watch)
+    r.add_argument("--rate", type=float, default=10.0, help="updates per second (default 10)")
+    r = sub.add_parser("logs", help="the trials recorded, newest first",
+                       description="List the trial logs in the recorder directory, newest first.")
+    r.add_argument("--dir", help="directory of logs (default: the config's recorder.out_dir)")
+    r.add_argument("--config")
+    r.add_argument("--json", action="store_true")
+    r.set_defaults(func=cmd_logs)
 
     r = sub.add_parser("sim", help="start the simulated slider and load cell on real wires",
                        description="Serve the simulated drive over Modbus TCP (loopback) and Modbus RTU "

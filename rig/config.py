@@ -113,6 +113,15 @@ class RecorderConfig:
 
 
 @dataclass
+class DaemonConfig:
+    socket: str = ""  # "" = /run/rig/rigd.sock as root, else $XDG_RUNTIME_DIR/rig/rigd.sock
+    group: str = ""  # group allowed to use the socket besides the owner ("" = owner only)
+    max_request_bytes: int = field(default=65536, metadata={"ge": 1024})
+    watch_rate_Hz: float = field(default=10.0, metadata={"gt": 0, "le": 100})
+    stall_s: float = field(default=1.0, metadata={"gt": 0})  # no tick this long: withhold watchdog pings
+
+
+@dataclass
 class RigConfig:
     name: str = "simulated rig"
     loop: LoopConfig = field(default_factory=LoopConfig)
@@ -121,6 +130,7 @@ class RigConfig:
     slider: SliderConfig = field(default_factory=SliderConfig)
     loadcell: LoadCellConfig = field(default_factory=LoadCellConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
+    daemon: DaemonConfig = field(default_factory=DaemonConfig)
     sim: SimParams = field(default_factory=SimParams)
     source_text: str = field(default="", repr=False, compare=False)
     source_path: str = field(default="<built-in simulated rig>", repr=False, compare=False)

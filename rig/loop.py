@@ -92,7 +92,7 @@ class Trial:
         self.rate = config.loop.rate_Hz
         self.period = 1.0 / self.rate
         self._start_mm = start_mm
-        self._stop_request: tuple[StopMode, str] | None = None
+        self._stop_request: tuple[StopMode, str, float] | None = None
         self._lock = threading.Lock()
         self.snapshot = Snapshot(steps_total=len(proto.run_steps()), log_path=str(log_path))
         est = config.estimator
@@ -100,15 +100,21 @@ class Trial:
         self.on_tick = None  # optional callable(Snapshot), called every tick from the loop thread
 
     # ------------------------------------------------------------- control
-    def request_stop(self, mode: StopMode = StopMode.ABORT, user: str = "") -> None:
-        """Thread-safe; takes effect on the next tick (an estop also stops the motor at once)."""
+    def request_stop(self, mode: StopMode = StopMode.ABORT, user: str = "",
+                     received_s: float | None = None) -> None:
+        """Thread-safe; the loop carries it out on its next tick (the loop thread owns the bus).
+
+        `received_s` is when the request arrived (time.monotonic()); the stop event records the
+        latency from then to the stop command acknowledged on the bus.
+        """
         with self._lock:
             if self._stop_request is None or mode == StopMode.ESTOP:
-                self._stop_request = (mode, user)
-        if mode == StopMode.ESTOP:
-            # best effort from this thread; the loop stops it again on its next tick and logs why
-            with contextlib.suppress(Exception):
-                self.slider.stop()
+                self._stop_request = (mode, user, received_s if received_s is not None else time.monotonic())
+
+    def _take_stop_request(self) -> tuple[StopMode, str, float] | None:
+        with self._lock:
+            req, self._stop_request = self._stop_request, None
+        return req
 
     # ------------------------------------------------------------- the run
     def run(self) -> TrialResult:
@@ -261,16 +267,19 @@ class Trial:
                                  "position_mm": pos - seq.zero_mm})
                     self.snapshot = _replace(self.snapshot, state="stopping", fault=found.message)
 
-            # ---- operator stop requests
-            if fault is None and stop_mode is None and self._stop_request is not None:
-                with self._lock:
-                    stop_mode, user = self._stop_request
+            # ---- operator stop requests (an estop may follow an abort that is returning)
+            req = self._take_stop_request() if fault is None else None
+            if req is not None and (stop_mode is None or req[0] == StopMode.ESTOP):
+                mode, user, received = req
                 slider.stop()
+                sent = time.monotonic()
+                stop_mode = mode
                 outcome = {StopMode.ESTOP: "estopped", StopMode.HOLD: "stopped",
-                           StopMode.ABORT: "aborted"}[stop_mode]
-                self._event(rec, t, "stop_requested", f"{stop_mode.value} requested",
-                            {"mode": stop_mode.value, "user": user, "seq": self._seq})
-                if stop_mode == StopMode.ABORT:
+                           StopMode.ABORT: "aborted"}[mode]
+                self._event(rec, t, "stop_requested", f"{mode.value} requested by {user or '?'}",
+                            {"mode": mode.value, "user": user, "seq": self._seq,
+                             "latency_ms": round((sent - received) * 1000.0, 3)})
+                if mode == StopMode.ABORT:
                     seq.abort_to_start(t, self.return_speed_mm_s)
                 else:
                     seq.done = True

@@ -1,0 +1,59 @@
+"""Talk to `rig daemon` over its Unix socket: one request, one reply (or a stream for watch)."""
+
+from __future__ import annotations
+
+import json
+import socket
+from collections.abc import Iterator
+from pathlib import Path
+
+from rig.errors import RigError
+
+
+def _connect(path: Path, timeout_s: float) -> socket.socket:
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.settimeout(timeout_s)
+    try:
+        sock.connect(str(path))
+    except FileNotFoundError:
+        sock.close()
+        raise RigError(f"no daemon at {path} (start one with `rig daemon`, or pass --socket)") from None
+    except ConnectionRefusedError:
+        sock.close()
+        raise RigError(f"no daemon listening at {path} (a stale socket?)") from None
+    except PermissionError:
+        sock.close()
+        raise RigError(f"permission denied on {path}: you must be its owner or in its group") from None
+    return sock
+
+
+def _lines(sock: socket.socket) -> Iterator[dict]:
+    buf = b""
+    while True:
+        try:
+            chunk = sock.recv(65536)
+        except TimeoutError:
+            raise RigError("the daemon did not answer in time") from None
+        if not chunk:
+            if buf.strip():
+                yield json.loads(buf)
+            return
+        buf += chunk
+        while b"\n" in buf:
+            line, buf = buf.split(b"\n", 1)
+            if line.strip():
+                yield json.loads(line)
+
+
+def request(path: Path, obj: dict, timeout_s: float = 10.0) -> dict:
+    with _connect(path, timeout_s) as sock:
+        sock.sendall((json.dumps(obj) + "\n").encode())
+        for reply in _lines(sock):
+            return reply
+    raise RigError("the daemon closed the connection without a reply")
+
+
+def stream(path: Path, obj: dict, timeout_s: float = 10.0) -> Iterator[dict]:
+    with _connect(path, timeout_s) as sock:
+        sock.sendall((json.dumps(obj) + "\n").encode())
+        yield from _lines(sock)

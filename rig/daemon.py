@@ -1,0 +1,417 @@
+"""`rig daemon`: owns the slider and load cell and runs one trial at a time for its clients.
+
+Control is a Unix-domain socket (mode 0660: the owner and the configured group), no
+network listener. The protocol is JSON lines: one request, one reply; `watch` streams
+status lines until the trial ends. Every request's peer user (SO_PEERCRED) is checked
+against the socket's owner and group and recorded with the starts and stops it makes.
+
+Requests: {"cmd": "ping"}, {"cmd": "status"}, {"cmd": "logs"},
+{"cmd": "start", "protocol_text": ..., "protocol_path": ..., "specimen": ..., "operator": ..., "notes": ...},
+{"cmd": "stop", "mode": "abort" | "hold"}, {"cmd": "estop"}, {"cmd": "watch", "rate_Hz": 10}.
+Replies carry "ok": true, or "ok": false with "error".
+"""
+
+from __future__ import annotations
+
+import contextlib
+import grp
+import json
+import os
+import pwd
+import signal
+import socket
+import struct
+import sys
+import threading
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+from rig import __version__
+from rig.clock import RealClock
+from rig.config import RigConfig
+from rig.devices import Devices, open_devices
+from rig.errors import RigError
+from rig.loop import Snapshot, StopMode, Trial, TrialResult, default_log_path
+from rig.protocol import check_limits, parse_protocol
+from rig.recorder import TrialInfo
+from rig.recovery import find_unfinished, list_trials, recover
+from rig.sdnotify import Watchdog, healthy, notify, watchdog_interval_s
+
+
+def default_socket_path(config: RigConfig | None = None) -> Path:
+    if config is not None and config.daemon.socket:
+        return Path(config.daemon.socket)
+    if env := os.environ.get("RIG_SOCKET"):
+        return Path(env)
+    if os.geteuid() == 0:
+        return Path("/run/rig/rigd.sock")
+    runtime = os.environ.get("XDG_RUNTIME_DIR") or f"/tmp/rig-{os.geteuid()}"
+    return Path(runtime) / "rig" / "rigd.sock"
+
+
+def peer_credentials(conn: socket.socket) -> tuple[int, int, int]:
+    """(pid, uid, gid) of the process at the other end (Linux SO_PEERCRED)."""
+    data = conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+    return struct.unpack("3i", data)
+
+
+def peer_groups(pid: int) -> set[int]:
+    """The peer's supplementary groups, from /proc (empty if it cannot be read)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("Groups:"):
+                return {int(g) for g in line.split()[1:]}
+    except OSError:
+        pass
+    return set()
+
+
+def peer_allowed(uid: int, gid: int, groups: set[int], owner_uid: int, group_gid: int | None) -> bool:
+    """Root, the socket's owner, or a member of its group (primary or supplementary)."""
+    if uid in (0, owner_uid):
+        return True
+    return group_gid is not None and (gid == group_gid or group_gid in groups)
+
+
+def user_name(uid: int) -> str:
+    try:
+        return pwd.getpwuid(uid).pw_name
+    except KeyError:
+        return f"uid {uid}"
+
+
+class RequestError(Exception):
+    """A request the daemon refuses; the message goes back to the client."""
+
+
+class Daemon:
+    def __init__(self, config: RigConfig, socket_path: Path | None = None, *, log=sys.stderr) -> None:
+        self.config = config
+        self.socket_path = Path(socket_path or default_socket_path(config))
+        self.out_dir = Path(config.recorder.out_dir).resolve()
+        self.log = log
+        self.group_gid = grp.getgrnam(config.daemon.group).gr_gid if config.daemon.group else None
+        self.devices: Devices | None = None
+        self.dev_lock = threading.Lock()  # held by the trial thread for a whole trial
+        self.state_lock = threading.Lock()
+        self.trial: Trial | None = None
+        self.trial_thread: threading.Thread | None = None
+        self.trial_meta: dict = {}
+        self.last: dict | None = None
+        self.beat: float | None = None
+        self.recovered: list[str] = []
+        self._stop = threading.Event()
+        self._listener: socket.socket | None = None
+        self._conn_threads: list[threading.Thread] = []
+        self.watchdog: Watchdog | None = None
+
+    def say(self, msg: str) -> None:
+        print(f"rigd: {msg}", file=self.log, flush=True)
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        """Recover crashed logs, open the devices, listen; READY=1 for systemd."""
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        for path in find_unfinished(self.out_dir):
+            try:
+                recover(path)
+                self.recovered.append(str(path))
+                self.say(f"recovered interrupted trial log {path}")
+            except RigError as exc:
+                self.say(f"could not recover {path}: {exc}")
+        self._listen()
+        try:
+            self.devices = open_devices(self.config, RealClock(self.config.loop.spin_ms / 1000.0), speed=1.0)
+        except BaseException:
+            self._close_listener()
+            raise
+        self.say(f"devices: {self.devices.description}")
+        self.say(f"listening on {self.socket_path}")
+        interval = watchdog_interval_s()
+        if interval:
+            self.watchdog = Watchdog(interval, self._healthy).start()
+        notify(f"READY=1\nSTATUS=idle; socket {self.socket_path}")
+
+    def _healthy(self) -> bool:
+        t = self.trial
+        running = t is not None and t.snapshot.state in ("running", "stopping")
+        return healthy(time.monotonic(), self.beat, running, self.config.daemon.stall_s)
+
+    def _listen(self) -> None:
+        path = self.socket_path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if path.exists():
+            probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            try:
+                probe.connect(str(path))
+                probe.close()
+                raise RigError(f"another daemon is serving {path}")
+            except (ConnectionRefusedError, FileNotFoundError):
+                path.unlink()  # stale socket from a daemon that died
+            finally:
+                probe.close()
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        old_umask = os.umask(0o117)  # the socket is born 0660: no window with wider access
+        try:
+            sock.bind(str(path))
+        finally:
+            os.umask(old_umask)
+        os.chmod(path, 0o660)
+        if self.group_gid is not None:
+            os.chown(path, -1, self.group_gid)
+        sock.listen(16)
+        sock.settimeout(0.2)
+        self._listener = sock
+
+    def serve_forever(self) -> None:
+        try:
+            while not self._stop.is_set():
+                try:
+                    conn, _ = self._listener.accept()
+                except TimeoutError:
+                    continue
+                except OSError:
+                    if self._stop.is_set():
+                        break
+                    raise
+                t = threading.Thread(target=self._serve_conn, args=(conn,), name="rigd-conn", daemon=True)
+                self._conn_threads = [c for c in self._conn_threads if c.is_alive()] + [t]
+                t.start()
+        finally:
+            self.shutdown()
+
+    def request_shutdown(self) -> None:
+        self._stop.set()
+
+    def shutdown(self) -> None:
+        notify("STOPPING=1")
+        t = self.trial
+        if t is not None and self.trial_thread is not None and self.trial_thread.is_alive():
+            self.say("stopping the running trial before shutting down")
+            t.request_stop(StopMode.ABORT, user="rigd shutdown")
+            self.trial_thread.join(120.0)
+        if self.watchdog:
+            self.watchdog.stop()
+        self._close_listener()
+        for c in self._conn_threads:
+            c.join(1.0)
+        if self.devices:
+            self.devices.close()
+            self.devices = None
+
+    def _close_listener(self) -> None:
+        if self._listener is not None:
+            self._listener.close()
+            self._listener = None
+            with contextlib.suppress(FileNotFoundError):
+                self.socket_path.unlink()
+
+    # ------------------------------------------------------------------ connections
+    def _serve_conn(self, conn: socket.socket) -> None:
+        with conn:
+            try:
+                pid, uid, gid = peer_credentials(conn)
+            except OSError:
+                return
+            owner = os.stat(self.socket_path).st_uid if self.socket_path.exists() else os.geteuid()
+            if not peer_allowed(uid, gid, peer_groups(pid), owner, self.group_gid):
+                self._send(conn, {"ok": False, "error": f"user {user_name(uid)} is not allowed here"})
+                self.say(f"refused a connection from {user_name(uid)} (pid {pid})")
+                return
+            user = user_name(uid)
+            conn.settimeout(None)
+            limit = self.config.daemon.max_request_bytes
+            buf = b""
+            discarding = False
+            while not self._stop.is_set():
+                try:
+                    chunk = conn.recv(65536)
+                except OSError:
+                    return
+                if not chunk:
+                    return
+                buf += chunk
+                while b"\n" in buf:
+                    line, buf = buf.split(b"\n", 1)
+                    if discarding:  # the tail of an oversized request
+                        discarding = False
+                        continue
+                    if len(line) > limit:
+                        self._send(conn, {"ok": False, "error": f"request too long ({len(line)} bytes; "
+                                                                f"limit {limit})"})
+                        continue
+                    if line.strip() and not self._handle_line(conn, line, user):
+                        return
+                if len(buf) > limit:
+                    self._send(conn, {"ok": False, "error": f"request too long (over {limit} bytes)"})
+                    buf = b""
+                    discarding = True
+
+    def _send(self, conn: socket.socket, obj: dict) -> bool:
+        try:
+            conn.sendall((json.dumps(obj, default=str) + "\n").encode())
+            return True
+        except OSError:
+            return False
+
+    def _handle_line(self, conn: socket.socket, line: bytes, user: str) -> bool:
+        received = time.monotonic()
+        try:
+            req = json.loads(line)
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            return self._send(conn, {"ok": False, "error": f"not JSON: {exc}"})
+        if not isinstance(req, dict) or not isinstance(req.get("cmd"), str):
+            return self._send(conn, {"ok": False, "error": 'expected a JSON object with "cmd"'})
+        cmd = req["cmd"]
+        handler = getattr(self, f"cmd_{cmd}", None)
+        if handler is None:
+            known = sorted(n[4:] for n in dir(self) if n.startswith("cmd_"))
+            return self._send(conn, {"ok": False, "error": f"unknown command '{cmd}' "
+                                                           f"(known: {', '.join(known)})"})
+        if cmd == "watch":
+            return self.cmd_watch(conn, req)
+        try:
+            reply = handler(req, user, received)
+        except RequestError as exc:
+            reply = {"ok": False, "error": str(exc)}
+        except RigError as exc:
+            reply = {"ok": False, "error": str(exc)}
+        return self._send(conn, reply)
+
+    # ------------------------------------------------------------------ commands
+    def cmd_ping(self, req: dict, user: str, received: float) -> dict:
+        return {"ok": True, "version": __version__, "user": user}
+
+    def cmd_status(self, req: dict, user: str, received: float) -> dict:
+        t = self.trial
+        running = t is not None and self.trial_thread is not None and self.trial_thread.is_alive()
+        out: dict = {"ok": True, "state": "running" if running else "idle", "last": self.last,
+                     "recovered": self.recovered}
+        if running:
+            snap = t.snapshot
+            out.update(snapshot=asdict(snap), trial=self.trial_meta)
+            if snap.fault:
+                out["state"] = "fault"
+        else:
+            out["snapshot"] = self._idle_snapshot()
+        return out
+
+    def _idle_snapshot(self) -> dict | None:
+        """Position and force read directly while no trial owns the devices."""
+        if not self.dev_lock.acquire(timeout=0.2):
+            return None
+        try:
+            pos = self.devices.slider.read_position_mm()
+            status = self.devices.slider.read_status()
+            r = self.devices.loadcell.latest()
+            return {"position_mm": pos, "force_N": r.force_N if r else None,
+                    "alarm_code": status.alarm_code, "moving": status.moving}
+        except RigError as exc:
+            return {"error": str(exc)}
+        finally:
+            self.dev_lock.release()
+
+    def cmd_logs(self, req: dict, user: str, received: float) -> dict:
+        return {"ok": True, "trials": [e.as_dict() for e in list_trials(self.out_dir)]}
+
+    def cmd_start(self, req: dict, user: str, received: float) -> dict:
+        text = req.get("protocol_text")
+        if not isinstance(text, str) or not text.strip():
+            raise RequestError('start needs "protocol_text" (the protocol file\'s contents)')
+        path = str(req.get("protocol_path") or "<protocol>")
+        with self.state_lock:
+            if self.trial_thread is not None and self.trial_thread.is_alive():
+                m = self.trial_meta
+                raise RequestError(f"busy: trial '{m['protocol']}' (specimen {m['specimen']}, started "
+                                   f"by {m['user']} at {m['started']}) is running; log {m['log']}")
+            proto = parse_protocol(text, path)  # SpecError -> error reply
+            check_limits(proto, self.config)  # LimitError -> error reply
+            specimen = str(req.get("specimen") or "specimen")
+            operator = str(req.get("operator") or user)
+            log_path = default_log_path(self.out_dir, proto, specimen)
+            info = TrialInfo(specimen=specimen, operator=operator, notes=str(req.get("notes") or ""),
+                             clock="real", extra={"requested_by": user, "devices": self.devices.description,
+                                                  "daemon": "rigd"})
+            trial = Trial(proto, self.config, self.devices.slider, self.devices.loadcell,
+                          RealClock(self.config.loop.spin_ms / 1000.0), log_path, info)
+            trial.on_tick = self._on_tick
+            self.trial = trial
+            self.trial_meta = {"protocol": proto.name, "specimen": specimen, "user": user,
+                               "operator": operator, "log": str(log_path),
+                               "started": time.strftime("%H:%M:%S")}
+            self.beat = time.monotonic()
+            self.trial_thread = threading.Thread(target=self._run_trial, args=(trial,), name="trial",
+                                                 daemon=True)
+            self.dev_lock.acquire()
+            self.trial_thread.start()
+        self.say(f"{user} started '{proto.name}' (specimen {specimen}) -> {log_path}")
+        notify(f"STATUS=running '{proto.name}'")
+        return {"ok": True, "log": str(log_path), "protocol": proto.name}
+
+    def _on_tick(self, snap: Snapshot) -> None:
+        self.beat = time.monotonic()
+
+    def _run_trial(self, trial: Trial) -> None:
+        old = sys.getswitchinterval()
+        sys.setswitchinterval(0.0005)
+        try:
+            result: TrialResult = trial.run()
+            self.last = {"outcome": result.outcome, "log": str(result.log_path), "samples": result.samples,
+                         "duration_s": round(result.duration_s, 3), "fault": result.fault,
+                         **{k: self.trial_meta[k] for k in ("protocol", "specimen", "user")}}
+            self.say(f"trial {result.outcome}: {result.samples} samples -> {result.log_path}")
+        except BaseException as exc:  # noqa: BLE001 - the daemon must outlive a failed trial
+            self.last = {"outcome": "error", "error": f"{type(exc).__name__}: {exc}"}
+            self.say(f"trial failed: {exc}")
+        finally:
+            sys.setswitchinterval(old)
+            self.dev_lock.release()
+            notify("STATUS=idle")
+
+    def _running_trial(self) -> Trial:
+        t = self.trial
+        if t is None or self.trial_thread is None or not self.trial_thread.is_alive():
+            raise RequestError("no trial is running")
+        return t
+
+    def cmd_stop(self, req: dict, user: str, received: float) -> dict:
+        mode = req.get("mode", "abort")
+        if mode not in ("abort", "hold"):
+            raise RequestError('stop "mode" must be "abort" (stop, then return) or "hold" (stop and stay)')
+        self._running_trial().request_stop(StopMode(mode), user=user, received_s=received)
+        self.say(f"{user} requested stop ({mode})")
+        return {"ok": True, "mode": mode}
+
+    def cmd_estop(self, req: dict, user: str, received: float) -> dict:
+        t = self.trial
+        if t is not None and self.trial_thread is not None and self.trial_thread.is_alive():
+            t.request_stop(StopMode.ESTOP, user=user, received_s=received)
+        elif self.dev_lock.acquire(timeout=1.0):  # idle: the daemon thread may use the bus
+            try:
+                self.devices.slider.stop()
+            finally:
+                self.dev_lock.release()
+        self.say(f"{user} requested an emergency stop")
+        return {"ok": True, "mode": "estop"}
+
+    def cmd_watch(self, conn: socket.socket, req: dict) -> bool:
+        rate = float(req.get("rate_Hz") or self.config.daemon.watch_rate_Hz)
+        period = 1.0 / min(max(rate, 0.5), 100.0)
+        t = self.trial
+        while t is not None and self.trial_thread is not None and self.trial_thread.is_alive():
+            if not self._send(conn, {"ok": True, "snapshot": asdict(t.snapshot), "trial": self.trial_meta}):
+                return False
+            time.sleep(period)
+        self._send(conn, {"ok": True, "end": True, "last": self.last})
+        return False  # a watch ends its connection
+
+
+def run_daemon(config: RigConfig, socket_path: Path | None = None) -> int:
+    d = Daemon(config, socket_path)
+    d.start()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: d.request_shutdown())
+    d.serve_forever()
+    d.say("stopped")
+    return 0

@@ -1,0 +1,100 @@
+"""Text views for the daemon's clients: status, a live watch with a small trend, the log list."""
+
+from __future__ import annotations
+
+from collections import deque
+from pathlib import Path
+from typing import TextIO
+
+SPARK = "▁▂▃▄▅▆▇█"
+
+
+def sparkline(values: list[float]) -> str:
+    if not values:
+        return ""
+    lo, hi = min(values), max(values)
+    span = hi - lo or 1.0
+    return "".join(SPARK[min(int((v - lo) / span * (len(SPARK) - 1) + 0.5), len(SPARK) - 1)] for v in values)
+
+
+def format_status(reply: dict) -> str:
+    state = reply["state"]
+    snap = reply.get("snapshot") or {}
+    lines = [f"state     {state}"]
+    if state in ("running", "fault"):
+        t = reply.get("trial", {})
+        lines += [
+            f"protocol  {t.get('protocol')}  (specimen {t.get('specimen')}, started {t.get('started')} "
+            f"by {t.get('user')})",
+            f"step      {snap['step'] + 1}/{snap['steps_total']} {snap['step_kind']}, "
+            f"t = {snap['t_s']:.1f} s, about {snap['time_left_s']:.0f} s left",
+            f"force     {snap['force_N']:.3f} N   position {snap['position_mm']:.3f} mm   "
+            f"stiffness {snap['stiffness_N_per_m']:.1f} N/m",
+            f"log       {t.get('log')}",
+        ]
+        if snap.get("fault"):
+            lines.append(f"FAULT     {snap['fault']}")
+    elif snap:
+        if "error" in snap:
+            lines.append(f"devices   {snap['error']}")
+        else:
+            force = "-" if snap.get("force_N") is None else f"{snap['force_N']:.3f} N (untared)"
+            alarm = f"   ALARM 0x{snap['alarm_code']:02X}" if snap.get("alarm_code") else ""
+            lines.append(f"position  {snap['position_mm']:.3f} mm   force {force}{alarm}")
+    last = reply.get("last")
+    if last:
+        lines.append(f"last      {last.get('outcome')}: '{last.get('protocol', '')}' "
+                     f"{last.get('samples', '')} samples -> {last.get('log', '')}"
+                     + (f"  ({last['fault']})" if last.get("fault") else ""))
+    return "\n".join(lines)
+
+
+class Watcher:
+    """Redraws one block per update; plain lines when the output is not a terminal."""
+
+    def __init__(self, out: TextIO, trend: int = 40) -> None:
+        self.out = out
+        self.tty = out.isatty()
+        self.force: deque[float] = deque(maxlen=trend)
+        self.pos: deque[float] = deque(maxlen=trend)
+        self._drawn = 0
+
+    def update(self, snap: dict, trial: dict) -> None:
+        self.force.append(snap["force_N"])
+        self.pos.append(snap["position_mm"])
+        block = [
+            f"{trial.get('protocol', '')}  specimen {trial.get('specimen', '')}  "
+            f"t = {snap['t_s']:6.1f} s  step {snap['step'] + 1}/{snap['steps_total']} {snap['step_kind']:<8}"
+            f" ~{snap['time_left_s']:.0f} s left",
+            f"  force    {snap['force_N']:8.3f} N   {sparkline(list(self.force))}",
+            f"  position {snap['position_mm']:8.3f} mm  {sparkline(list(self.pos))}",
+            f"  k        {snap['stiffness_N_per_m']:8.1f} N/m"
+            + (f"   FAULT {snap['fault']}" if snap.get("fault") else ""),
+        ]
+        if self.tty and self._drawn:
+            self.out.write(f"\x1b[{self._drawn}F")
+        text = "\n".join(line + ("\x1b[K" if self.tty else "") for line in block) + "\n"
+        self.out.write(text)
+        self.out.flush()
+        self._drawn = len(block)
+
+    def finish(self, last: dict | None) -> None:
+        if last:
+            self.out.write(f"trial {last.get('outcome')}: {last.get('samples', '?')} samples -> "
+                           f"{last.get('log', '')}\n")
+        else:
+            self.out.write("no trial is running\n")
+        self.out.flush()
+
+
+def format_logs(entries, out_dir: Path) -> str:
+    if not entries:
+        return f"no trial logs in {out_dir}"
+    rows = [("started", "specimen", "protocol", "duration", "outcome", "file")]
+    for e in entries:
+        dur = f"{e.duration_s:.1f} s" if e.duration_s is not None else "-"
+        outcome = e.outcome + (" (recovered)" if e.recovered else "")
+        started = e.start_time[:19].replace("T", " ")
+        rows.append((started, e.specimen, e.protocol[:36], dur, outcome, e.path.name))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in rows)
