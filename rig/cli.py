@@ -256,6 +256,73 @@ def cmd_sim(args: argparse.Namespace) -> int:
                      tcp_port=args.tcp_port)
 
 
+def cmd_models(args: argparse.Namespace) -> int:
+    from rig.models.catalogue import CATALOGUE, NAMED_MODELS
+    from rig.models.plugins import load_plugin
+
+    effects = dict(CATALOGUE)
+    for p in args.plugin or []:
+        effects.update({e.name: e for e in load_plugin(p)})
+    if args.json:
+        print(json.dumps({"effects": {n: {"stage": e.stage, "equation": e.equation, "signature": e.signature,
+                                          "source": e.source,
+                                          "params": [{"name": p.name, "unit": p.unit, "init": p.init,
+                                                      "lo": p.lo, "hi": p.hi} for p in e.params]}
+                                      for n, e in effects.items()},
+                          "models": NAMED_MODELS}, indent=2))
+        return 0
+    print("effects (stage: equation; parameters; where its absence shows)")
+    for n, e in effects.items():
+        params = ", ".join(f"{p.name} [{p.unit}]" for p in e.params)
+        src = "" if e.source == "catalogue" else f"  ({e.source})"
+        print(f"  {n:<18} {e.stage:<8} {e.equation}{src}\n  {'':<18} {'':<8} {params}\n"
+              f"  {'':<18} {'':<8} missing: {e.signature}")
+    print("\nnamed models")
+    for n, parts in NAMED_MODELS.items():
+        print(f"  {n:<14} {' + '.join(parts)}")
+    return 0
+
+
+def cmd_analyze(args: argparse.Namespace) -> int:
+    from rig.analysis.analyze import (
+        compare,
+        format_compare,
+        format_holdout,
+        holdout_json,
+        load_inputs,
+        result_json,
+    )
+    from rig.analysis.fit import fit
+    from rig.analysis.report import write_report
+    from rig.models.catalogue import build_model
+
+    inputs = load_inputs(args.inputs, args.holdout or [], args.plugin or [])
+    model = build_model(args.model, args.add or [], inputs.registry)
+    res = fit(model, inputs.trials)
+    out = result_json(res, args.inputs)
+    results = compare(inputs.trials, inputs.registry) if args.compare else None
+    text = format_compare(results, res.noise_N) if results else ""
+    if results:
+        out["compare"] = [result_json(r, args.inputs) for r in results]
+    held = holdout_json(res, inputs.holdout) if inputs.holdout else None
+    if held:
+        out["holdout"] = held
+    if args.report:
+        out["report"] = str(write_report(res, args.report, compare=results, holdout=held, text=text))
+    if args.json:
+        print(json.dumps(out, indent=2))
+        return 0
+    print(res.report())
+    print(f"fitted in {res.seconds:.2f} s")
+    if text:
+        print("\n" + text)
+    if held:
+        print("\n" + format_holdout(held))
+    if args.report:
+        print(f"\nreport: {out['report']}")
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from rig.bench import format_bench, run_bench
 
@@ -370,6 +437,28 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--json", action="store_true", help="print the endpoints as one JSON line")
     r.add_argument("--exit-with-parent", action="store_true", help="exit when stdin closes")
     r.set_defaults(func=cmd_sim)
+
+    r = sub.add_parser("models", help="list the effects catalogue and the named models",
+                       description="The effects a force model is built from, with equations, parameters "
+                                   "and where each one's absence shows in a trial; and the named models.")
+    r.add_argument("--plugin", action="append", help="also list the effects in this Python file")
+    r.add_argument("--json", action="store_true")
+    r.set_defaults(func=cmd_models)
+
+    r = sub.add_parser("analyze", help="fit force models to trials; compare; report",
+                       description="Fit a force model to one or more trials jointly (MCAP logs or CSV "
+                                   "files with t_s,position_mm,force_N), show the error overall and by "
+                                   "phase, compare all named models, test on held-out trials.")
+    r.add_argument("inputs", nargs="+", help="MCAP logs or CSV files")
+    r.add_argument("--model", default="proposed", help="named model or effect (default: proposed)")
+    r.add_argument("--add", action="append", metavar="EFFECT", help="add an effect to the model")
+    r.add_argument("--plugin", action="append", metavar="FILE", help="load user effects from a Python file")
+    r.add_argument("--holdout", action="append", metavar="FILE",
+                   help="report the fitted model's error on this trial (not used in the fit)")
+    r.add_argument("--compare", action="store_true", help="fit every named model and tabulate")
+    r.add_argument("--report", metavar="DIR", help="write figures and report.md here")
+    r.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    r.set_defaults(func=cmd_analyze)
 
     r = sub.add_parser("bench", help="measure loop timing, estimator and logging costs",
                        description="Loop period jitter and late ticks at the loop rate on the real "

@@ -1,0 +1,139 @@
+"""Reports: measured and model force with the phases shaded and the residual below, error by
+phase, the paper's f-e ellipse plot for several trials, and a report.md tying them together."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from rig.analysis.analyze import fe_points
+from rig.analysis.data import PHASES
+from rig.analysis.fit import FitResult
+
+PHASE_COLOURS = {"ramp": "#cfe3f7", "hold_early": "#d8f0d2", "hold_late": "#eaf7e6", "return": "#f7d9d4"}
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _shade(ax, t: np.ndarray, phase: np.ndarray) -> None:
+    start = 0
+    for i in range(1, len(phase) + 1):
+        if i == len(phase) or phase[i] != phase[start]:
+            c = PHASE_COLOURS.get(phase[start])
+            if c:
+                ax.axvspan(t[start], t[min(i, len(t) - 1)], color=c, lw=0)
+            start = i
+
+
+def plot_trial_fit(res: FitResult, k: int, out: Path, title_extra: str = "") -> Path:
+    from matplotlib.patches import Patch
+
+    plt = _plt()
+    tr = res.trials[k]
+    t = tr.motion.t_s
+    fig, (ax, axr) = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True, height_ratios=[3, 1.3],
+                                  constrained_layout=True)
+    _shade(ax, t, tr.phase)
+    ax.plot(t, tr.force_N, color="k", lw=0.7, label="measured")
+    ax.plot(t, res.predictions[k], color="tab:red", lw=1.4, label=f"model: {res.model.name}")
+    ax.set_ylabel("force (N)")
+    handles, labels = ax.get_legend_handles_labels()
+    handles += [Patch(color=PHASE_COLOURS[p]) for p in PHASES]
+    ax.legend(handles, labels + list(PHASES), fontsize=8, ncol=3, loc="upper right")
+    ax.set_title(f"{tr.name}{title_extra}\nRMSE {res.per_trial[k]['rmse_N']:.3f} N "
+                 f"(noise {res.noise_N:.3f} N)", fontsize=9)
+    _shade(axr, t, tr.phase)
+    axr.plot(t, res.residuals[k], color="tab:blue", lw=0.6)
+    axr.axhline(0, color="k", lw=0.6)
+    for s in (-2, 2):
+        axr.axhline(s * res.noise_N, color="grey", lw=0.6, ls="--")
+    axr.set_ylabel("residual (N)\nmeasured - model")
+    axr.set_xlabel("time (s)")
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def plot_phase_errors(results: list[FitResult], out: Path) -> Path:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(9, 4.5), constrained_layout=True)
+    width = 0.8 / max(len(results), 1)
+    x = np.arange(len(PHASES))
+    for i, r in enumerate(results):
+        vals = [r.phases[p].rmse_N if r.phases[p] else 0.0 for p in PHASES]
+        ax.bar(x + i * width - 0.4 + width / 2, vals, width, label=r.model.name)
+    ax.axhline(results[0].noise_N, color="k", ls="--", lw=1, label="sensor noise")
+    ax.set_xticks(x, PHASES)
+    ax.set_ylabel("RMSE (N)")
+    ax.set_yscale("log")
+    ax.set_title("error by phase")
+    ax.legend(fontsize=8, ncol=2)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def plot_fe(res: FitResult, out: Path) -> Path | None:
+    from matplotlib.patches import Ellipse
+
+    pts = fe_points(res.trials, res.residuals)
+    if len(pts) < 2:
+        return None
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 5.5), constrained_layout=True)
+    for i, p in enumerate(pts):
+        c = f"C{i % 10}"
+        ax.add_patch(Ellipse((p["force_30s_N"], p["mean_error_N"]), 2 * max(p["relax_10s_N"], 1e-3),
+                             2 * p["std_error_N"], fill=False, color=c, lw=1.5))
+        ax.plot(p["force_30s_N"], p["mean_error_N"], "o", color=c, label=p["trial"][:40])
+    xs = [p["force_30s_N"] for p in pts]
+    rx = max(p["relax_10s_N"] for p in pts)
+    ry = max(abs(p["mean_error_N"]) + p["std_error_N"] for p in pts)
+    ax.set_xlim(min(xs) - 1.3 * rx, max(xs) + 1.3 * rx)
+    ax.set_ylim(-1.3 * ry, 1.3 * ry)
+    ax.axhline(0, color="k", lw=0.6)
+    ax.set_xlabel("measured force after 30 s of relaxation (N)")
+    ax.set_ylabel("mean estimation error (N)")
+    ax.set_title(f"f-e plot, model {res.model.name}: radii = relaxation in the first 10 s (x), "
+                 "error std (y)", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def write_report(res: FitResult, out_dir: str | Path, *, compare: list[FitResult] | None = None,
+                 holdout: list[dict] | None = None, text: str = "") -> Path:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    figs = [plot_trial_fit(res, k, out / f"fit_{k + 1}.png") for k in range(len(res.trials))]
+    phase_png = plot_phase_errors(compare or [res], out / "phase_errors.png")
+    fe_png = plot_fe(res, out / "fe_plot.png")
+    md = [f"# Model analysis: {res.model.name}", "",
+          f"Trials: {', '.join(t.name for t in res.trials)}", "",
+          "```", res.report(), "```", ""]
+    if compare:
+        md += ["## All named models", "", "```", text, "```", ""]
+    if holdout:
+        md += ["## Held-out trials", "", "| trial | RMSE (N) | mean (N) | " + " | ".join(PHASES) + " |",
+               "|---|---|---|" + "---|" * len(PHASES)]
+        for h in holdout:
+            ph = " | ".join(f"{h['phases'][p]['rmse_N']:.4f}" if h["phases"][p] else "-" for p in PHASES)
+            md.append(f"| {h['trial']} | {h['rmse_N']:.4f} | {h['mean_N']:+.4f} | {ph} |")
+        md.append("")
+    md += ["## Error by phase", "", f"![error by phase]({phase_png.name})", ""]
+    if fe_png:
+        md += ["## f-e plot", "", "One ellipse per trial: centre at the force after 30 s of relaxation "
+               "and the mean estimation error; radii: relaxation in the first 10 s and the error's "
+               "standard deviation.", "", f"![f-e plot]({fe_png.name})", ""]
+    md += ["## Fits", ""] + [f"![{p.stem}]({p.name})" for p in figs]
+    (out / "report.md").write_text("\n".join(md) + "\n")
+    return out / "report.md"

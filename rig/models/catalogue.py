@@ -1,0 +1,159 @@
+"""The effects catalogue and the named models (names are part of the CLI contract)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rig.models.core import Effect, Model, Motion, Param, first_order_lag
+
+INF = np.inf
+
+
+def _linear_elastic(x, v, k_N_per_m):
+    return k_N_per_m * x
+
+
+def _poly_elastic(x, v, k1_N_per_m3, k2_N_per_m2, k3_N_per_m):
+    return ((k1_N_per_m3 * x + k2_N_per_m2) * x + k3_N_per_m) * x
+
+
+def _power_elastic(x, v, k_N_per_m_n, n):
+    return k_N_per_m_n * np.power(x, n)
+
+
+def _viscous(x, v, eta_N_s_per_m):
+    return eta_N_s_per_m * v
+
+
+def _hc_damping(x, v, b_N_s_per_m_n1, n):
+    return b_N_s_per_m_n1 * np.power(x, n) * v
+
+
+def _nonlinear_damping(x, v, tau2_N_s_per_m2):
+    return tau2_N_s_per_m2 * x * v
+
+
+def _relaxation(drive, dt, tau1_s):
+    return first_order_lag(drive, dt, tau1_s)
+
+
+def _relaxation2(x, v, dt, k_m_N_per_m, tau_m_s):
+    # Maxwell element: f2 + tau df2/dt = k tau dx/dt, i.e. a lag of k tau v
+    return first_order_lag(k_m_N_per_m * tau_m_s * v, dt, tau_m_s)
+
+
+def _contact_offset(x, v, x0_mm):
+    x0 = x0_mm / 1000.0
+    return np.maximum(x - x0, 0.0), np.where(x > x0, v, 0.0)
+
+
+def _compliance(x, v, force, dt, k_frame_N_per_m):
+    xc = x - force / k_frame_N_per_m
+    return xc, np.gradient(xc, dt)
+
+
+def _offset(m: Motion, force, offset_N):
+    return np.full_like(force, offset_N)
+
+
+def _drift(m: Motion, force, drift_N_per_s):
+    return drift_N_per_s * (m.t_s - m.t_s[0])
+
+
+def _friction(m: Motion, force, friction_N):
+    # Coulomb friction with the sign rounded over 0.05 mm/s (the guide does not chatter)
+    return friction_N * np.tanh(m.v_m_s / 5e-5)
+
+
+def _delay(m: Motion, force, delay_s):
+    return np.interp(m.t_s - delay_s, m.t_s, force, left=force[0])
+
+
+E = Effect
+CATALOGUE: dict[str, Effect] = {e.name: e for e in [
+    E("linear_elastic", "drive", (Param("k_N_per_m", "N/m", 100.0, -INF, INF, warn_negative=True),),
+      _linear_elastic, "k x",
+      "residual curved in the ramp (stiffening) and a step at the ramp-hold corner"),
+    E("poly_elastic", "drive", (Param("k1_N_per_m3", "N/m^3", 5e4, -INF, INF, 5e4),
+                                Param("k2_N_per_m2", "N/m^2", 500.0, -INF, INF, 500.0),
+                                Param("k3_N_per_m", "N/m", 10.0, -INF, INF, 20.0)),
+      _poly_elastic, "k1 x^3 + k2 x^2 + k3 x",
+      "ramp residual growing with depth: the force stiffens faster than the model"),
+    E("power_elastic", "drive", (Param("k_N_per_m_n", "N/m^n", 100.0, 0.0, INF, 100.0),
+                                 Param("n", "1", 1.5, 0.5, 4.0, 1.0)),
+      _power_elastic, "k x^n (Hertz when n = 1.5)",
+      "ramp residual shaped like a power of depth"),
+    E("viscous", "drive", (Param("eta_N_s_per_m", "N s/m", 100.0, -INF, INF, 500.0, warn_negative=True),),
+      _viscous, "eta dx/dt",
+      "residual steps at ramp start and end proportional to speed"),
+    E("hc_damping", "drive", (Param("b_N_s_per_m_n1", "N s/m^(n+1)", 1e4, -INF, INF, 1e4, warn_negative=True),
+                              Param("n", "1", 1.5, 0.5, 4.0, 1.0)),
+      _hc_damping, "b x^n dx/dt (Hunt-Crossley)",
+      "ramp residual growing with depth and speed; drops at the ramp end"),
+    E("nonlinear_damping", "drive", (Param("tau2_N_s_per_m2", "N s/m^2", 1e5, -INF, INF, 1e5,
+                                           warn_negative=True),),
+      _nonlinear_damping, "tau2 x dx/dt (paper)",
+      "ramp residual proportional to depth x speed; a drop at the ramp end"),
+    E("relaxation", "lag", (Param("tau1_s", "s", 5.0, 0.01, 1000.0, 5.0),),
+      _relaxation, "f + tau1 df/dt = drive (paper)",
+      "hold residual decaying: the force relaxes but the model holds"),
+    E("relaxation2", "branch", (Param("k_m_N_per_m", "N/m", 50.0, 0.0, INF, 50.0),
+                                Param("tau_m_s", "s", 30.0, 0.1, 2000.0, 30.0)),
+      _relaxation2, "Maxwell branch: f2 + tau_m df2/dt = k_m tau_m dx/dt, in parallel",
+      "hold residual still decaying with a second, slower time constant"),
+    E("offset", "sensor", (Param("offset_N", "N", 0.0, -INF, INF, 0.1),),
+      _offset, "constant force offset (tare error)",
+      "residual constant, also before contact and after retraction"),
+    E("drift", "sensor", (Param("drift_N_per_s", "N/s", 0.0, -INF, INF, 0.001),),
+      _drift, "force drift linear in time",
+      "residual growing linearly with time, also before contact"),
+    E("contact_offset", "geometry", (Param("x0_mm", "mm", 0.5, 0.0, 20.0, 1.0),),
+      _contact_offset, "indentation = max(x - x0, 0)",
+      "model force too early at the start of the ramp (contact later than assumed)"),
+    E("delay", "delay", (Param("delay_s", "s", 0.02, 0.0, 2.0, 0.05),),
+      _delay, "force measured late by a fixed delay",
+      "residual proportional to the force's rate of change: peaks at ramp corners"),
+    E("compliance", "geometry", (Param("k_frame_N_per_m", "N/m", 5000.0, 10.0, 1e7, 5000.0),),
+      _compliance, "indentation = x - f / k_frame",
+      "ramp residual growing with force: the tissue sees less than the slider moved",
+      needs_force=True),
+    E("friction", "sensor", (Param("friction_N", "N", 0.0, -INF, INF, 0.1),),
+      _friction, "Coulomb friction in the probe guide, sign of velocity",
+      "residual steps at ramp start and end with the sign of velocity"),
+]}
+
+NAMED_MODELS: dict[str, list[str]] = {
+    "hooke": ["linear_elastic"],
+    "maxwell": ["viscous", "relaxation"],
+    "voigt": ["linear_elastic", "viscous"],
+    "kelvin": ["linear_elastic", "viscous", "relaxation"],
+    "hunt_crossley": ["power_elastic", "hc_damping"],
+    "proposed": ["poly_elastic", "nonlinear_damping", "relaxation"],
+}
+
+
+def build_model(name: str, extra: list[str] | None = None,
+                registry: dict[str, Effect] | None = None) -> Model:
+    from rig.errors import RigError
+
+    reg = registry or CATALOGUE
+    if name not in NAMED_MODELS and name not in reg:
+        import difflib
+
+        near = difflib.get_close_matches(name, [*NAMED_MODELS, *reg], n=1)
+        hint = f" (did you mean '{near[0]}'?)" if near else ""
+        raise RigError(f"unknown model '{name}'{hint}; `rig models` lists them")
+    names = NAMED_MODELS.get(name, [name])
+    for n in extra or []:
+        if n not in reg:
+            import difflib
+
+            near = difflib.get_close_matches(n, list(reg), n=1)
+            hint = f" (did you mean '{near[0]}'?)" if near else ""
+            raise RigError(f"unknown effect '{n}'{hint}; `rig models` lists the catalogue")
+    model = Model([reg[n] for n in names], name=name)
+    for n in extra or []:
+        model = model + reg[n]
+    if extra:
+        model.name = name + "".join(f"+{n}" for n in extra)
+    return model

@@ -1,0 +1,159 @@
+"""Force models built from effects, lmfit style: plain functions, parameters with units and
+bounds, composition with `+`.
+
+A model turns a trial's motion into a predicted force through a fixed chain, and every
+effect plugs into one stage of it:
+
+    geometry   indentation seen by the tissue      (contact_offset, compliance)
+    drive      terms summed into the drive g        (elastic and damping terms)
+    lag        f + tau df/dt = g                    (relaxation; else f = g)
+    branch     parallel branches added after it     (relaxation2)
+    clamp      the tissue cannot pull: f >= 0
+    sensor     what the load cell adds              (offset, drift, friction)
+    delay      the reading arrives late             (delay)
+
+Everything is vectorised: a first-order lag is a linear filter (`scipy.signal.lfilter`),
+never a general ODE solver.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import lfilter
+
+STAGES = ("geometry", "drive", "lag", "branch", "sensor", "delay")
+
+
+@dataclass(frozen=True)
+class Param:
+    name: str  # unique across a model; effects that name the same parameter share it
+    unit: str
+    init: float
+    lo: float = -np.inf
+    hi: float = np.inf
+    scale: float | None = None  # typical magnitude, for the fit's scaling (default: |init| or 1)
+    doc: str = ""
+    warn_negative: bool = False  # a negative value is physically meaningless
+
+    @property
+    def typical(self) -> float:
+        return self.scale or (abs(self.init) if self.init else 1.0)
+
+
+@dataclass
+class Motion:
+    """What the models see of a trial: uniform time, indentation, velocity."""
+
+    t_s: np.ndarray
+    x_m: np.ndarray  # indentation from the trial zero (the probe position), m
+    v_m_s: np.ndarray  # its time derivative, smoothed
+    dt_s: float
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One physical effect: where it acts, its parameters, and how it computes."""
+
+    name: str
+    stage: str
+    params: tuple[Param, ...]
+    fn: Callable  # signature depends on the stage; see Model.predict
+    equation: str
+    signature: str  # where in a trial its absence shows
+    source: str = "catalogue"
+    needs_force: bool = False  # geometry that depends on the force itself (frame compliance)
+
+    def __post_init__(self) -> None:
+        if self.stage not in STAGES:
+            raise ValueError(f"effect '{self.name}': stage must be one of {', '.join(STAGES)}")
+
+    def __add__(self, other: Effect | Model) -> Model:
+        return Model([self]) + other
+
+
+@dataclass
+class Model:
+    effects: list[Effect]
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        names = [e.name for e in self.effects]
+        if len(set(names)) != len(names):
+            raise ValueError(f"an effect appears twice in {names}")
+        for stage in ("lag", "delay"):
+            if sum(e.stage == stage for e in self.effects) > 1:
+                raise ValueError(f"a model holds at most one '{stage}' effect")
+        seen: dict[str, Param] = {}
+        for e in self.effects:
+            for p in e.params:
+                if p.name in seen and seen[p.name].unit != p.unit:
+                    raise ValueError(f"parameter '{p.name}' has units {seen[p.name].unit} and {p.unit}")
+                seen.setdefault(p.name, p)
+        self.params: list[Param] = list(seen.values())
+        if not self.name:
+            self.name = "+".join(e.name for e in self.effects)
+
+    def __add__(self, other: Effect | Model) -> Model:
+        extra = other.effects if isinstance(other, Model) else [other]
+        return Model(self.effects + [e for e in extra if e.name not in self.effect_names])
+
+    @property
+    def effect_names(self) -> list[str]:
+        return [e.name for e in self.effects]
+
+    @property
+    def param_names(self) -> list[str]:
+        return [p.name for p in self.params]
+
+    def has(self, name: str) -> bool:
+        return name in self.effect_names
+
+    def predict(self, values: dict[str, float] | np.ndarray, m: Motion) -> np.ndarray:
+        """Predicted load-cell force (N) for the motion `m`."""
+        if not isinstance(values, dict):
+            values = dict(zip(self.param_names, values, strict=True))
+        by_stage = {s: [e for e in self.effects if e.stage == s] for s in STAGES}
+
+        def args(e: Effect) -> dict[str, float]:
+            return {p.name: values[p.name] for p in e.params}
+
+        compliance = [e for e in by_stage["geometry"] if e.needs_force]
+        plain_geometry = [e for e in by_stage["geometry"] if not e.needs_force]
+        x, v = m.x_m, m.v_m_s
+        for e in plain_geometry:
+            x, v = e.fn(x, v, **args(e))
+        tissue = self._tissue(x, v, m, by_stage, args)
+        for e in compliance:  # the frame spring: indentation = x - f/k; a few fixed-point passes
+            for _ in range(3):
+                xc, vc = e.fn(x, v, tissue, m.dt_s, **args(e))
+                tissue = self._tissue(xc, vc, m, by_stage, args)
+        force = tissue
+        for e in by_stage["sensor"]:
+            force = force + e.fn(m, force, **args(e))
+        for e in by_stage["delay"]:
+            force = e.fn(m, force, **args(e))
+        return force
+
+    def _tissue(self, x, v, m: Motion, by_stage, args) -> np.ndarray:
+        contact = x > 0
+        xc = np.where(contact, x, 0.0)
+        vc = np.where(contact, v, 0.0)
+        drive = np.zeros_like(x)
+        for e in by_stage["drive"]:
+            drive = drive + e.fn(xc, vc, **args(e))
+        drive = np.where(contact, drive, 0.0)
+        f = drive
+        for e in by_stage["lag"]:
+            f = e.fn(drive, m.dt_s, **args(e))
+        for e in by_stage["branch"]:
+            f = f + e.fn(xc, vc, m.dt_s, **args(e))
+        return np.maximum(f, 0.0)  # the tissue cannot pull on the probe
+
+
+def first_order_lag(u: np.ndarray, dt: float, tau: float) -> np.ndarray:
+    """y + tau dy/dt = u, exact for u held over each sample (a linear filter)."""
+    a = float(np.exp(-dt / max(tau, 1e-9)))
+    return lfilter([1.0 - a], [1.0, -a], u)
