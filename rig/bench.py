@@ -140,17 +140,20 @@ def max_rate(wire: str, rates=(100, 200, 400, 600, 800, 1000), seconds: float = 
 
 
 def run_bench(duration_s: float = 60.0, rate_Hz: float = 100.0, progress: bool = True,
-              wire: str = "none", find_max_rate: bool = False) -> dict:
+              wire: str = "none", find_max_rate: bool = False, ode_fit: bool = True) -> dict:
     out = {"loop": bench_loop(duration_s, rate_Hz, progress, wire), "rls": bench_rls(),
            "record": bench_record(), "baseline": bench_baseline(min(duration_s, 30.0), rate_Hz)}
+    if progress:
+        print("bench: model fit (and the same fit by an ODE solver) ...", file=sys.stderr)
+    out["fit"] = bench_fit(ode_fit)
     if find_max_rate:
         out["max_rate"] = max_rate(wire, progress=progress)
     return out
 
 
 def format_bench(r: dict) -> str:
-    lp, rls, rec = r["loop"], r["rls"], r["record"]
-    return "\n".join([
+    lp, rls, rec, base = r["loop"], r["rls"], r["record"], r["baseline"]
+    lines = [
         f"loop      {lp['ticks']} ticks at {lp['rate_Hz']:g} Hz over {lp['duration_s']:.1f} s (real clock, "
         f"{lp['devices']} simulated devices)",
         f"          period error p50 {lp['period_err_p50_ms']:.3f} ms  p99 {lp['period_err_p99_ms']:.3f} ms"
@@ -163,9 +166,92 @@ def format_bench(r: dict) -> str:
         f"record    {rec['put_us']:.2f} us per sample on the loop side; writer "
         f"{rec['writer_us_per_sample']:.1f} us/sample; {rec['bytes_per_sample']:.1f} bytes/sample on disk",
         f"replay    {lp['replay']['samples_per_s']:,.0f} samples/s",
-        f"machine   a loop that only sleeps, {r['baseline']['duration_s']:g} s: lateness p99 "
-        f"{r['baseline']['lateness_p99_ms']:.3f} ms, max {r['baseline']['lateness_max_ms']:.3f} ms, "
-        f"{r['baseline']['over_5ms']} ticks over 5 ms",
-    ] + ([f"max rate  {r['max_rate']['max_rate_Hz']} Hz without a late tick over "
-          f"{r['max_rate']['wire']} (tried {', '.join(str(t['rate_Hz']) for t in r['max_rate']['tried'])})"]
-         if "max_rate" in r else []))
+        f"machine   a loop that only sleeps, {base['duration_s']:g} s: lateness p99 "
+        f"{base['lateness_p99_ms']:.3f} ms, max {base['lateness_max_ms']:.3f} ms, "
+        f"{base['over_5ms']} ticks over 5 ms",
+    ]
+    if "max_rate" in r:
+        m = r["max_rate"]
+        lines.append(f"max rate  {m['max_rate_Hz']} Hz without a late tick over {m['wire']} "
+                     f"(tried {', '.join(str(t['rate_Hz']) for t in m['tried'])})")
+    if "fit" in r:
+        f = r["fit"]
+        lines.append(f"fit       proposed model, {f['trials']} trials jointly ({f['samples']} samples): "
+                     f"{f['fit_s']:.3f} s ({f['evaluations']} model evaluations, "
+                     f"{f['eval_ms_per_trial']:.2f} ms per trial each)")
+        if f.get("ode"):
+            o = f["ode"]
+            lines.append(f"          by solve_ivp instead: {o['eval_s']:.2f} s per evaluation of the three "
+                         f"trials, so about {o['fit_s_estimated']:.0f} s for the same "
+                         f"{o['evaluations']} evaluations")
+    return "\n".join(lines)
+
+
+def bench_fit(ode_fit: bool = True) -> dict:
+    """Joint fit of the proposed model to three 100 s simulated trials at 100 Hz; and the same
+    fit with the model integrated by scipy's solve_ivp inside least_squares, for comparison."""
+    from rig.analysis.data import load_trial
+    from rig.analysis.fit import fit
+    from rig.models.catalogue import build_model
+    from rig.trialrun import RunOptions, run_trial
+
+    trials = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for v in (0.75, 1.5, 3.0):
+            hold = 100.0 - 0.5 - 30.0 / v - 6.3
+            text = (f"name: bench {v}\nsteps:\n  - ramp: {{to_mm: 30, speed_mm_s: {v}}}\n"
+                    f"  - hold: {{duration_s: {hold:.2f}}}\n  - return: {{to_mm: 0, speed_mm_s: 5}}\n")
+            path = Path(tmp) / f"t{v}.mcap"
+            run_trial(parse_protocol(text, "<bench>"), RigConfig(), RunOptions(speed=0, progress=False,
+                                                                                log_path=path))
+            trials.append(load_trial(path))
+    model = build_model("proposed")
+    calls = [0]
+    original = model.predict
+
+    def counted(values, m):
+        calls[0] += 1
+        return original(values, m)
+
+    model.predict = counted
+    res = fit(model, trials)
+    model.predict = original
+    out = {"trials": len(trials), "samples": int(sum(t.n for t in trials)),
+           "fit_s": res.seconds, "evaluations": calls[0] // len(trials), "rmse_N": res.overall.rmse_N}
+    t0 = time.perf_counter()
+    for _ in range(20):
+        model.predict(res.values, trials[0].motion)
+    out["eval_ms_per_trial"] = (time.perf_counter() - t0) / 20 * 1000.0
+    if ode_fit:
+        out["ode"] = _ode_fit(trials, res, calls[0] // len(trials))
+    return out
+
+
+def _ode_fit(trials, res, calls: int) -> dict:
+    """The proposed model by a general ODE solver (RK45, inputs interpolated), as it would run
+    inside least_squares: the time of one evaluation of all trials, times the evaluations our fit
+    needed (each evaluation costs the same whichever optimiser asks for it)."""
+    from scipy.integrate import solve_ivp
+
+    v = res.values
+    k1, k2, k3, tau2, tau1 = (v["k1_N_per_m3"], v["k2_N_per_m2"], v["k3_N_per_m"], v["tau2_N_s_per_m2"],
+                              v["tau1_s"])
+
+    def predict(tr):
+        t, x, xd = tr.motion.t_s, tr.motion.x_m, tr.motion.v_m_s
+
+        def rhs(tt, f):
+            xi = max(np.interp(tt, t, x), 0.0)
+            vi = np.interp(tt, t, xd) if xi > 0 else 0.0
+            g = ((k1 * xi + k2) * xi + k3) * xi + tau2 * xi * vi
+            return [(g - f[0]) / tau1]
+
+        sol = solve_ivp(rhs, (t[0], t[-1]), [0.0], t_eval=t, max_step=0.02, rtol=1e-6, atol=1e-9)
+        return np.maximum(sol.y[0], 0.0)
+
+    t0 = time.perf_counter()
+    pred = [predict(tr) for tr in trials]
+    eval_s = time.perf_counter() - t0
+    resid = np.concatenate([p - tr.force_N for p, tr in zip(pred, trials, strict=True)])
+    rmse = float(np.sqrt(np.mean(resid ** 2)))
+    return {"eval_s": eval_s, "evaluations": calls, "fit_s_estimated": eval_s * calls, "rmse_N": rmse}

@@ -90,7 +90,7 @@ def _uniform(t, x, f, kinds):
 
 def _velocity(x: np.ndarray, dt: float) -> np.ndarray:
     """dx/dt over about 0.15 s (the encoder's steps make a raw difference noisy)."""
-    win = max(5, int(round(0.15 / dt)) | 1)
+    win = max(5, round(0.15 / dt) | 1)
     if len(x) <= win:
         return np.gradient(x, dt)
     return savgol_filter(x, win, 2, deriv=1, delta=dt)

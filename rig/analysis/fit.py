@@ -180,14 +180,14 @@ def _stderr(sol, names: list[str], scale, overall: ErrorStats) -> dict[str, floa
 
 def _warnings(model: Model, values: dict[str, float], z, lo, hi) -> list[str]:
     out = []
-    for p, zi, l, h in zip(model.params, z, lo, hi, strict=True):
+    for p, zi, low, h in zip(model.params, z, lo, hi, strict=True):
         v = values[p.name]
         owner = next(e.name for e in model.effects if p in e.params)
         if p.warn_negative and v < 0:
             out.append(f"{owner}.{p.name} is negative ({v:.4g} {p.unit}): physically meaningless")
-        span = (h - l) if np.isfinite(h - l) else None
+        span = (h - low) if np.isfinite(h - low) else None
         near = 1e-3 * (span if span else max(abs(zi), 1.0))
-        if (np.isfinite(l) and zi - l <= near) or (np.isfinite(h) and h - zi <= near):
+        if (np.isfinite(low) and zi - low <= near) or (np.isfinite(h) and h - zi <= near):
             out.append(f"{owner}.{p.name} = {v:.4g} {p.unit} sits at its bound: the data push it "
                        "out of the physical range")
     return out

@@ -75,7 +75,7 @@ def plot_phase_errors(results: list[FitResult], out: Path) -> Path:
     ax.set_ylabel("RMSE (N)")
     ax.set_yscale("log")
     ax.set_title("error by phase")
-    ax.legend(fontsize=8, ncol=2)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out
