@@ -242,3 +242,16 @@ def test_empty_log_is_a_clear_error(tmp_path):
     p.write_bytes(b"")
     with pytest.raises(RigError):
         load_trial(p)
+
+
+def test_readme_plugin_example_loads_and_fits(paper_trials, tmp_path):
+    """The worked example in the README is real code that loads and fits."""
+    from rig.models.plugins import load_plugin
+
+    readme = (ROOT / "README.md").read_text()
+    block = readme.split("```python\n# my_effects.py\n", 1)[1].split("```", 1)[0]
+    path = tmp_path / "my_effects.py"
+    path.write_text(block)
+    (pump,) = load_plugin(path)
+    res = fit(build_model("proposed") + pump, paper_trials[:1])
+    assert "pump_N" in res.values and res.adequate
