@@ -292,6 +292,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         load_inputs,
         result_json,
     )
+    from rig.analysis.explain import auto, explain, format_auto, format_explain
     from rig.analysis.fit import fit
     from rig.analysis.report import write_report
     from rig.models.catalogue import build_model
@@ -300,6 +301,9 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     model = build_model(args.model, args.add or [], inputs.registry)
     res = fit(model, inputs.trials)
     out = result_json(res, args.inputs)
+    before = fit(build_model(args.model, [], inputs.registry), inputs.trials) if args.add else None
+    if before is not None:
+        out["before_add"] = result_json(before, args.inputs)
     results = compare(inputs.trials, inputs.registry) if args.compare else None
     text = format_compare(results, res.noise_N) if results else ""
     if results:
@@ -307,20 +311,67 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     held = holdout_json(res, inputs.holdout) if inputs.holdout else None
     if held:
         out["holdout"] = held
+    ex = explain(res, inputs.registry) if args.explain else None
+    if ex is not None:
+        out["suggestions"] = [s.as_dict() for s in ex.suggestions]
+        out["indistinguishable"] = ex.indistinguishable
+        out["diagnosis"] = ex.summary
+        out["effective_samples"] = ex.n_eff
+    steps = auto(res, inputs.registry) if args.auto else None
+    if steps is not None:
+        out["auto"] = [{"step": s["step"], "added": s["added"], "removed": s.get("removed"),
+                        "model": s["fit"].model.name, "rmse_N": s["fit"].overall.rmse_N,
+                        "phases": {k: (v.rmse_N if v else None) for k, v in s["fit"].phases.items()},
+                        "delta_bic": s["delta_bic"], "adequate": s["fit"].adequate, "why": s.get("why", "")}
+                       for s in steps]
+        out["auto_final"] = result_json(steps[-1]["fit"], args.inputs)
     if args.report:
-        out["report"] = str(write_report(res, args.report, compare=results, holdout=held, text=text))
+        out["report"] = str(write_report(res, args.report, compare=results, holdout=held, text=text,
+                                         before=before, steps=steps,
+                                         explain_text=format_explain(ex) if ex else ""))
     if args.json:
-        print(json.dumps(out, indent=2))
+        print(json.dumps(out, indent=2, default=float))
         return 0
-    print(res.report())
-    print(f"fitted in {res.seconds:.2f} s")
+    if before is not None:
+        print(format_before_after(before, res))
+    else:
+        print(res.report())
+        print(f"fitted in {res.seconds:.2f} s")
     if text:
         print("\n" + text)
     if held:
         print("\n" + format_holdout(held))
+    if ex is not None:
+        print("\n" + format_explain(ex))
+    if steps is not None:
+        print("\nstepwise: add the best effect while the error falls (criterion: BIC on effective samples)")
+        print(format_auto(steps))
     if args.report:
         print(f"\nreport: {out['report']}")
     return 0
+
+
+def format_before_after(before, after) -> str:
+    from rig.analysis.data import PHASES
+
+    added = [e for e in after.model.effect_names if e not in before.model.effect_names]
+    rows = [("", before.model.name, after.model.name),
+            ("RMSE (N)", f"{before.overall.rmse_N:.4f}", f"{after.overall.rmse_N:.4f}"),
+            ("mean (N)", f"{before.overall.mean_N:+.4f}", f"{after.overall.mean_N:+.4f}"),
+            ("std (N)", f"{before.overall.std_N:.4f}", f"{after.overall.std_N:.4f}")]
+    for ph in PHASES:
+        a, b = before.phases[ph], after.phases[ph]
+        rows.append((f"{ph} RMSE", f"{a.rmse_N:.4f}" if a else "-", f"{b.rmse_N:.4f}" if b else "-"))
+    rows.append(("adequate", str(before.adequate).lower(), str(after.adequate).lower()))
+    w0 = max(len(r[0]) for r in rows)
+    w1 = max(len(r[1]) for r in rows)
+    lines = [f"adding {', '.join(added)}: before and after (noise {after.noise_N:.4f} N)"]
+    lines += [f"  {r[0]:<{w0}}  {r[1]:>{w1}}  {r[2]}" for r in rows]
+    drop = 1 - after.overall.rmse_N / before.overall.rmse_N
+    lines.append(f"  error {'falls' if drop > 0 else 'rises'} by {abs(drop) * 100:.1f} %")
+    lines.append("")
+    lines.append(after.report())
+    return "\n".join(lines)
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -456,6 +507,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--holdout", action="append", metavar="FILE",
                    help="report the fitted model's error on this trial (not used in the fit)")
     r.add_argument("--compare", action="store_true", help="fit every named model and tabulate")
+    r.add_argument("--explain", action="store_true",
+                   help="rank the effects the model lacks by how much each would reduce the error")
+    r.add_argument("--auto", action="store_true",
+                   help="add effects one by one while the error falls; print the steps")
     r.add_argument("--report", metavar="DIR", help="write figures and report.md here")
     r.add_argument("--json", action="store_true", help="one JSON object on stdout")
     r.set_defaults(func=cmd_analyze)

@@ -20,6 +20,7 @@ from rig.models.core import Model
 
 ADEQUATE_RMSE = 1.2
 ADEQUATE_PHASE = 1.5
+ADEQUATE_WHITE = 1.5  # the residual's integral time scale, samples: white noise gives about 1
 
 
 @dataclass
@@ -56,12 +57,13 @@ class FitResult:
     seconds: float
     nfev: int
     per_trial: list[dict] = field(default_factory=list)
+    white_L: float = 1.0  # integral time scale of the residual, samples
 
     @property
     def adequate(self) -> bool:
         worst = max((s.rmse_N for s in self.phases.values() if s is not None), default=0.0)
         return (self.overall.rmse_N <= ADEQUATE_RMSE * self.noise_N
-                and worst <= ADEQUATE_PHASE * self.noise_N)
+                and worst <= ADEQUATE_PHASE * self.noise_N and self.white_L <= ADEQUATE_WHITE)
 
     def report(self) -> str:
         """lmfit-style text report."""
@@ -69,6 +71,7 @@ class FitResult:
                  f"trials     {', '.join(t.name for t in self.trials)}",
                  f"fit        RMSE {self.overall.rmse_N:.4f} N, mean {self.overall.mean_N:+.4f} N, "
                  f"std {self.overall.std_N:.4f} N; noise {self.noise_N:.4f} N ({self.noise_source}); "
+                 f"residual correlation {self.white_L:.1f} samples; "
                  f"{'adequate' if self.adequate else 'NOT adequate'}",
                  "parameters"]
         for p in self.model.params:
@@ -81,6 +84,21 @@ class FitResult:
         for w in self.warnings:
             lines.append(f"WARNING    {w}")
         return "\n".join(lines)
+
+
+def integral_scale(r: np.ndarray, max_lag: int = 3000) -> float:
+    """Samples per independent residual value."""
+    r = r - r.mean()
+    n = len(r)
+    if n < 10 or not np.any(r):
+        return 1.0
+    lag = min(max_lag, n // 4)
+    f = np.fft.rfft(r, 2 * n)
+    acf = np.fft.irfft(f * np.conj(f))[: lag + 1]
+    acf = acf / acf[0]
+    below = np.flatnonzero(acf < 0.05)
+    cut = below[0] if len(below) else lag
+    return float(np.clip(1.0 + 2.0 * acf[1:cut].sum(), 1.0, n / 20.0))
 
 
 def evaluate(model: Model, values: dict[str, float], trials: list[TrialData]) -> list[np.ndarray]:
@@ -108,7 +126,7 @@ def noise_of(trials: list[TrialData], residuals: list[np.ndarray]) -> tuple[floa
 
 
 def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0,
-        initial: dict[str, float] | None = None) -> FitResult:
+        initial: dict[str, float] | None = None, tol: float = 1e-10, max_nfev: int = 400) -> FitResult:
     """Fit `model` to all `trials` jointly (one parameter set)."""
     t0 = time.perf_counter()
     params = model.params
@@ -133,8 +151,8 @@ def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0
     best = None
     nfev = 0
     for z0 in candidates:
-        sol = least_squares(resid, z0, bounds=(lo, hi), method="trf", x_scale=1.0, max_nfev=400,
-                            ftol=1e-10, xtol=1e-10, gtol=1e-10)
+        sol = least_squares(resid, z0, bounds=(lo, hi), method="trf", x_scale=1.0, max_nfev=max_nfev,
+                            ftol=tol, xtol=tol, gtol=tol)
         nfev += sol.nfev
         if best is None or sol.cost < best.cost:
             best = sol
@@ -153,8 +171,9 @@ def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0
         o, ph = error_table([t], [r])
         per_trial.append({"trial": t.name, **o.as_dict(),
                           "phases": {k: (v.rmse_N if v else None) for k, v in ph.items()}})
+    white = float(np.mean([integral_scale(r) for r in residuals]))
     return FitResult(model, trials, values, stderr, predictions, residuals, overall, phases, noise,
-                     noise_src, float(bic), warnings, time.perf_counter() - t0, nfev, per_trial)
+                     noise_src, float(bic), warnings, time.perf_counter() - t0, nfev, per_trial, white)
 
 
 def _inside(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

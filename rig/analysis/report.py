@@ -110,8 +110,32 @@ def plot_fe(res: FitResult, out: Path) -> Path | None:
     return out
 
 
+def plot_residual_steps(fits: list[tuple[str, FitResult]], out: Path) -> Path:
+    """The residual of each step's model, one row per step, for every trial side by side."""
+    plt = _plt()
+    n_trials = len(fits[0][1].trials)
+    fig, axes = plt.subplots(len(fits), n_trials, figsize=(4.2 * n_trials, 1.9 * len(fits) + 0.6),
+                             sharey=True, squeeze=False, constrained_layout=True)
+    for i, (label, r) in enumerate(fits):
+        for k in range(n_trials):
+            ax = axes[i][k]
+            tr = r.trials[k]
+            _shade(ax, tr.motion.t_s, tr.phase)
+            ax.plot(tr.motion.t_s, r.residuals[k], lw=0.5, color="tab:blue")
+            ax.axhline(0, color="k", lw=0.5)
+            ax.set_title(f"{label}: RMSE {r.per_trial[k]['rmse_N']:.3f} N", fontsize=8)
+            if k == 0:
+                ax.set_ylabel("residual (N)", fontsize=8)
+            if i == len(fits) - 1:
+                ax.set_xlabel(f"time (s), {tr.name[:30]}", fontsize=8)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
+
+
 def write_report(res: FitResult, out_dir: str | Path, *, compare: list[FitResult] | None = None,
-                 holdout: list[dict] | None = None, text: str = "") -> Path:
+                 holdout: list[dict] | None = None, text: str = "", before: FitResult | None = None,
+                 steps: list[dict] | None = None, explain_text: str = "") -> Path:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     figs = [plot_trial_fit(res, k, out / f"fit_{k + 1}.png") for k in range(len(res.trials))]
@@ -129,6 +153,22 @@ def write_report(res: FitResult, out_dir: str | Path, *, compare: list[FitResult
             ph = " | ".join(f"{h['phases'][p]['rmse_N']:.4f}" if h["phases"][p] else "-" for p in PHASES)
             md.append(f"| {h['trial']} | {h['rmse_N']:.4f} | {h['mean_N']:+.4f} | {ph} |")
         md.append("")
+    if before is not None:
+        png = plot_residual_steps([(before.model.name, before), (res.model.name, res)],
+                                  out / "before_after.png")
+        md += ["## Before and after adding", "",
+               f"RMSE {before.overall.rmse_N:.4f} N -> {res.overall.rmse_N:.4f} N", "",
+               f"![before and after]({png.name})", ""]
+    if explain_text:
+        md += ["## What is missing", "", "```", explain_text, "```", ""]
+    if steps:
+        from rig.analysis.explain import format_auto
+
+        labels = [("start" if s["added"] is None and not s.get("removed") else
+                   (f"+{s['added']}" if s["added"] else f"-{s['removed']}"), s["fit"]) for s in steps]
+        png = plot_residual_steps(labels, out / "auto_steps.png")
+        md += ["## Stepwise", "", "```", format_auto(steps), "```", "", f"![residual at each step]({png.name})",
+               ""]
     md += ["## Error by phase", "", f"![error by phase]({phase_png.name})", ""]
     if fe_png:
         md += ["## f-e plot", "", "One ellipse per trial: centre at the force after 30 s of relaxation "

@@ -1,0 +1,282 @@
+"""Which effect is missing? Refit with each candidate and rank by an honest criterion.
+
+Residuals at 100 Hz are strongly autocorrelated whenever a model misses something, so a
+BIC over all samples counts the same misfit hundreds of times and rewards any extra
+parameter. The criterion here is BIC on the effective number of independent residuals:
+
+    N_eff = N / L,   L = 1 + 2 * sum of the base residual's autocorrelation (up to its first
+                         drop below 0.05): the residual's integral time scale in samples
+    delta_BIC = N_eff * ln(RSS_with / RSS_without) + delta_k * ln(N_eff)
+
+A white residual (an adequate model) keeps N_eff = N and the full ln(N) penalty; a smooth
+misfit shrinks N_eff, so only a large error reduction counts. A suggestion also needs its
+RMSE to fall by at least 5 %, and when the base model is already adequate nothing is
+suggested unless delta_BIC is decisive (below -10) and the error falls by 5 % or more.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rig.analysis.data import PHASES, TrialData
+from rig.analysis.fit import FitResult, fit
+from rig.models.core import Effect, Model
+
+MIN_DROP = 0.05
+REFIT_LEADERS = 3
+DECISIVE_BIC = -10.0
+# Pairs that one family of trials often cannot separate, and the protocol that would.
+SEPARATE_BY = {
+    frozenset({"compliance", "poly_elastic"}): "a second depth (the frame's share grows with force, the "
+                                               "tissue's with depth) or a richer motion (a sine: order 2)",
+    frozenset({"compliance", "relaxation2"}): "a hold at a second depth",
+    frozenset({"delay", "viscous"}): "another speed (a delay's error scales with df/dt, damping's with v)",
+    frozenset({"delay", "friction"}): "another speed",
+    frozenset({"drift", "relaxation2"}): "a longer hold, or a stretch without contact (drift shows there)",
+    frozenset({"offset", "drift"}): "a longer pre-contact baseline and a rest after the return",
+    frozenset({"offset", "contact_offset"}): "an approach step that finds the surface",
+}
+GENERIC_SEPARATION = "another speed, another depth, or a richer motion (a sine gives excitation order 2)"
+
+
+@dataclass
+class Suggestion:
+    effect: str
+    rmse_N: float
+    rmse_drop: float  # fraction of the base RMSE removed
+    delta_bic: float
+    why: str
+    fit: FitResult
+    meaningless: str = ""  # why the best fit with it is physically meaningless, if it is
+
+    def as_dict(self) -> dict:
+        return {"effect": self.effect, "rmse_N": self.rmse_N, "rmse_drop": self.rmse_drop,
+                "delta_bic": self.delta_bic, "criterion": "BIC on effective samples", "why": self.why}
+
+
+@dataclass
+class Explanation:
+    base: FitResult
+    n_eff: float
+    ranked: list[Suggestion]  # every candidate, best first
+    suggestions: list[Suggestion]  # the ones that pass
+    indistinguishable: list[dict]
+    adequate: bool
+    summary: str
+
+
+def decimate(t: TrialData, stride: int) -> TrialData:
+    """Every `stride`-th sample (the velocity was smoothed over 0.15 s already)."""
+    from rig.models.core import Motion
+
+    m = t.motion
+    sl = slice(None, None, stride)
+    return TrialData(t.name, Motion(m.t_s[sl], m.x_m[sl], m.v_m_s[sl], m.dt_s * stride), t.force_N[sl],
+                     t.phase[sl], t.baseline_noise_N, t.source, t.baseline_n)
+
+
+def candidates(model: Model, registry: dict[str, Effect]) -> list[Effect]:
+    out = []
+    for e in registry.values():
+        if model.has(e.name):
+            continue
+        if e.stage in ("lag", "delay") and any(x.stage == e.stage for x in model.effects):
+            continue
+        out.append(e)
+    return out
+
+
+def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData] | None = None) -> Explanation:
+    trials = trials or base.trials
+    r_all = np.concatenate(base.residuals)
+    L = base.white_L
+    n = len(r_all)
+    n_eff = max(n / L, 10.0)
+    rss0 = float(np.sum(r_all ** 2))
+    # Screen every candidate on a 20 Hz copy of the data (five times fewer samples; the
+    # effects live on time scales of 0.05 s and up), then refit the leaders at full rate.
+    stride = max(round(0.05 / trials[0].motion.dt_s), 1)
+    coarse = [decimate(t, stride) for t in trials]
+    base_coarse = fit(base.model, coarse, starts=1, initial=base.values)
+    rss0_c = float(np.sum(np.concatenate(base_coarse.residuals) ** 2))
+    screened = []
+    for e in candidates(base.model, registry):
+        # a screen, not the final word: a candidate that has not converged by then is not the answer
+        res = fit(base.model + e, coarse, starts=1, initial=base_coarse.values, tol=1e-6, max_nfev=60)
+        rss = float(np.sum(np.concatenate(res.residuals) ** 2))
+        screened.append((rss / max(rss0_c, 1e-300), e, res))
+    screened.sort(key=lambda x: x[0])
+    ranked = []
+    for i, (ratio, e, res_c) in enumerate(screened):
+        model = base.model + e
+        if i < REFIT_LEADERS:
+            res = fit(model, trials, starts=1, initial=res_c.values, tol=1e-8, max_nfev=60)
+            ratio = float(np.sum(np.concatenate(res.residuals) ** 2)) / max(rss0, 1e-300)
+            before = base
+        else:
+            res, before = res_c, base_coarse
+        dk = len(model.params) - len(base.model.params)
+        dbic = n_eff * np.log(max(ratio, 1e-300)) + dk * np.log(n_eff)
+        rmse = base.overall.rmse_N * float(np.sqrt(ratio))
+        drop = 1.0 - float(np.sqrt(ratio))
+        ranked.append(Suggestion(e.name, rmse, drop, float(dbic), _why(e, before, res), res))
+    ranked.sort(key=lambda s: s.delta_bic)
+    for sug in ranked:
+        own = [w for w in sug.fit.warnings if w.startswith(f"{sug.effect}.") and "negative" in w]
+        if own:
+            sug.meaningless = own[0]
+            sug.why += f"; but {own[0]}"
+    ranked_ok = [s for s in ranked if not s.meaningless]
+    if base.adequate:
+        passing = [s for s in ranked_ok if s.delta_bic < DECISIVE_BIC and s.rmse_drop >= MIN_DROP]
+    else:
+        passing = [s for s in ranked_ok if s.delta_bic < 0 and s.rmse_drop >= MIN_DROP]
+    twins = _indistinguishable(passing)
+    summary = _summary(base, passing, twins)
+    return Explanation(base, n_eff, ranked, passing, twins, base.adequate, summary)
+
+
+def _phase_drops(base: FitResult, res: FitResult) -> list[tuple[str, float, float]]:
+    out = []
+    for ph in PHASES:
+        a, b = base.phases.get(ph), res.phases.get(ph)
+        if a and b:
+            out.append((ph, a.rmse_N, b.rmse_N))
+    return sorted(out, key=lambda x: x[2] - x[1])
+
+
+def _why(e: Effect, base: FitResult, res: FitResult) -> str:
+    """Where the evidence is: the phase whose error falls most, what the new term looks like."""
+    drops = _phase_drops(base, res)
+    parts = []
+    if drops:
+        ph, before, after = drops[0]
+        parts.append(f"{ph} error {before:.3f} -> {after:.3f} N")
+    vals = ", ".join(f"{p.name} ~ {res.values[p.name]:.3g} {p.unit}" for p in e.params)
+    shape = _shape(e, base, res)
+    text = shape or e.signature
+    return f"{text} ({'; '.join([*parts, vals])})"
+
+
+def _shape(e: Effect, base: FitResult, res: FitResult) -> str:
+    v = res.values
+    name = e.name
+    if name == "relaxation2":
+        return f"hold residual still decaying with tau about {v['tau_m_s']:.0f} s"
+    if name == "relaxation":
+        return f"hold residual decaying with tau about {v['tau1_s']:.1f} s: the force relaxes, the model holds"
+    if name == "drift":
+        return "error grows linearly with time, also before contact and after the return"
+    if name == "offset":
+        return "a constant error, also out of contact"
+    if name == "friction":
+        return "residual steps at ramp start and end with the sign of velocity"
+    if name == "delay":
+        return ("residual follows the force's rate of change: the reading lags by about "
+                f"{v['delay_s'] * 1000:.0f} ms")
+    if name == "contact_offset":
+        return f"model force rises too early: contact starts about {v['x0_mm']:.2f} mm later"
+    if name == "compliance":
+        return (f"ramp residual grows with force: the frame gives way (k_frame about "
+                f"{v['k_frame_N_per_m']:.0f} N/m)")
+    return ""
+
+
+def _indistinguishable(passing: list[Suggestion]) -> list[dict]:
+    """Top candidates that explain the same residual equally well."""
+    if len(passing) < 2:
+        return []
+    a, b = passing[0], passing[1]
+    close_rmse = abs(a.rmse_N - b.rmse_N) <= 0.05 * a.rmse_N
+    if not close_rmse or (b.delta_bic - a.delta_bic) > 0.1 * abs(a.delta_bic) + 10:
+        return []
+    # they must also predict the same thing: their fitted curves nearly coincide
+    diff = np.concatenate([p - q for p, q in zip(a.fit.predictions, b.fit.predictions, strict=True)])
+    if np.sqrt(np.mean(diff ** 2)) > 0.5 * a.fit.noise_N:
+        return []
+    key = frozenset({a.effect, b.effect})
+    return [{"effects": [a.effect, b.effect],
+             "why": "both explain the same residual on these trials",
+             "separate_with": SEPARATE_BY.get(key, GENERIC_SEPARATION)}]
+
+
+def _summary(base: FitResult, passing: list[Suggestion], twins: list[dict]) -> str:
+    if not passing:
+        if base.adequate:
+            return "the model is adequate: its residual is at the sensor-noise level; nothing to add"
+        worst = max(((ph, s.rmse_N) for ph, s in base.phases.items() if s), key=lambda x: x[1])
+        return (f"the model is NOT adequate (RMSE {base.overall.rmse_N:.3f} N vs noise {base.noise_N:.3f} N; "
+                f"worst in {worst[0]}: {worst[1]:.3f} N) and no effect in the catalogue explains it")
+    if twins:
+        t = twins[0]
+        return (f"{t['effects'][0]} and {t['effects'][1]} cannot be told apart on these trials; "
+                f"to separate them: {t['separate_with']}")
+    s = passing[0]
+    return f"most likely missing: {s.effect} (RMSE {base.overall.rmse_N:.3f} -> {s.rmse_N:.3f} N)"
+
+
+def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = 5) -> list[dict]:
+    """Stepwise selection: add the best effect and refit, then drop any earlier addition the
+    criterion no longer supports (effects hidden together can make a proxy look best first);
+    repeat while the criterion improves and the model is not adequate."""
+    steps = [{"step": 0, "added": None, "removed": None, "fit": base, "delta_bic": 0.0, "why": ""}]
+    current = base
+    added: list[str] = []
+    for i in range(1, max_steps + 1):
+        if current.adequate:
+            break
+        ex = explain(current, registry)
+        if not ex.suggestions:
+            break
+        best = ex.suggestions[0]
+        current = best.fit
+        added.append(best.effect)
+        steps.append({"step": i, "added": best.effect, "removed": None, "fit": current,
+                      "delta_bic": best.delta_bic, "why": best.why,
+                      "indistinguishable": ex.indistinguishable})
+        for name in list(added[:-1]):
+            slimmer = Model([e for e in current.model.effects if e.name != name], name="")
+            trial_fit = fit(slimmer, current.trials, starts=1, initial=current.values)
+            r_all = np.concatenate(current.residuals)
+            n_eff = max(len(r_all) / current.white_L, 10.0)
+            rss_now = float(np.sum(r_all ** 2))
+            rss_without = float(np.sum(np.concatenate(trial_fit.residuals) ** 2))
+            dk = len(current.model.params) - len(slimmer.params)
+            dbic = n_eff * np.log(rss_without / rss_now) - dk * np.log(n_eff)
+            if dbic < 0:  # simpler is better: the earlier effect was a stand-in
+                added.remove(name)
+                current = trial_fit
+                steps.append({"step": i, "added": None, "removed": name, "fit": current,
+                              "delta_bic": float(dbic), "why": f"{name} no longer needed"})
+    return steps
+
+
+def format_explain(ex: Explanation, top: int = 6) -> str:
+    b = ex.base
+    lines = [f"diagnosis of {b.model.name}: RMSE {b.overall.rmse_N:.4f} N, noise {b.noise_N:.4f} N, "
+             f"{'adequate' if b.adequate else 'NOT adequate'}; effective samples {ex.n_eff:.0f} of "
+             f"{b.overall.n}",
+             f"  {'effect':<18}{'RMSE N':>9}{'drop':>8}{'dBIC':>10}  evidence"]
+    for s in ex.ranked[:top]:
+        mark = "*" if s in ex.suggestions else " "
+        lines.append(f"{mark} {s.effect:<18}{s.rmse_N:>9.4f}{s.rmse_drop * 100:>7.1f}%{s.delta_bic:>10.1f}  "
+                     f"{s.why}")
+    lines.append(f"=> {ex.summary}")
+    return "\n".join(lines)
+
+
+def format_auto(steps: list[dict]) -> str:
+    head = f"{'step':<5}{'added':<18}{'RMSE N':>9}" + "".join(f"{p:>12}" for p in PHASES) + f"{'dBIC':>10}"
+    lines = [head, "-" * len(head)]
+    for s in steps:
+        r = s["fit"]
+        ph = "".join(f"{(r.phases[p].rmse_N if r.phases[p] else float('nan')):>12.4f}" for p in PHASES)
+        label = f"+{s['added']}" if s["added"] else (f"-{s['removed']}" if s.get("removed") else "(start)")
+        lines.append(f"{s['step']:<5}{label:<18}{r.overall.rmse_N:>9.4f}{ph}{s['delta_bic']:>10.1f}")
+    last = steps[-1]["fit"]
+    lines.append(f"final model {last.model.name}: "
+                 + ("adequate (residual at the sensor noise)" if last.adequate else
+                    f"NOT adequate (RMSE {last.overall.rmse_N:.4f} N vs noise {last.noise_N:.4f} N)"))
+    return "\n".join(lines)
