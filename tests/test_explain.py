@@ -116,7 +116,7 @@ def test_plugin_effect_not_in_the_catalogue(tmp_path, capsys):
     residual shows where; with it, --explain names the plugin effect."""
     logs = simulate(tmp_path, "A", {}, 23)
     csvs = []
-    for k, p in enumerate(logs):  # noqa: B007 - k names the file
+    for k, p in enumerate(logs):
         log = read_log(p)
         # the pump runs at 0.51 Hz, started with each trial
         log.samples["force_N"] = log.samples["force_N"] + 0.12 * np.sin(2 * np.pi * 0.51 * log.samples["t_s"])
