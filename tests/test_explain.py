@@ -147,3 +147,17 @@ def test_explain_and_auto_on_the_command_line(tmp_path, capsys):
     assert main(["analyze", *map(str, logs), "--add", "drift"]) == 0
     text = capsys.readouterr().out
     assert "adding drift: before and after" in text and "error falls by" in text
+
+
+def test_look_alikes_on_one_ramp_are_reported_as_such(tmp_path):
+    """Frame compliance against the cubic stiffness on a single ramp: no confident wrong answer,
+    but the pair, and the protocol that would separate them."""
+    cfg_effects = {"compliance": {"k_frame_N_per_m": 2000.0}}
+    logs = simulate(tmp_path, "A", cfg_effects, 27)
+    ex = explain(fit(build_model("proposed"), [load_trial(logs[2])]), dict(CATALOGUE))  # the 3 mm/s ramp
+    assert ex.suggestions == [] or ex.suggestions[0].effect == "compliance"
+    assert ex.indistinguishable, ex.summary
+    pair = ex.indistinguishable[0]
+    assert set(pair["effects"]) == {"compliance", "poly_elastic"}
+    assert "depth" in pair["separate_with"]
+    assert "cannot be told apart" in ex.summary

@@ -27,6 +27,7 @@ from rig.models.core import Effect, Model
 MIN_DROP = 0.05
 REFIT_LEADERS = 3
 DECISIVE_BIC = -10.0
+ABSORBED_BIC = 3 * DECISIVE_BIC  # very strong support, negligible error change: a look-alike
 # Pairs that one family of trials often cannot separate, and the protocol that would.
 SEPARATE_BY = {
     frozenset({"compliance", "poly_elastic"}): "a second depth (the frame's share grows with force, the "
@@ -133,7 +134,7 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
         passing = [s for s in ranked_ok if s.delta_bic < DECISIVE_BIC and s.rmse_drop >= MIN_DROP]
     else:
         passing = [s for s in ranked_ok if s.delta_bic < 0 and s.rmse_drop >= MIN_DROP]
-    twins = _indistinguishable(passing)
+    twins = _indistinguishable(passing) or _absorbed(base, ranked_ok)
     summary = _summary(base, passing, twins)
     return Explanation(base, n_eff, ranked, passing, twins, base.adequate, summary)
 
@@ -202,8 +203,32 @@ def _indistinguishable(passing: list[Suggestion]) -> list[dict]:
              "separate_with": SEPARATE_BY.get(key, GENERIC_SEPARATION)}]
 
 
+def _absorbed(base: FitResult, ranked: list[Suggestion]) -> list[dict]:
+    """An effect the criterion supports strongly although it barely changes the error: the
+    model's own terms mimic it on these trials. Name the term that moves to absorb it."""
+    for s in ranked:
+        if s.delta_bic >= ABSORBED_BIC or s.rmse_drop >= MIN_DROP:
+            continue
+        moves: dict[str, float] = {}
+        for e in base.model.effects:
+            for p in e.params:
+                a, b = base.values[p.name], s.fit.values[p.name]
+                moves[e.name] = max(moves.get(e.name, 0.0), abs(b - a) / max(abs(a), 1e-12))
+        twin = max(moves, key=moves.get)
+        return [{"effects": [s.effect, twin],
+                 "why": f"{s.effect} is strongly supported (dBIC {s.delta_bic:.0f}) yet changes the error by "
+                        f"only {s.rmse_drop * 100:.1f} %: {twin} takes its shape on these trials "
+                        f"({twin}'s parameters move by up to {moves[twin] * 100:.0f} %)",
+                 "separate_with": SEPARATE_BY.get(frozenset({s.effect, twin}), GENERIC_SEPARATION)}]
+    return []
+
+
 def _summary(base: FitResult, passing: list[Suggestion], twins: list[dict]) -> str:
     if not passing:
+        if base.adequate and twins:
+            t = twins[0]
+            return (f"the model is adequate, but {t['effects'][0]} and {t['effects'][1]} cannot be told apart "
+                    f"on these trials ({t['why']}); to separate them: {t['separate_with']}")
         if base.adequate:
             return "the model is adequate: its residual is at the sensor-noise level; nothing to add"
         worst = max(((ph, s.rmse_N) for ph, s in base.phases.items() if s), key=lambda x: x[1])
