@@ -159,7 +159,7 @@ class Trial:
                            np.abs(periods - self.period) * 1000.0,
                            self.slider.stats.transactions)
 
-    def _prime_loadcell(self, timeout_s: float = 1.0) -> None:
+    def _prime_loadcell(self, timeout_s: float = 3.0) -> None:
         """Wait (real time) for a first reading: a polled cell answers only after a request."""
         deadline = time.monotonic() + timeout_s
         while self.loadcell.latest() is None and time.monotonic() < deadline:

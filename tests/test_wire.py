@@ -267,7 +267,7 @@ def test_polled_load_cell_over_the_wire(tmp_path):
     cfg.sim.loadcell.mode = "poll"
     result = run_trial(parse_protocol(SHORT, "<test>"), cfg,
                        RunOptions(speed=1.0, progress=False, log_path=tmp_path / "poll.mcap"))
-    assert result.outcome == "completed"
+    assert result.outcome == "completed", result.fault
     log = read_log(result.log_path)
     health = log.health[-1]
     assert health["loadcell_lines_bad"] == 0
