@@ -387,7 +387,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="rig", description="Soft-tissue indentation rig: run trials, replay logs, check protocols.",
+        prog="rig", description="Soft-tissue indentation rig: run and control trials, replay logs, fit and "
+                                    "diagnose force models.",
         epilog="Start with: rig run protocols/demo.yaml   (runs on the built-in simulated rig)")
     p.add_argument("--version", action="version", version=f"rig {__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
