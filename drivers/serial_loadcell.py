@@ -105,11 +105,14 @@ class SerialLoadCell:
     def _now(self) -> float:
         return self.clock.now() if self.clock is not None else time.monotonic()
 
+    def _connect(self) -> serial.SerialBase:
+        return serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.05)
+
     def _open(self) -> serial.SerialBase:
         from rig.errors import DeviceError
 
         try:
-            return serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.05)
+            return self._connect()
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceError(f"load cell: cannot open {self.port}: {exc}") from None
 
@@ -184,7 +187,7 @@ class SerialLoadCell:
             self._serial.close()
         while not self._stop.wait(self.reopen_s):
             try:
-                self._serial = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.05)
+                self._serial = self._connect()
                 return
             except (serial.SerialException, OSError, ValueError):
                 self.stats.errors += 1

@@ -133,6 +133,9 @@ class Daemon:
             self.watchdog = Watchdog(interval, self._healthy).start()
         notify(f"READY=1\nSTATUS=idle; socket {self.socket_path}")
 
+    def _busy(self) -> bool:
+        return self.trial is not None and self.trial_thread is not None and self.trial_thread.is_alive()
+
     def _healthy(self) -> bool:
         t = self.trial
         running = t is not None and t.snapshot.state in ("running", "stopping")
@@ -187,7 +190,7 @@ class Daemon:
     def shutdown(self) -> None:
         notify("STOPPING=1")
         t = self.trial
-        if t is not None and self.trial_thread is not None and self.trial_thread.is_alive():
+        if self._busy():
             self.say("stopping the running trial before shutting down")
             t.request_stop(StopMode.ABORT, user="rigd shutdown")
             self.trial_thread.join(120.0)
@@ -285,7 +288,7 @@ class Daemon:
 
     def cmd_status(self, req: dict, user: str, received: float) -> dict:
         t = self.trial
-        running = t is not None and self.trial_thread is not None and self.trial_thread.is_alive()
+        running = self._busy()
         out: dict = {"ok": True, "state": "running" if running else "idle", "last": self.last,
                      "recovered": self.recovered}
         if running:
@@ -321,7 +324,7 @@ class Daemon:
             raise RequestError('start needs "protocol_text" (the protocol file\'s contents)')
         path = str(req.get("protocol_path") or "<protocol>")
         with self.state_lock:
-            if self.trial_thread is not None and self.trial_thread.is_alive():
+            if self._busy():
                 m = self.trial_meta
                 raise RequestError(f"busy: trial '{m['protocol']}' (specimen {m['specimen']}, started "
                                    f"by {m['user']} at {m['started']}) is running; log {m['log']}")
@@ -370,10 +373,9 @@ class Daemon:
             notify("STATUS=idle")
 
     def _running_trial(self) -> Trial:
-        t = self.trial
-        if t is None or self.trial_thread is None or not self.trial_thread.is_alive():
+        if not self._busy():
             raise RequestError("no trial is running")
-        return t
+        return self.trial
 
     def cmd_stop(self, req: dict, user: str, received: float) -> dict:
         mode = req.get("mode", "abort")
@@ -385,7 +387,7 @@ class Daemon:
 
     def cmd_estop(self, req: dict, user: str, received: float) -> dict:
         t = self.trial
-        if t is not None and self.trial_thread is not None and self.trial_thread.is_alive():
+        if self._busy():
             t.request_stop(StopMode.ESTOP, user=user, received_s=received)
         elif self.dev_lock.acquire(timeout=1.0):  # idle: the daemon thread may use the bus
             try:
@@ -399,7 +401,7 @@ class Daemon:
         rate = float(req.get("rate_Hz") or self.config.daemon.watch_rate_Hz)
         period = 1.0 / min(max(rate, 0.5), 100.0)
         t = self.trial
-        while t is not None and self.trial_thread is not None and self.trial_thread.is_alive():
+        while self._busy():
             if not self._send(conn, {"ok": True, "snapshot": asdict(t.snapshot), "trial": self.trial_meta}):
                 return False
             time.sleep(period)

@@ -9,12 +9,10 @@ from __future__ import annotations
 
 import csv
 import json
-import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
@@ -55,9 +53,6 @@ class TrialLog:
         return "interrupted"
 
 
-_TRUNCATION_ERRORS = (McapError, EOFError, struct.error, ValueError, OSError, KeyError)
-
-
 def read_log(path: str | Path, keep_raw: bool = False) -> TrialLog:
     """Read a trial log; raises RigError for a file that is not an MCAP log at all."""
     path = Path(path)
@@ -94,12 +89,9 @@ def read_log(path: str | Path, keep_raw: bool = False) -> TrialLog:
                     attachments[rec.name] = bytes(rec.data)
                 elif isinstance(rec, Footer):
                     complete = True
-        except _TRUNCATION_ERRORS as exc:
+        # A truncated record, a short read or a corrupt chunk (zstd, CRC) ends the readable part.
+        except Exception as exc:  # noqa: BLE001
             error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-            if not seen_any:
-                raise RigError(f"{path}: not a readable MCAP log ({error})") from None
-        except Exception as exc:  # noqa: BLE001 - a corrupt chunk (e.g. zstd) ends the readable part
-            error = f"{type(exc).__name__}: {exc}"
             if not seen_any:
                 raise RigError(f"{path}: not a readable MCAP log ({error})") from None
     samples = rows[SAMPLE_TOPIC]

@@ -21,7 +21,7 @@ import socket
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -150,7 +150,7 @@ class Trial:
                        "late_ticks": str(self._late), "missed_ticks": str(self._missed),
                        "duration_s": f"{t_end:.3f}", "fault": fault_msg or "",
                        "end_time": datetime.now(UTC).isoformat()})
-            self.snapshot = _replace(self.snapshot, state=outcome if outcome != "completed" else "done",
+            self.snapshot = replace(self.snapshot, state=outcome if outcome != "completed" else "done",
                                      fault=fault_msg or "")
             gc.unfreeze()
         periods = np.diff(np.asarray(self._tick_times)) if len(self._tick_times) > 1 else np.zeros(0)
@@ -219,7 +219,7 @@ class Trial:
         next_health = cfg.loop.health_every_s
         health_mark = 0
         slot = 0
-        self.snapshot = _replace(self.snapshot, state="running")
+        self.snapshot = replace(self.snapshot, state="running")
         while True:
             scheduled = t0 + slot * self.period
             clock.sleep_until(scheduled)
@@ -265,7 +265,7 @@ class Trial:
                     self._event(rec, t, "fault", found.message,
                                 {"kind": found.kind, "seq": self._seq, "force_N": force,
                                  "position_mm": pos - seq.zero_mm})
-                    self.snapshot = _replace(self.snapshot, state="stopping", fault=found.message)
+                    self.snapshot = replace(self.snapshot, state="stopping", fault=found.message)
 
             # ---- operator stop requests (an estop may follow an abort that is returning)
             req = self._take_stop_request() if fault is None else None
@@ -373,12 +373,6 @@ def _warm_up() -> None:
         zstandard.ZstdCompressor().compress(b"warm-up" * 100)
     except ImportError:  # pragma: no cover - mcap depends on it
         pass
-
-
-def _replace(snap: Snapshot, **kw) -> Snapshot:
-    data = dict(snap.__dict__)
-    data.update(kw)
-    return Snapshot(**data)
 
 
 def default_log_path(out_dir: str | Path, proto: Protocol, specimen: str) -> Path:

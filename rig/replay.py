@@ -11,6 +11,7 @@ from rig.config import RigConfig, parse_config
 from rig.errors import RigError, SpecError
 from rig.estimator import StiffnessRLS
 from rig.logs import TrialLog
+from rig.plots import pyplot, shade_spans
 
 
 @dataclass
@@ -157,24 +158,13 @@ _STEP_COLOURS = {"tare": "#dddddd", "approach": "#f3e6c0", "ramp": "#cfe3f7", "h
 
 def shade_steps(ax, t: np.ndarray, kinds: list[str]) -> None:
     """Shade the background of `ax` by step kind."""
-    if not len(t):
-        return
-    start = 0
-    for i in range(1, len(kinds) + 1):
-        if i == len(kinds) or kinds[i] != kinds[start]:
-            colour = _STEP_COLOURS.get(kinds[start])
-            if colour:
-                ax.axvspan(t[start], t[min(i, len(t) - 1)], color=colour, alpha=0.5, lw=0)
-            start = i
+    shade_spans(ax, t, kinds, _STEP_COLOURS, alpha=0.5)
 
 
 def plot_log(log: TrialLog, out: str | Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.patches import Patch
 
+    plt = pyplot()
     s = log.samples
     t = s["t_s"]
     fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True, constrained_layout=True)

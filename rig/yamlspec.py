@@ -125,8 +125,7 @@ class MapView:
         allowed = list(allowed)
         for key, child in self.node.value.items():
             if key not in allowed:
-                near = difflib.get_close_matches(key, allowed, n=1, cutoff=0.6)
-                hint = f" (did you mean '{near[0]}'?)" if near else f" (expected one of: {', '.join(allowed)})"
+                hint = did_you_mean(key, allowed) or f" (expected one of: {', '.join(allowed)})"
                 raise SpecError(f"unknown key '{key}'{hint}", path=self.path,
                                 line=child.key_line or child.line,
                                 column=child.key_column or child.column,
@@ -178,16 +177,31 @@ class MapView:
         return value
 
 
+def range_problem(value: float, gt: float | None = None, ge: float | None = None,
+                  le: float | None = None) -> str | None:
+    """What is wrong with `value` against the bounds, or None."""
+    if value != value:  # NaN
+        return "must be a number, not NaN"
+    if gt is not None and not value > gt:
+        return f"must be greater than {gt:g}, got {value:g}"
+    if ge is not None and not value >= ge:
+        return f"must be at least {ge:g}, got {value:g}"
+    if le is not None and not value <= le:
+        return f"must be at most {le:g}, got {value:g}"
+    return None
+
+
+def did_you_mean(name: str, choices, cutoff: float = 0.6) -> str:
+    """' (did you mean 'x'?)' for the nearest choice, or ''."""
+    near = difflib.get_close_matches(name, list(choices), n=1, cutoff=cutoff)
+    return f" (did you mean '{near[0]}'?)" if near else ""
+
+
 def _check_range(view: MapView, key: str, value: float, *, gt: float | None = None,
                  ge: float | None = None, le: float | None = None) -> None:
-    if value != value:  # NaN
-        raise view.error(key, "must be a number, not NaN")
-    if gt is not None and not value > gt:
-        raise view.error(key, f"must be greater than {gt:g}, got {value:g}")
-    if ge is not None and not value >= ge:
-        raise view.error(key, f"must be at least {ge:g}, got {value:g}")
-    if le is not None and not value <= le:
-        raise view.error(key, f"must be at most {le:g}, got {value:g}")
+    problem = range_problem(value, gt, ge, le)
+    if problem:
+        raise view.error(key, problem)
 
 
 def _describe(value: Any) -> str:
@@ -271,20 +285,15 @@ def _scalar(tp: Any, child: Marked, path: str, field: str, meta: typing.Mapping)
         if tp is int and not isinstance(value, int):
             raise fail(f"expected an integer, got {value!r}")
         value = tp(value)
-        if value != value:
-            raise fail("must be a number, not NaN")
-        for key, ok, word in (("gt", lambda v, b: v > b, "greater than"),
-                              ("ge", lambda v, b: v >= b, "at least"),
-                              ("le", lambda v, b: v <= b, "at most")):
-            if key in meta and not ok(value, meta[key]):
-                raise fail(f"must be {word} {meta[key]:g}, got {value:g}")
+        problem = range_problem(value, meta.get("gt"), meta.get("ge"), meta.get("le"))
+        if problem:
+            raise fail(problem)
         return value
     if tp is str:
         if not isinstance(value, str):
             raise fail(f"expected text, got {_describe(value)}")
         if "choices" in meta and value not in meta["choices"]:
-            near = difflib.get_close_matches(value, meta["choices"], n=1)
-            hint = f" (did you mean '{near[0]}'?)" if near else ""
-            raise fail(f"'{value}' is not one of: {', '.join(meta['choices'])}{hint}")
+            raise fail(f"'{value}' is not one of: {', '.join(meta['choices'])}"
+                       f"{did_you_mean(value, meta['choices'])}")
         return value
     raise fail(f"unsupported field type {tp}")  # pragma: no cover - schema bug, not user error

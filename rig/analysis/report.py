@@ -10,33 +10,19 @@ import numpy as np
 from rig.analysis.analyze import fe_points
 from rig.analysis.data import PHASES
 from rig.analysis.fit import FitResult
+from rig.plots import pyplot, shade_spans
 
 PHASE_COLOURS = {"ramp": "#cfe3f7", "hold_early": "#d8f0d2", "hold_late": "#eaf7e6", "return": "#f7d9d4"}
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def _shade(ax, t: np.ndarray, phase: np.ndarray) -> None:
-    start = 0
-    for i in range(1, len(phase) + 1):
-        if i == len(phase) or phase[i] != phase[start]:
-            c = PHASE_COLOURS.get(phase[start])
-            if c:
-                ax.axvspan(t[start], t[min(i, len(t) - 1)], color=c, lw=0)
-            start = i
+    shade_spans(ax, t, phase, PHASE_COLOURS)
 
 
 def plot_trial_fit(res: FitResult, k: int, out: Path, title_extra: str = "") -> Path:
     from matplotlib.patches import Patch
 
-    plt = _plt()
+    plt = pyplot()
     tr = res.trials[k]
     t = tr.motion.t_s
     fig, (ax, axr) = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True, height_ratios=[3, 1.3],
@@ -63,7 +49,7 @@ def plot_trial_fit(res: FitResult, k: int, out: Path, title_extra: str = "") -> 
 
 
 def plot_phase_errors(results: list[FitResult], out: Path) -> Path:
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(9, 4.5), constrained_layout=True)
     width = 0.8 / max(len(results), 1)
     x = np.arange(len(PHASES))
@@ -87,7 +73,7 @@ def plot_fe(res: FitResult, out: Path) -> Path | None:
     pts = fe_points(res.trials, res.residuals)
     if len(pts) < 2:
         return None
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 5.5), constrained_layout=True)
     for i, p in enumerate(pts):
         c = f"C{i % 10}"
@@ -112,7 +98,7 @@ def plot_fe(res: FitResult, out: Path) -> Path | None:
 
 def plot_residual_steps(fits: list[tuple[str, FitResult]], out: Path) -> Path:
     """The residual of each step's model, one row per step, for every trial side by side."""
-    plt = _plt()
+    plt = pyplot()
     n_trials = len(fits[0][1].trials)
     fig, axes = plt.subplots(len(fits), n_trials, figsize=(4.2 * n_trials, 1.9 * len(fits) + 0.6),
                              sharey=True, squeeze=False, constrained_layout=True)

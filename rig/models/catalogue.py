@@ -135,22 +135,16 @@ NAMED_MODELS: dict[str, list[str]] = {
 def build_model(name: str, extra: list[str] | None = None,
                 registry: dict[str, Effect] | None = None) -> Model:
     from rig.errors import RigError
+    from rig.yamlspec import did_you_mean
 
     reg = registry or CATALOGUE
     if name not in NAMED_MODELS and name not in reg:
-        import difflib
-
-        near = difflib.get_close_matches(name, [*NAMED_MODELS, *reg], n=1)
-        hint = f" (did you mean '{near[0]}'?)" if near else ""
-        raise RigError(f"unknown model '{name}'{hint}; `rig models` lists them")
+        raise RigError(f"unknown model '{name}'{did_you_mean(name, [*NAMED_MODELS, *reg])}; "
+                       "`rig models` lists them")
     names = NAMED_MODELS.get(name, [name])
     for n in extra or []:
         if n not in reg:
-            import difflib
-
-            near = difflib.get_close_matches(n, list(reg), n=1)
-            hint = f" (did you mean '{near[0]}'?)" if near else ""
-            raise RigError(f"unknown effect '{n}'{hint}; `rig models` lists the catalogue")
+            raise RigError(f"unknown effect '{n}'{did_you_mean(n, reg)}; `rig models` lists the catalogue")
     model = Model([reg[n] for n in names], name=name)
     for n in extra or []:
         model = model + reg[n]
