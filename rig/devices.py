@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from drivers.base import LoadCell, Slider
 from rig.clock import Clock
@@ -24,7 +24,6 @@ class Devices:
     rig: object | None = None  # the SimRig behind in-process devices (tests, fault injection)
     sim: object | None = None  # the SimProcess behind simulated devices on the wire
     description: str = ""
-    _closers: list = field(default_factory=list)
 
     def close(self) -> None:
         for dev in (self.slider, self.loadcell):

@@ -96,10 +96,6 @@ _STOP = object()
 class TrialInfo:
     specimen: str = ""
     operator: str = ""
-    protocol_name: str = ""
-    protocol_path: str = ""
-    config_path: str = ""
-    config_digest: str = ""
     clock: str = "real"
     notes: str = ""
     extra: dict[str, str] = field(default_factory=dict)

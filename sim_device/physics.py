@@ -34,7 +34,6 @@ class SliderMotion:
         self.stop_decel_mm_s2 = stop_decel_mm_s2
         self.moving = False
         self.stopping = False
-        self.moves_started = 0
 
     def move_to(self, target_mm: float, speed_mm_s: float, accel_mm_s2: float | None = None) -> None:
         self.target_mm = target_mm
@@ -42,7 +41,6 @@ class SliderMotion:
         self.accel_mm_s2 = accel_mm_s2 or self.default_accel_mm_s2
         self.stopping = False
         self.moving = self.speed_mm_s > 0 and (target_mm != self.position_mm or self.velocity_mm_s != 0)
-        self.moves_started += 1
 
     def stop(self) -> None:
         """Decelerate at the stop rate; a stop is never cancelled by anything but a new move."""
@@ -107,7 +105,6 @@ class SimRig:
             if n_delay > 0 else None
         self._surface_mm = tp.surface_mm + (fx.contact_offset.x0_mm if fx.contact_offset else 0.0)
         self._probe_mm = self.slider.position_mm
-        self.max_tissue_force_N = 0.0
 
     @property
     def t_s(self) -> float:
@@ -150,7 +147,6 @@ class SimRig:
             f2 = self.f2_N * self._a2 + r2.k_N_per_m * (xdot * dt)
             self.f2_N = max(f2, 0.0) if x > 0.0 else 0.0
         self.tissue_force_N = self.f1_N + self.f2_N if x > 0.0 else 0.0
-        self.max_tissue_force_N = max(self.max_tissue_force_N, self.tissue_force_N)
         # What the load cell behind the probe carries.
         sensed = self.tissue_force_N
         if fx.friction:
