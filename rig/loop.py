@@ -123,7 +123,6 @@ class Trial:
                        compression=cfg.recorder.compression)
         self.recorder = rec
         _warm_up()
-        self._prime_loadcell()
         # A full collection mid-trial walks every object the interpreter holds (numpy, pymodbus,
         # ...): milliseconds. Collect now and freeze what exists, so later passes are short.
         gc.collect()
@@ -132,6 +131,9 @@ class Trial:
         self._write_header(rec, self._t0)
         # Let the writer put the header on disk before the first tick is due.
         rec.wait_idle(timeout_s=2.0)
+        # Last, right before the first tick: a polled cell's reading ages from its reply, and
+        # the header's fsync above can take longer than the stale limit on a busy disk.
+        self._prime_loadcell()
         t0 = self._t0 = self.clock.now()
         outcome, fault_msg = "completed", None
         try:
