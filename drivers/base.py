@@ -8,7 +8,22 @@ old it is. Backends live one per module, like pyserial's platform modules.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Generic, Protocol, TypeVar, runtime_checkable
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Reading(Generic[T]):
+    """A value with the time it was taken and whether this call took it (ophyd-async style).
+
+    `fresh` is False when the device did not answer and the value is the last good one:
+    it may stand in for display, never for a safety decision or a speed estimate.
+    """
+
+    value: T
+    t_s: float  # driver clock (the loop's clock) when the value was taken
+    fresh: bool = True
 
 
 @dataclass(frozen=True)
@@ -25,6 +40,9 @@ class ForceReading:
     force_N: float  # as converted by the driver, before the loop's tare
     t_s: float  # loop-clock time the reading arrived
     age_s: float  # how old it was when handed over
+    # The cell reported a force beyond its range (loadcell.max_abs_N): the value is what it
+    # said, and the loop treats it as a force fault at once rather than as a bad line.
+    over_range: bool = False
 
 
 @dataclass
@@ -43,19 +61,26 @@ class LinkStats:
 class Slider(Protocol):
     stats: LinkStats
 
+    def position(self) -> Reading[float]:
+        """Feedback position, mm (one bus transaction); stale (`fresh=False`) if it failed."""
+
+    def status(self) -> Reading[SliderStatus]:
+        """READY / MOVE / IN-POS / alarm (one bus transaction); stale if it failed."""
+
     def read_position_mm(self) -> float:
-        """Feedback position (one bus transaction)."""
+        """`position().value`: for display and set-up, not for safety decisions."""
 
     def read_status(self) -> SliderStatus:
-        """READY / MOVE / IN-POS / alarm (one bus transaction)."""
+        """`status().value`."""
 
     def move_to(self, position_mm: float, speed_mm_s: float, accel_mm_s2: float | None = None) -> None:
         """Start one absolute move the drive executes itself; returns at once."""
 
-    def stop(self) -> None:
-        """Stop motion now (decelerate at the drive's stop rate)."""
+    def stop(self) -> bool:
+        """Stop motion now (decelerate at the drive's stop rate); False if no write was acknowledged."""
 
-    def reset_alarm(self) -> None: ...
+    def reset_alarm(self) -> None:
+        """Clear the drive's alarm (after its cause is gone); `DeviceError` if not acknowledged."""
 
     def close(self) -> None: ...
 

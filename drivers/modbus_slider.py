@@ -4,8 +4,13 @@ Bus budget per loop tick: one FC03 read of the feedback position; status and ala
 together in one FC03 read when the loop asks (about 10 Hz); a move is one FC16 write of
 the direct-data block that the drive then executes itself. Every call is bounded by
 `timeout_s` x (1 + `retries`). One failed read is ridden through (the last good
-value is returned and the error counted); `max_consecutive_errors` in a row raise
-`DeviceError`, which the loop turns into a fault.
+value is returned, marked stale, and the error counted); `max_consecutive_errors` in a
+row raise `DeviceError`, which the loop turns into a fault.
+
+STOP on the input command is level-sensitive, as on the real drive: while it is set the
+drive ignores every move. `prepare()` (on connect) releases a STOP that another process
+left set and reads the register back; every write must be acknowledged, and a write
+that is not raises `DeviceError` (a STOP is retried first: it must not be lost).
 
 The client is owned by one thread (pymodbus does not allow parallel calls on a client).
 """
@@ -15,13 +20,15 @@ from __future__ import annotations
 import contextlib
 import logging
 import socket
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
-from drivers.base import LinkStats, SliderStatus
+from drivers.base import LinkStats, Reading, SliderStatus
 from drivers.registers import RegisterMap, from_words, to_words
 from rig.errors import DeviceError
 
@@ -85,7 +92,8 @@ def _no_delay(client) -> object:
 class ModbusSlider:
     def __init__(self, link: ModbusLink, registers: RegisterMap, steps_per_mm: float, *,
                  current_percent: float = 100.0, stop_decel_mm_s2: float = 2000.0,
-                 max_consecutive_errors: int = 5, client=None) -> None:
+                 max_consecutive_errors: int = 5, client=None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.link = link
         self.regs = registers
         self.steps_per_mm = steps_per_mm
@@ -94,9 +102,11 @@ class ModbusSlider:
         self.max_consecutive_errors = max_consecutive_errors
         self.stats = LinkStats()
         self.client = client or open_client(link)
+        self.clock = clock
         self._consecutive = 0
-        self._position_mm: float | None = None
-        self._status = SliderStatus(ready=False, moving=False, in_position=False, alarm=False)
+        self._position: Reading[float] | None = None
+        self._status: Reading[SliderStatus] = Reading(
+            SliderStatus(ready=False, moving=False, in_position=False, alarm=False), 0.0, False)
         self._stop_latched = False
         self.last_error = ""
         self._sock = getattr(self.client, "socket", None)
@@ -129,40 +139,65 @@ class ModbusSlider:
     def _write(self, what: str, address: int, values: list[int]) -> bool:
         return self._call(what, self.client.write_registers, address, values) is not None
 
+    def _write_checked(self, what: str, address: int, values: list[int]) -> None:
+        if not self._write(what, address, values):
+            raise DeviceError(f"slider ({self.link.describe()}): {what} not acknowledged "
+                              f"({self.last_error})")
+
     # ------------------------------------------------------------ interface
-    def read_position_mm(self) -> float:
+    def prepare(self) -> None:
+        """On connect: release any STOP/ZHOME level left set (by us or another master), verified."""
+        self._write_checked("release input command", self.regs.input_command, [0, 0])
+        reply = self._call("read input command", self.client.read_holding_registers,
+                           self.regs.input_command, count=2)
+        if reply is None:
+            raise DeviceError(f"slider ({self.link.describe()}): cannot read back the input command "
+                              f"register ({self.last_error})")
+        if reply.registers[1] & (1 << self.regs.bit_stop):
+            raise DeviceError(f"slider ({self.link.describe()}): STOP stays set on the input command "
+                              f"after release (0x{reply.registers[1]:04X}): is a STOP input wired on?")
+        self._stop_latched = False
+
+    def position(self) -> Reading[float]:
         reply = self._call("read position", self.client.read_holding_registers,
                            self.regs.feedback_position, count=2)
         if reply is not None:
-            self._position_mm = from_words(*reply.registers[:2]) / self.steps_per_mm
-        if self._position_mm is None:
+            self._position = Reading(from_words(*reply.registers[:2]) / self.steps_per_mm, self.clock())
+            return self._position
+        if self._position is None:
             raise DeviceError(f"slider ({self.link.describe()}): no position read yet "
                               f"({self.last_error})")
-        return self._position_mm
+        return Reading(self._position.value, self._position.t_s, False)
 
-    def read_status(self) -> SliderStatus:
+    def read_position_mm(self) -> float:
+        return self.position().value
+
+    def status(self) -> Reading[SliderStatus]:
         address, count = self.regs.status_block
         reply = self._call("read status", self.client.read_holding_registers, address, count=count)
         if reply is None:
-            return self._status
+            return Reading(self._status.value, self._status.t_s, False)
         words = reply.registers
         bits = words[1]
         code = from_words(words[2], words[3]) if count == 4 else self.read_alarm_code()
         r = self.regs
-        self._status = SliderStatus(
+        self._status = Reading(SliderStatus(
             ready=bool(bits >> r.bit_ready & 1), moving=bool(bits >> r.bit_move & 1),
             in_position=bool(bits >> r.bit_in_pos & 1),
-            alarm=bool(bits >> r.bit_alarm & 1) or code != 0, alarm_code=code)
+            alarm=bool(bits >> r.bit_alarm & 1) or code != 0, alarm_code=code), self.clock())
         return self._status
+
+    def read_status(self) -> SliderStatus:
+        return self.status().value
 
     def read_alarm_code(self) -> int:
         reply = self._call("read alarm", self.client.read_holding_registers, self.regs.alarm, count=2)
-        return from_words(*reply.registers[:2]) if reply is not None else self._status.alarm_code
+        return from_words(*reply.registers[:2]) if reply is not None else self._status.value.alarm_code
 
     def move_to(self, position_mm: float, speed_mm_s: float, accel_mm_s2: float | None = None) -> None:
         """One FC16 write of the direct-data block with trigger 1 (apply and start)."""
         if self._stop_latched:  # STOP is level-sensitive: release it before the next move
-            self._write("release stop", self.regs.input_command, [0, 0])
+            self._write_checked("release stop", self.regs.input_command, [0, 0])
             self._stop_latched = False
         spm = self.steps_per_mm
         accel = accel_mm_s2 or 50.0
@@ -174,32 +209,46 @@ class ModbusSlider:
                  *to_words(max(round(accel * spm), 1)),
                  *to_words(round(self.current_percent * 10)),  # 1 = 0.1 %
                  *to_words(1)]  # trigger: apply all and start
-        if not self._write("move", self.regs.direct_data, block):
-            raise DeviceError(f"slider ({self.link.describe()}): move command not acknowledged "
-                              f"({self.last_error})")
+        self._write_checked("move", self.regs.direct_data, block)
 
-    def stop(self) -> None:
-        """STOP bit on the input command: one transaction; released by the next move."""
+    def stop(self, attempts: int = 3) -> bool:
+        """STOP bit on the input command, retried at once if not acknowledged; released by the
+        next move. False if no attempt was acknowledged (the caller keeps trying; the drive's
+        communication timeout is the backstop)."""
         self._stop_latched = True
-        if not self._write("stop", self.regs.input_command, [0, 1 << self.regs.bit_stop]):
-            # Try once more at once: a stop must not be lost to one dropped reply.
-            self._write("stop", self.regs.input_command, [0, 1 << self.regs.bit_stop])
+        for _ in range(attempts):
+            try:
+                if self._write("stop", self.regs.input_command, [0, 1 << self.regs.bit_stop]):
+                    return True
+            except DeviceError:
+                # too many failures in a row: still try the remaining attempts
+                self._consecutive = 0
+        return False
 
     def home(self) -> None:
         """The drive's return-to-home operation (ZHOME)."""
-        self._write("release", self.regs.input_command, [0, 0])
-        self._write("home", self.regs.input_command, [0, 1 << self.regs.bit_zhome])
+        self._write_checked("release", self.regs.input_command, [0, 0])
+        self._write_checked("home", self.regs.input_command, [0, 1 << self.regs.bit_zhome])
         self._stop_latched = True  # the ZHOME level must be released before the next move
 
     def reset_alarm(self) -> None:
-        self._write("alarm reset", self.regs.alarm_reset, [0, 1])
-        self._write("alarm reset", self.regs.alarm_reset, [0, 0])
+        self._write_checked("alarm reset", self.regs.alarm_reset, [0, 1])
+        self._write_checked("alarm reset", self.regs.alarm_reset, [0, 0])
 
     def set_comm_timeout(self, timeout_s: float) -> bool:
-        """Write the drive's communication timeout (if the profile knows its register)."""
-        if self.regs.comm_timeout_ms is None:
+        """Write the drive's communication timeout and read it back; False if the profile has no
+        register for it. `DeviceError` if the drive does not take it."""
+        address = self.regs.comm_timeout_ms
+        if address is None:
             return False
-        return self._write("comm timeout", self.regs.comm_timeout_ms, to_words(round(timeout_s * 1000)))
+        want = round(timeout_s * 1000)
+        self._write_checked("comm timeout", address, to_words(want))
+        reply = self._call("read comm timeout", self.client.read_holding_registers, address, count=2)
+        got = from_words(*reply.registers[:2]) if reply is not None else None
+        if got != want:
+            raise DeviceError(f"slider ({self.link.describe()}): communication timeout written as "
+                              f"{want} ms but reads back {got} (register 0x{address:04X})")
+        return True
 
     def close(self) -> None:
         # closing a dead link must not raise

@@ -5,6 +5,8 @@ the loop asks; the reply arrives before the next tick). A reader thread parses e
 line; the loop only ever takes the newest reading and its age, so it never blocks on
 the port. Garbage, partial and out-of-range lines are counted and skipped; a port that
 disappears is reopened, and the readings' age tells the loop the sensor is silent.
+A line beyond the cell's range (`max_abs_N`) is not skipped: it becomes the newest
+reading, flagged `over_range`, so the loop stops on an overload at once.
 """
 
 from __future__ import annotations
@@ -45,9 +47,10 @@ class LineFormat:
 
 
 class LineRejected(ValueError):
-    def __init__(self, reason: str, out_of_range: bool = False) -> None:
+    def __init__(self, reason: str, out_of_range: bool = False, force_N: float | None = None) -> None:
         super().__init__(reason)
         self.out_of_range = out_of_range
+        self.force_N = force_N  # the value an over-range line carried
 
 
 def parse_line(raw: bytes, fmt: LineFormat, rx: re.Pattern[str] | None = None) -> float:
@@ -75,7 +78,7 @@ def parse_line(raw: bytes, fmt: LineFormat, rx: re.Pattern[str] | None = None) -
             raise LineRejected(f"unknown unit {unit!r}")
         force = value * UNITS_N[unit]
     if abs(force) > fmt.max_abs_N:
-        raise LineRejected(f"{force:g} N is beyond the cell's range", out_of_range=True)
+        raise LineRejected(f"{force:g} N is beyond the cell's range", out_of_range=True, force_N=force)
     return force
 
 
@@ -123,7 +126,7 @@ class SerialLoadCell:
         r = self._latest
         if r is None:
             return None
-        return ForceReading(r.force_N, r.t_s, self._now() - r.t_s)
+        return ForceReading(r.force_N, r.t_s, self._now() - r.t_s, r.over_range)
 
     def _send_request(self) -> None:
         with self._write_lock:
@@ -173,6 +176,9 @@ class SerialLoadCell:
         except LineRejected as exc:
             if exc.out_of_range:
                 self.stats.out_of_range += 1
+                self.last_rejected = str(exc)
+                self._latest = ForceReading(exc.force_N, self._now(), 0.0, over_range=True)
+                return
             self._reject(str(exc))
             return
         self.stats.lines_ok += 1

@@ -146,6 +146,21 @@ def cmd_move(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_reset_alarm(args: argparse.Namespace) -> int:
+    if args.socket:
+        from rig.client import request
+
+        r = _reply(request(Path(args.socket), {"cmd": "reset_alarm"}))
+    else:
+        from rig.config import load_config
+        from rig.manual import reset_alarm
+
+        r = reset_alarm(load_config(args.config))
+    before = f"alarm 0x{r['alarm_before']:02X}" if r["alarm_before"] else "no alarm"
+    print(f"alarm reset: {before} before, none now")
+    return 0
+
+
 def cmd_home(args: argparse.Namespace) -> int:
     from rig.config import load_config
     from rig.manual import move
@@ -189,6 +204,8 @@ def cmd_start(args: argparse.Namespace) -> int:
     reply = _reply(request(_socket(args), {"cmd": "start", "protocol_text": text, "protocol_path": str(path),
                                            "specimen": args.specimen, "operator": args.operator,
                                            "notes": args.notes}))
+    for w in reply.get("warnings") or []:
+        print(w, file=sys.stderr)
     print(f"started '{reply['protocol']}'; log {reply['log']}")
     return 0
 
@@ -205,8 +222,8 @@ def cmd_stop(args: argparse.Namespace) -> int:
 def cmd_estop(args: argparse.Namespace) -> int:
     from rig.client import request
 
-    _reply(request(_socket(args), {"cmd": "estop"}))
-    print("emergency stop sent")
+    reply = _reply(request(_socket(args), {"cmd": "estop"}))
+    print(f"emergency stop: {reply.get('message', 'sent')}")
     return 0
 
 
@@ -438,6 +455,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--speed-mm-s", type=float, default=2.0, help="speed, mm/s (default 2)")
     r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
     r.set_defaults(func=cmd_move)
+
+    r = sub.add_parser("reset-alarm", help="clear the drive's alarm once its cause is gone",
+                       description="Reset the drive's alarm (the alarm-reset command of its register "
+                                   "map) and read the status back: fails if the drive still reports an "
+                                   "alarm. With --socket, asks the daemon (which owns the devices).")
+    r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
+    r.add_argument("--socket", help="ask the daemon on this control socket instead")
+    r.set_defaults(func=cmd_reset_alarm)
 
     r = sub.add_parser("home", help="run the drive's return-to-home operation")
     r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")

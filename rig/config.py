@@ -28,6 +28,10 @@ class LoopConfig:
     tare_s: float = field(default=0.5, metadata={"ge": 0})
     spin_ms: float = field(default=0.3, metadata={"ge": 0})  # busy-wait before each deadline
     health_every_s: float = field(default=1.0, metadata={"gt": 0})
+    # Real-time scheduling of the loop thread (SCHED_FIFO) and locked memory: "auto" asks and
+    # carries on without it (the log records which), "required" refuses to run without it.
+    realtime: str = field(default="auto", metadata={"choices": ["auto", "required", "off"]})
+    realtime_priority: int = field(default=50, metadata={"ge": 1, "le": 99})
 
 
 @dataclass
@@ -38,6 +42,14 @@ class LimitsConfig:
     loadcell_stale_ms: float = field(default=100.0, metadata={"gt": 0})
     # Measured speed above max_speed_mm_s * overspeed_factor is a fault (runaway drive).
     overspeed_factor: float = field(default=1.5, metadata={"ge": 1})
+    # Every move has a deadline: planned time x factor + slack. It must show motion within
+    # move_start_s and may not run past its target by more than overshoot_mm.
+    move_deadline_factor: float = field(default=1.25, metadata={"ge": 1})
+    move_deadline_slack_s: float = field(default=0.5, metadata={"gt": 0})
+    move_start_s: float = field(default=0.3, metadata={"gt": 0})
+    overshoot_mm: float = field(default=0.1, metadata={"gt": 0})
+    # After a STOP, the drive must report standing still within this; STOP is re-sent meanwhile.
+    stop_confirm_s: float = field(default=2.0, metadata={"gt": 0})
 
     def __post_init__(self) -> None:
         lo, hi = self.travel_mm
@@ -88,6 +100,11 @@ class SliderConfig:
     # Written to the drive on connect (profiles that know the register): the drive stops by
     # itself when the controller falls silent this long.
     comm_timeout_s: float = field(default=0.5, metadata={"ge": 0})
+    # A profile that cannot set the communication timeout leaves the drive running if the
+    # controller dies: refused unless this says the rig runs without that backstop.
+    allow_no_comm_timeout: bool = False
+    # The drive's own return-to-home speed (a drive parameter): checked against the limits.
+    home_speed_mm_s: float = field(default=5.0, metadata={"gt": 0})
 
 
 @dataclass
@@ -110,6 +127,8 @@ class RecorderConfig:
     out_dir: str = "trials"
     flush_s: float = field(default=1.0, metadata={"gt": 0})
     compression: str = field(default="zstd", metadata={"choices": ["zstd", "lz4", "none"]})
+    # Messages waiting for the writer; more means the disk cannot keep up: a recording fault.
+    max_queue: int = field(default=20000, metadata={"ge": 100})
 
 
 @dataclass

@@ -7,8 +7,10 @@ against the socket's owner and group and recorded with the starts and stops it m
 
 Requests: {"cmd": "ping"}, {"cmd": "status"}, {"cmd": "logs"},
 {"cmd": "start", "protocol_text": ..., "protocol_path": ..., "specimen": ..., "operator": ..., "notes": ...},
-{"cmd": "stop", "mode": "abort" | "hold"}, {"cmd": "estop"}, {"cmd": "watch", "rate_Hz": 10}.
-Replies carry "ok": true, or "ok": false with "error".
+{"cmd": "stop", "mode": "abort" | "hold"}, {"cmd": "estop"}, {"cmd": "reset_alarm"},
+{"cmd": "watch", "rate_Hz": 10}.
+Replies carry "ok": true, or "ok": false with "error". A stop or estop is answered once the
+STOP has gone out on the bus and the drive acknowledged it; "ok": false says it did not.
 """
 
 from __future__ import annotations
@@ -329,13 +331,16 @@ class Daemon:
                 raise RequestError(f"busy: trial '{m['protocol']}' (specimen {m['specimen']}, started "
                                    f"by {m['user']} at {m['started']}) is running; log {m['log']}")
             proto = parse_protocol(text, path)  # SpecError -> error reply
-            check_limits(proto, self.config)  # LimitError -> error reply
+            # From where the slider is now: the trial's zero is there, not at 0.
+            check_limits(proto, self.config, start_mm=self._read_position())  # LimitError -> error reply
             specimen = str(req.get("specimen") or "specimen")
             operator = str(req.get("operator") or user)
             log_path = default_log_path(self.out_dir, proto, specimen)
+            warnings = self.devices.warnings
             info = TrialInfo(specimen=specimen, operator=operator, notes=str(req.get("notes") or ""),
                              clock="real", extra={"requested_by": user, "devices": self.devices.description,
-                                                  "daemon": "rigd"})
+                                                  "daemon": "rigd", "backstop": self.devices.backstop,
+                                                  "warnings": " | ".join(warnings)})
             trial = Trial(proto, self.config, self.devices.slider, self.devices.loadcell,
                           RealClock(self.config.loop.spin_ms / 1000.0), log_path, info)
             trial.on_tick = self._on_tick
@@ -349,8 +354,23 @@ class Daemon:
             self.dev_lock.acquire()
             self.trial_thread.start()
         self.say(f"{user} started '{proto.name}' (specimen {specimen}) -> {log_path}")
+        for w in warnings:
+            self.say(w)
         notify(f"STATUS=running '{proto.name}'")
-        return {"ok": True, "log": str(log_path), "protocol": proto.name}
+        return {"ok": True, "log": str(log_path), "protocol": proto.name, "warnings": warnings}
+
+    def _read_position(self) -> float:
+        """A fresh position while no trial owns the devices (the caller holds state_lock)."""
+        if not self.dev_lock.acquire(timeout=1.0):
+            raise RequestError("the devices are busy (a status read or a stop); try again")
+        try:
+            reading = self.devices.slider.position()
+        finally:
+            self.dev_lock.release()
+        if not reading.fresh:
+            raise RequestError(f"cannot read the slider's position; not starting "
+                               f"({getattr(self.devices.slider, 'last_error', '')})")
+        return reading.value
 
     def _on_tick(self, snap: Snapshot) -> None:
         self.beat = time.monotonic()
@@ -381,21 +401,52 @@ class Daemon:
         mode = req.get("mode", "abort")
         if mode not in ("abort", "hold"):
             raise RequestError('stop "mode" must be "abort" (stop, then return) or "hold" (stop and stay)')
-        self._running_trial().request_stop(StopMode(mode), user=user, received_s=received)
+        ticket = self._running_trial().request_stop(StopMode(mode), user=user, received_s=received)
         self.say(f"{user} requested stop ({mode})")
-        return {"ok": True, "mode": mode}
+        return self._stop_reply(ticket, mode)
+
+    def _stop_reply(self, ticket, mode: str) -> dict:
+        """Answer once the loop has sent the STOP: the truth about whether the drive took it."""
+        if not ticket.wait(1.0):
+            raise RequestError(f"{mode}: the trial's loop did not send the STOP within 1 s")
+        if not ticket.acknowledged:
+            raise RequestError(f"{mode}: {ticket.message}")
+        return {"ok": True, "mode": mode, "message": ticket.message}
 
     def cmd_estop(self, req: dict, user: str, received: float) -> dict:
+        self.say(f"{user} requested an emergency stop")
         t = self.trial
         if self._busy():
-            t.request_stop(StopMode.ESTOP, user=user, received_s=received)
-        elif self.dev_lock.acquire(timeout=1.0):  # idle: the daemon thread may use the bus
-            try:
-                self.devices.slider.stop()
-            finally:
-                self.dev_lock.release()
-        self.say(f"{user} requested an emergency stop")
-        return {"ok": True, "mode": "estop"}
+            return self._stop_reply(t.request_stop(StopMode.ESTOP, user=user, received_s=received), "estop")
+        if not self.dev_lock.acquire(timeout=1.0):  # idle: the daemon thread may use the bus
+            raise RequestError("estop: could not reach the drive (the devices stayed busy for 1 s)")
+        try:
+            ok = self.devices.slider.stop()
+        except RigError as exc:
+            raise RequestError(f"estop: STOP not sent: {exc}") from None
+        finally:
+            self.dev_lock.release()
+        if not ok:
+            raise RequestError(f"estop: the drive did not acknowledge STOP "
+                               f"({getattr(self.devices.slider, 'last_error', '')})")
+        return {"ok": True, "mode": "estop", "message": "STOP acknowledged by the drive (no trial was running)"}
+
+    def cmd_reset_alarm(self, req: dict, user: str, received: float) -> dict:
+        if self._busy():
+            raise RequestError("reset_alarm: a trial is running; stop it first")
+        if not self.dev_lock.acquire(timeout=1.0):
+            raise RequestError("reset_alarm: the devices stayed busy for 1 s")
+        try:
+            before = self.devices.slider.status().value.alarm_code
+            self.devices.slider.reset_alarm()
+            after = self.devices.slider.status()
+        finally:
+            self.dev_lock.release()
+        self.say(f"{user} reset the drive alarm (0x{before:02X} -> 0x{after.value.alarm_code:02X})")
+        if after.value.alarm_code:
+            raise RequestError(f"reset_alarm: the drive still reports alarm 0x{after.value.alarm_code:02X} "
+                               "(its cause is still there)")
+        return {"ok": True, "alarm_before": before, "alarm_after": after.value.alarm_code}
 
     def cmd_watch(self, conn: socket.socket, req: dict) -> bool:
         rate = float(req.get("rate_Hz") or self.config.daemon.watch_rate_Hz)

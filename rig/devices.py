@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import contextlib
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from drivers.base import LoadCell, Slider
 from rig.clock import Clock
 from rig.config import RigConfig
-from rig.errors import DeviceError, RigError
+from rig.errors import RigError
 
 
 @dataclass
@@ -24,6 +24,10 @@ class Devices:
     rig: object | None = None  # the SimRig behind in-process devices (tests, fault injection)
     sim: object | None = None  # the SimProcess behind simulated devices on the wire
     description: str = ""
+    # What stops the drive if this controller dies: the drive's communication timeout, or
+    # nothing (then `warnings` says so, on every start).
+    backstop: str = ""
+    warnings: list[str] = field(default_factory=list)
 
     def close(self) -> None:
         for dev in (self.slider, self.loadcell):
@@ -52,8 +56,10 @@ def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0) -> Devi
 
         sim = SimRig(config.sim)
         origin = clock.now()
-        return Devices(InProcessSlider(sim, clock, origin), InProcessLoadCell(sim, clock, origin), sim,
-                       description="simulated rig, in-process")
+        cell = InProcessLoadCell(sim, clock, origin)
+        cell.max_abs_N = config.loadcell.max_abs_N
+        return Devices(InProcessSlider(sim, clock, origin), cell, sim,
+                       description="simulated rig, in-process", backstop="in-process: none needed")
     sim_proc = None
     cfg = config
     if sb == "sim":
@@ -62,7 +68,7 @@ def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0) -> Devi
         sim_proc = SimProcess(config.text())
         cfg = wire_config(config, sim_proc.endpoints)
     try:
-        slider = open_slider(cfg)
+        slider, backstop, warnings = open_slider(cfg, clock)
         try:
             loadcell = open_loadcell(cfg, clock)
         except BaseException:
@@ -75,7 +81,7 @@ def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0) -> Devi
     desc = f"{slider.link.describe()}; load cell {cfg.loadcell.port}"
     if sim_proc is not None:
         desc = f"simulated rig on the wire: {desc}"
-    return Devices(slider, loadcell, sim=sim_proc, description=desc)
+    return Devices(slider, loadcell, sim=sim_proc, description=desc, backstop=backstop, warnings=warnings)
 
 
 def wire_config(config: RigConfig, endpoints: dict) -> RigConfig:
@@ -98,7 +104,12 @@ def wire_config(config: RigConfig, endpoints: dict) -> RigConfig:
     return cfg
 
 
-def open_slider(config: RigConfig):
+def open_slider(config: RigConfig, clock: Clock | None = None):
+    """The slider driver, connected: STOP released and verified, the comm timeout set.
+
+    Returns (slider, backstop description, warnings). Refuses a drive whose communication
+    timeout cannot be set unless `slider.allow_no_comm_timeout` says the rig runs without it.
+    """
     from drivers.modbus_slider import ModbusLink, ModbusSlider
     from drivers.registers import PROFILES
 
@@ -115,15 +126,29 @@ def open_slider(config: RigConfig):
     if link.transport == "rtu" and not s.port:
         raise RigError("slider.port is empty: name the serial device of the drive")
     slider = ModbusSlider(link, regs, s.steps_per_mm, current_percent=s.current_percent,
-                          max_consecutive_errors=s.max_consecutive_errors)
+                          max_consecutive_errors=s.max_consecutive_errors,
+                          **({"clock": clock.now} if clock is not None else {}))
+    warnings: list[str] = []
     try:
         slider.read_position_mm()
-        if s.comm_timeout_s > 0:
-            slider.set_comm_timeout(s.comm_timeout_s)
-    except DeviceError:
+        slider.prepare()
+        if s.comm_timeout_s > 0 and slider.set_comm_timeout(s.comm_timeout_s):
+            backstop = f"drive communication timeout {s.comm_timeout_s:g} s"
+        else:
+            why = (f"profile '{s.profile}' does not know the drive's communication-timeout register"
+                   if s.comm_timeout_s > 0 else "slider.comm_timeout_s is 0")
+            if not s.allow_no_comm_timeout:
+                raise RigError(f"{why}: if this controller dies mid-move, nothing stops the drive. Set "
+                               "slider.registers.comm_timeout_ms to the parameter's address (drive manual), "
+                               "or slider.allow_no_comm_timeout: true to run without this backstop")
+            backstop = "none"
+            warnings.append(f"WARNING: {why}; running without the drive's communication timeout "
+                            "(allowed by slider.allow_no_comm_timeout): if this controller dies "
+                            "mid-move, nothing stops the drive")
+    except RigError:
         slider.close()
         raise
-    return slider
+    return slider, backstop, warnings
 
 
 def open_loadcell(config: RigConfig, clock: Clock):

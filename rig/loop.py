@@ -2,9 +2,13 @@
 
 A tick reads the load cell and the slider position (status/alarm every
 `status_every` ticks), checks the limits, lets the sequencer issue at most one
-command, updates the RLS estimator and queues one sample for the recorder. On any
-fault the slider is told to stop before anything else happens; the loop then keeps
-logging for `post_fault_s` so the log shows the stop, and finishes the log.
+command (each move checked against the limits first, then watched until it arrives
+by its deadline), updates the RLS estimator and queues one sample for the recorder.
+On any fault the slider is told to stop before anything else happens; the STOP is
+re-sent until a fresh status says the drive stands still, the loop keeps logging for
+`post_fault_s` so the log shows the stop, and finishes the log. The loop never
+writes to a terminal or a socket: displays read `Trial.snapshot` from their own
+threads.
 
 Timing: ticks are scheduled on a fixed grid t0 + k/rate. A tick that starts more than
 `late_tolerance_ms` after its slot is counted late (and `late_ms` is in every
@@ -14,7 +18,6 @@ missed, never silently dropped.
 
 from __future__ import annotations
 
-import contextlib
 import enum
 import gc
 import socket
@@ -27,14 +30,17 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.base import LoadCell, Slider, SliderStatus
+from drivers.base import LoadCell, Reading, Slider, SliderStatus
 from rig import __version__
-from rig.clock import Clock
+from rig.clock import Clock, RealClock
 from rig.config import RigConfig
+from rig.errors import DeviceError, RigError
 from rig.estimator import StiffnessRLS
-from rig.protocol import Protocol
+from rig.movewatch import MoveWatch
+from rig.protocol import Protocol, check_limits
+from rig.realtime import Realtime, RealtimeState
 from rig.recorder import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC, Recorder, TrialInfo
-from rig.safety import Fault, TickState, check
+from rig.safety import Fault, TickState, check, check_move
 from rig.sequencer import Move, Sequencer, Stop
 
 
@@ -74,9 +80,38 @@ class TrialResult:
     bus_transactions: int = 0
 
 
+class StopTicket:
+    """The answer to a stop request: set by the loop once the STOP was sent (or could not be)."""
+
+    def __init__(self, mode: StopMode) -> None:
+        self.mode = mode
+        self.done = threading.Event()
+        self.acknowledged = False  # the drive acknowledged the STOP write
+        self.message = ""
+
+    def settle(self, acknowledged: bool, message: str) -> None:
+        self.acknowledged, self.message = acknowledged, message
+        self.done.set()
+
+    def wait(self, timeout_s: float) -> bool:
+        return self.done.wait(timeout_s)
+
+
+@dataclass
+class _Stopping:
+    """A STOP sent to the drive and not yet confirmed by a fresh status saying 'not moving'."""
+
+    sent_t: float
+    last_sent_t: float
+    resends: int = 0
+    confirmed: bool = False
+    gave_up: bool = False
+
+
 class Trial:
     post_fault_s = 0.5
     return_speed_mm_s = 5.0
+    resend_stop_s = 0.1  # re-send an unconfirmed STOP this often
 
     def __init__(self, proto: Protocol, config: RigConfig, slider: Slider, loadcell: LoadCell,
                  clock: Clock, log_path: Path, info: TrialInfo | None = None,
@@ -92,36 +127,70 @@ class Trial:
         self.rate = config.loop.rate_Hz
         self.period = 1.0 / self.rate
         self._start_mm = start_mm
-        self._stop_request: tuple[StopMode, str, float] | None = None
+        self._stop_request: tuple[StopMode, str, float, StopTicket] | None = None
+        self._tickets: list[StopTicket] = []
         self._lock = threading.Lock()
         self.snapshot = Snapshot(steps_total=len(proto.run_steps()), log_path=str(log_path))
         est = config.estimator
         self.rls = StiffnessRLS.from_config(est, self.rate)
-        self.on_tick = None  # optional callable(Snapshot), called every tick from the loop thread
+        # Optional callable(Snapshot), called every tick on the loop thread: it must not block
+        # (no terminal, socket or disk); displays read `snapshot` from their own thread.
+        self.on_tick = None
+        self.realtime: RealtimeState | None = None
+        self._seq = self._late = self._missed = 0
+        self._tick_times: list[float] = []
 
     # ------------------------------------------------------------- control
     def request_stop(self, mode: StopMode = StopMode.ABORT, user: str = "",
-                     received_s: float | None = None) -> None:
+                     received_s: float | None = None) -> StopTicket:
         """Thread-safe; the loop carries it out on its next tick (the loop thread owns the bus).
 
         `received_s` is when the request arrived (time.monotonic()); the stop event records the
-        latency from then to the stop command acknowledged on the bus.
+        latency from then to the stop command acknowledged on the bus. The ticket tells the
+        caller when the STOP went out and whether the drive acknowledged it.
         """
+        ticket = StopTicket(mode)
         with self._lock:
+            self._tickets.append(ticket)
             if self._stop_request is None or mode == StopMode.ESTOP:
-                self._stop_request = (mode, user, received_s if received_s is not None else time.monotonic())
+                self._stop_request = (mode, user, received_s if received_s is not None else time.monotonic(),
+                                      ticket)
+        return ticket
 
-    def _take_stop_request(self) -> tuple[StopMode, str, float] | None:
+    def _take_stop_request(self) -> tuple[StopMode, str, float, StopTicket] | None:
         with self._lock:
             req, self._stop_request = self._stop_request, None
         return req
 
+    def _settle_tickets(self, acknowledged: bool, message: str) -> None:
+        with self._lock:
+            tickets, self._tickets = self._tickets, []
+        for ticket in tickets:
+            if not ticket.done.is_set():
+                ticket.settle(acknowledged, message)
+
     # ------------------------------------------------------------- the run
     def run(self) -> TrialResult:
+        """Check the limits from where the slider is, then run; `LimitError` before anything moves."""
         cfg = self.config
+        start = self.slider.position()
+        if not start.fresh:
+            raise DeviceError("cannot read the slider's position: not starting")
+        if self._start_mm is None:
+            self._start_mm = start.value
+        check_limits(self.proto, cfg, start_mm=self._start_mm)
         rec = Recorder(self.log_path, flush_s=cfg.recorder.flush_s,
-                       compression=cfg.recorder.compression)
+                       compression=cfg.recorder.compression, max_queue=cfg.recorder.max_queue)
         self.recorder = rec
+        # After the recorder's thread exists, so only the loop thread runs at real-time priority.
+        rt = Realtime(cfg.loop.realtime, cfg.loop.realtime_priority) if isinstance(self.clock, RealClock) \
+            else None
+        try:
+            self.realtime = rt.enter() if rt else RealtimeState("virtual clock", False, "")
+        except RigError:
+            rec.close()
+            self.log_path.unlink(missing_ok=True)
+            raise
         _warm_up()
         # A full collection mid-trial walks every object the interpreter holds (numpy, pymodbus,
         # ...): milliseconds. Collect now and freeze what exists, so later passes are short.
@@ -140,18 +209,31 @@ class Trial:
             outcome, fault_msg = self._loop(rec, t0)
         except BaseException as exc:  # a bug or a lost device: stop first, then record it
             self._safe_stop()
-            outcome, fault_msg = "fault", f"{type(exc).__name__}: {exc}"
+            outcome, fault_msg = "fault", f"{type(exc).__name__}: {exc}" if not isinstance(exc, RigError) \
+                else str(exc)
             self._event(rec, self.clock.now() - t0, "fault", fault_msg, {"kind": "exception"})
             if not isinstance(exc, Exception):
                 raise
         finally:
+            if rt is not None:
+                rt.leave()
+            self._settle_tickets(False, f"the trial ended ({outcome}) before the stop was carried out")
             t_end = self.clock.now() - t0
+            if rec.failure and outcome != "fault":
+                outcome, fault_msg = "fault", rec.failure
             self._event(rec, t_end, "trial_end", f"trial {outcome}",
                         {"outcome": outcome, "samples": self._seq})
             rec.close({"outcome": outcome, "samples": str(self._seq),
                        "late_ticks": str(self._late), "missed_ticks": str(self._missed),
                        "duration_s": f"{t_end:.3f}", "fault": fault_msg or "",
                        "end_time": datetime.now(UTC).isoformat()})
+            if rec.failure and fault_msg and "recording" not in fault_msg:
+                fault_msg = f"{fault_msg}; {rec.failure}"
+            if rec.error is not None:
+                fault_msg = (fault_msg or rec.failure) + (
+                    f"; the log holds what was flushed before the failure ({rec.flushed_messages} "
+                    "messages); `rig replay` reads it")
+                outcome = "fault"
             self.snapshot = replace(self.snapshot, state=outcome if outcome != "completed" else "done",
                                      fault=fault_msg or "")
             gc.unfreeze()
@@ -162,9 +244,14 @@ class Trial:
                            self.slider.stats.transactions)
 
     def _prime_loadcell(self, timeout_s: float = 3.0) -> None:
-        """Wait (real time) for a first reading: a polled cell answers only after a request."""
+        """Wait (real time) for a reading taken after now: a polled cell answers only after a
+        request, and a reading left over from an earlier trial must not pass as fresh."""
+        since = self.clock.now()
         deadline = time.monotonic() + timeout_s
-        while self.loadcell.latest() is None and time.monotonic() < deadline:
+        while time.monotonic() < deadline:
+            r = self.loadcell.latest()
+            if r is not None and r.t_s >= since:
+                return
             time.sleep(0.002)
 
     def _write_header(self, rec: Recorder, t0: float) -> None:
@@ -178,7 +265,8 @@ class Trial:
             "start_time": datetime.fromtimestamp(now_ns / 1e9, UTC).isoformat(),
             "software_version": __version__, "host": socket.gethostname(),
             "clock": info.clock, "rate_Hz": f"{self.rate:g}", "notes": info.notes,
-            "python": sys.version.split()[0], **info.extra,
+            "python": sys.version.split()[0], "start_mm": f"{self._start_mm:.4f}",
+            "realtime": self.realtime.describe() if self.realtime else "", **info.extra,
         })
         rec.attach("protocol.yaml", "application/yaml", self.proto.source_text.encode(), now_ns)
         rec.attach("config.yaml", "application/yaml", self.config.text().encode(), now_ns)
@@ -187,20 +275,23 @@ class Trial:
         rec.put(EVENT_TOPIC, self.clock.wall_ns(self._t0 + t),
                 {"t_s": round(t, 6), "kind": kind, "message": message, "data": data or {}})
 
-    def _safe_stop(self) -> None:
+    def _safe_stop(self) -> bool:
         # nothing more can be done from here if this fails: the drive's comm timeout is the backstop
-        with contextlib.suppress(Exception):
-            self.slider.stop()
+        try:
+            return bool(self.slider.stop())
+        except Exception:  # noqa: BLE001 - a dead link; the backstop takes over
+            return False
 
     def _loop(self, rec: Recorder, t0: float) -> tuple[str, str | None]:
         cfg = self.config
         clock, slider, cell = self.clock, self.slider, self.loadcell
+        lim = self.limits
         self._seq = self._late = self._missed = 0
-        self._tick_times: list[float] = []
+        self._tick_times = []
         self._last_age: float | None = None
         late_tol = cfg.loop.late_tolerance_ms / 1000.0
         status_every = cfg.loop.status_every
-        start_mm = self._start_mm if self._start_mm is not None else slider.read_position_mm()
+        start_mm = self._start_mm
         seq = Sequencer(self.proto, start_mm=start_mm, accel_mm_s2=cfg.slider.accel_mm_s2,
                         tare_s=cfg.loop.tare_s, tolerance_mm=cfg.slider.position_tolerance_mm,
                         rate_Hz=self.rate)
@@ -210,18 +301,39 @@ class Trial:
         rls = self.rls
         status = SliderStatus(True, False, True, False)
         tare_sum, tare_n, tare_N = 0.0, 0, 0.0
-        prev_pos = start_mm
-        prev_t = 0.0
+        last_fresh: Reading[float] | None = None
         x_prev_m = 0.0
         fault: Fault | None = None
         fault_t = 0.0
         outcome = "completed"
         stop_mode: StopMode | None = None
+        stopping: _Stopping | None = None
+        watch: MoveWatch | None = None
         last_step = -2
         next_health = cfg.loop.health_every_s
         health_mark = 0
         slot = 0
+        return_speed = min(self.return_speed_mm_s, lim.max_speed_mm_s)
         self.snapshot = replace(self.snapshot, state="running")
+
+        def send_stop(t: float) -> bool:
+            nonlocal stopping
+            ok = self._safe_stop()
+            if stopping is None:
+                stopping = _Stopping(t, t)
+            stopping.last_sent_t = t
+            return ok
+
+        def raise_fault(found: Fault, t: float, force: float, pos: float) -> None:
+            nonlocal fault, fault_t, outcome, watch
+            send_stop(t)  # stop first, explain after
+            watch = None
+            fault, fault_t, outcome = found, t, "fault"
+            self._event(rec, t, "fault", found.message,
+                        {"kind": found.kind, "seq": self._seq, "force_N": force,
+                         "position_mm": pos - seq.zero_mm})
+            self.snapshot = replace(self.snapshot, state="stopping", fault=found.message)
+
         while True:
             scheduled = t0 + slot * self.period
             clock.sleep_until(scheduled)
@@ -239,63 +351,105 @@ class Trial:
             t = now - t0
             self._tick_times.append(now)
 
-            # ---- measure
+            # ---- measure: only fresh values feed the speed estimate and the move checks
             reading = cell.latest()
-            pos = slider.read_position_mm()
-            if self._seq % status_every == 0:
-                status = slider.read_status()
+            pr = slider.position()
+            pos = pr.value
+            status_fresh = False
+            if self._seq % status_every == 0 or (stopping is not None and not stopping.confirmed):
+                sr = slider.status()
+                status, status_fresh = sr.value, sr.fresh
+            moving = status.moving if status_fresh else None
+            speed = None
+            if pr.fresh:
+                if last_fresh is not None and pr.t_s > last_fresh.t_s:
+                    speed = (pos - last_fresh.value) / (pr.t_s - last_fresh.t_s)
+                last_fresh = pr
             raw = reading.force_N if reading else 0.0
             age = reading.age_s if reading else None
             self._last_age = age
-            speed = (pos - prev_pos) / (t - prev_t) if t > prev_t else 0.0
-            prev_pos, prev_t = pos, t
-            if seq.index < 0:  # taring: zero the load cell on the mean of the first tare_s
-                tare_sum += raw
+            if seq.index < 0 and reading is not None and not reading.over_range:
+                tare_sum += raw  # taring: zero the load cell on the mean of the first tare_s
                 tare_n += 1
                 tare_N = tare_sum / tare_n
             force = raw - tare_N
 
             # ---- safety first: stop, then explain
             if fault is None:
-                found = check(TickState(force, pos, speed, age, status.alarm_code if status.alarm else 0),
-                              self.limits)
+                found = check(TickState(force, pos, speed, age, status.alarm_code if status.alarm else 0,
+                                        bool(reading and reading.over_range), raw), lim)
+                if found is None and rec.failure:
+                    found = Fault("recording", rec.failure)
                 if found is None and seq.fault:
                     found = Fault("protocol", seq.fault)
+                if found is None and watch is not None:
+                    why = watch.check(t, pos if pr.fresh else None, moving)
+                    if why is not None:
+                        found = Fault("move", why)
+                    elif pr.fresh and watch.arrived(pos, moving):
+                        watch = None
                 if found is not None:
-                    slider.stop()
-                    fault, fault_t, outcome = found, t, "fault"
-                    self._event(rec, t, "fault", found.message,
-                                {"kind": found.kind, "seq": self._seq, "force_N": force,
-                                 "position_mm": pos - seq.zero_mm})
-                    self.snapshot = replace(self.snapshot, state="stopping", fault=found.message)
+                    raise_fault(found, t, force, pos)
 
             # ---- operator stop requests (an estop may follow an abort that is returning)
             req = self._take_stop_request() if fault is None else None
             if req is not None and (stop_mode is None or req[0] == StopMode.ESTOP):
-                mode, user, received = req
-                slider.stop()
+                mode, user, received, ticket = req
+                ok = send_stop(t)
                 sent = time.monotonic()
+                latency_ms = round((sent - received) * 1000.0, 3)
+                ticket.settle(ok, f"STOP sent in {latency_ms:g} ms" if ok else
+                              "STOP not acknowledged by the drive; still trying (the drive's "
+                              "communication timeout is the backstop)")
+                self._settle_tickets(ok, ticket.message)
                 stop_mode = mode
+                watch = None
                 outcome = {StopMode.ESTOP: "estopped", StopMode.HOLD: "stopped",
                            StopMode.ABORT: "aborted"}[mode]
                 self._event(rec, t, "stop_requested", f"{mode.value} requested by {user or '?'}",
                             {"mode": mode.value, "user": user, "seq": self._seq,
-                             "latency_ms": round((sent - received) * 1000.0, 3)})
+                             "latency_ms": latency_ms, "acknowledged": ok})
                 if mode == StopMode.ABORT:
-                    seq.abort_to_start(t, self.return_speed_mm_s)
+                    seq.abort_to_start(t, return_speed)
                 else:
                     seq.done = True
                 fault_t = t
 
+            # ---- a STOP stands until a fresh status says the drive stands still
+            if stopping is not None and not stopping.confirmed and not stopping.gave_up:
+                if moving is False:
+                    stopping.confirmed = True
+                    self._event(rec, t, "stop_confirmed", "the drive reports standing still",
+                                {"after_s": round(t - stopping.sent_t, 4), "resends": stopping.resends})
+                elif t - stopping.sent_t > lim.stop_confirm_s:
+                    stopping.gave_up = True
+                    msg = (f"STOP not confirmed by the drive within {lim.stop_confirm_s:g} s "
+                           f"({stopping.resends} re-sends); its communication timeout is the backstop")
+                    self._event(rec, t, "fault", msg, {"kind": "stop_unconfirmed", "seq": self._seq})
+                    if fault is not None:
+                        fault = Fault(fault.kind, f"{fault.message}; {msg}")
+                    else:
+                        fault, fault_t, outcome = Fault("stop_unconfirmed", msg), t, "fault"
+                elif t - stopping.last_sent_t >= self.resend_stop_s:
+                    stopping.resends += 1
+                    send_stop(t)
+
             # ---- sequence
             if fault is None:
                 was_tare = seq.index < 0
-                for cmd in seq.tick(t, pos, force, status.moving if self._seq % status_every == 0
-                                    else None):
+                for cmd in seq.tick(t, pos, force, moving):
                     if isinstance(cmd, Move):
+                        why = check_move(cmd.to_mm, cmd.speed_mm_s, lim)
+                        if why is not None:
+                            raise_fault(Fault("move_limit", f"move refused: {why}"), t, force, pos)
+                            break
                         slider.move_to(cmd.to_mm, cmd.speed_mm_s, cmd.accel_mm_s2)
+                        stopping = None  # a new move releases the STOP
+                        watch = MoveWatch(pos, cmd.to_mm, cmd.speed_mm_s, cmd.accel_mm_s2, t, lim,
+                                          cfg.slider.position_tolerance_mm)
                     elif isinstance(cmd, Stop):
-                        slider.stop()
+                        watch = None
+                        send_stop(t)
                 if was_tare and seq.index >= 0:
                     self._event(rec, t, "tare", f"tare {tare_N:+.4f} N from {tare_n} readings",
                                 {"tare_N": tare_N, "readings": tare_n})
@@ -337,10 +491,11 @@ class Trial:
             if self.on_tick is not None:
                 self.on_tick(self.snapshot)
 
-            # ---- end?
-            if fault is not None and t - fault_t >= self.post_fault_s:
+            # ---- end? Only once the drive has confirmed the STOP (or the wait for it ran out).
+            settled = stopping is None or stopping.confirmed or stopping.gave_up
+            if fault is not None and t - fault_t >= self.post_fault_s and settled:
                 return outcome, fault.message
-            if stop_mode in (StopMode.ESTOP, StopMode.HOLD) and t - fault_t >= self.post_fault_s:
+            if stop_mode in (StopMode.ESTOP, StopMode.HOLD) and t - fault_t >= self.post_fault_s and settled:
                 return outcome, None
             if seq.done and fault is None and stop_mode in (None, StopMode.ABORT):
                 return outcome, None

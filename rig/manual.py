@@ -1,7 +1,9 @@
 """Setting up the probe by hand: home, move to a position, read the position.
 
-Same limits as a trial: travel window and speed are checked before the move, and force
-and the drive alarm are watched while it runs (the slider stops on any of them).
+Same limits as a trial: the target and speed go through the same check as every trial
+move before anything is sent, and force, travel, speed, the drive alarm and the move's
+deadline are watched while it runs (the slider stops on any of them). A move that ends
+anywhere but at its target is an error, never "moved".
 """
 
 from __future__ import annotations
@@ -13,7 +15,8 @@ from rig.clock import RealClock
 from rig.config import RigConfig
 from rig.devices import Devices, open_devices
 from rig.errors import DeviceError, LimitError
-from rig.safety import TickState, check
+from rig.movewatch import MoveWatch
+from rig.safety import TickState, check, check_move
 
 
 def _open(config: RigConfig) -> Devices:
@@ -38,18 +41,24 @@ def position(config: RigConfig) -> dict:
 
 
 def move(config: RigConfig, to_mm: float, speed_mm_s: float, *, home: bool = False,
-         timeout_s: float = 120.0, out=sys.stderr) -> dict:
+         out=sys.stderr) -> dict:
+    """Move (or home) under the same limit check and deadline as a trial's moves."""
     lim = config.limits
-    if not home:
-        lo, hi = lim.travel_mm
-        if not lo <= to_mm <= hi:
-            raise LimitError(f"--to-mm {to_mm:g} is outside the travel window [{lo:g}, {hi:g}] mm")
-        if not 0 < speed_mm_s <= lim.max_speed_mm_s:
-            raise LimitError(f"--speed-mm-s {speed_mm_s:g} must be in (0, {lim.max_speed_mm_s:g}] mm/s")
+    target, speed = (0.0, config.slider.home_speed_mm_s) if home else (to_mm, speed_mm_s)
+    why = check_move(target, speed, lim)
+    if why is not None:
+        what = "home (slider.home_speed_mm_s, home at 0 mm)" if home else "--to-mm/--speed-mm-s"
+        raise LimitError(f"{what}: {why}")
     dev = _open(config)
+    for w in dev.warnings:
+        print(w, file=out, flush=True)
     slider = dev.slider
+    tol = config.slider.position_tolerance_mm
     try:
-        start = slider.read_position_mm()
+        first = slider.position()
+        if not first.fresh:
+            raise DeviceError("cannot read the slider's position: not moving")
+        start = first.value
         reading = dev.loadcell.latest()
         tare = reading.force_N if reading else 0.0
         if home:
@@ -57,34 +66,55 @@ def move(config: RigConfig, to_mm: float, speed_mm_s: float, *, home: bool = Fal
         else:
             slider.move_to(to_mm, speed_mm_s, config.slider.accel_mm_s2)
         t0 = time.monotonic()
-        prev, prev_t = start, t0
-        status = slider.read_status()
+        watch = MoveWatch(start, target, speed, config.slider.accel_mm_s2, 0.0, lim, tol)
+        last = first
         while True:
             time.sleep(0.01)
-            now = time.monotonic()
-            pos = slider.read_position_mm()
-            status = slider.read_status()
+            now = time.monotonic() - t0
+            pr = slider.position()
+            sr = slider.status()
             r = dev.loadcell.latest()
+            pos, moving = pr.value, (sr.value.moving if sr.fresh else None)
+            speed_now = None
+            if pr.fresh:
+                if pr.t_s > last.t_s:
+                    speed_now = (pos - last.value) / (pr.t_s - last.t_s)
+                last = pr
             force = (r.force_N - tare) if r else 0.0
-            fault = check(TickState(force, pos, (pos - prev) / (now - prev_t), r.age_s if r else None,
-                                    status.alarm_code if status.alarm else 0), lim)
-            prev, prev_t = pos, now
-            if fault is not None:
-                slider.stop()
-                raise DeviceError(f"stopped: {fault.message}")
+            fault = check(TickState(force, pos, speed_now, r.age_s if r else None,
+                                    sr.value.alarm_code if sr.value.alarm else 0,
+                                    bool(r and r.over_range), r.force_N if r else 0.0), lim)
+            why = fault.message if fault else watch.check(now, pos if pr.fresh else None, moving)
+            if why is not None:
+                stopped = slider.stop()
+                raise DeviceError(f"stopped: {why}" + ("" if stopped else
+                                                       "; the drive did not acknowledge STOP"))
             if out.isatty():
                 out.write(f"\r  position {pos:8.3f} mm   force {force:7.3f} N")
                 out.flush()
-            if not status.moving and now - t0 > 0.05:
+            if pr.fresh and watch.arrived(pos, moving):
                 break
-            if now - t0 > timeout_s:
-                slider.stop()
-                raise DeviceError(f"move did not finish within {timeout_s:g} s")
         if out.isatty():
             out.write("\n")
-        return {"from_mm": start, "position_mm": slider.read_position_mm(), "alarm_code": status.alarm_code}
+        return {"from_mm": start, "position_mm": pos, "alarm_code": sr.value.alarm_code,
+                "seconds": round(now, 3)}
     except KeyboardInterrupt:
         slider.stop()
         raise
     finally:
         dev.close()
+
+
+def reset_alarm(config: RigConfig) -> dict:
+    """Clear the drive's alarm (its cause must be gone); the alarm code before and after."""
+    dev = _open(config)
+    try:
+        before = dev.slider.status().value.alarm_code
+        dev.slider.reset_alarm()
+        after = dev.slider.status().value.alarm_code
+    finally:
+        dev.close()
+    if after:
+        raise DeviceError(f"the drive still reports alarm 0x{after:02X} after the reset: its cause is "
+                          "still there")
+    return {"alarm_before": before, "alarm_after": after}

@@ -8,7 +8,7 @@ point found by an `approach` step. Every error names file, line, column and fiel
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -102,12 +102,11 @@ class Protocol:
         travel = rig.travel_mm
         if lim.travel_mm:
             travel = (max(travel[0], lim.travel_mm[0]), min(travel[1], lim.travel_mm[1]))
-        return LimitsConfig(
+        return replace(
+            rig,
             max_force_N=min(rig.max_force_N, lim.max_force_N or math.inf),
             travel_mm=travel,
             max_speed_mm_s=min(rig.max_speed_mm_s, lim.max_speed_mm_s or math.inf),
-            loadcell_stale_ms=rig.loadcell_stale_ms,
-            overspeed_factor=rig.overspeed_factor,
         )
 
 
@@ -206,8 +205,12 @@ def _parse_step(node: Marked, path: str, i: int) -> Step:
 
 # ------------------------------------------------------------------ limits
 
-def check_limits(proto: Protocol, config: RigConfig) -> None:
-    """Refuse, before anything moves, a protocol beyond the rig's travel, speed or force limits."""
+def check_limits(proto: Protocol, config: RigConfig, start_mm: float | None = None) -> None:
+    """Refuse, before anything moves, a protocol beyond the rig's travel, speed or force limits.
+
+    `start_mm` is where the slider is now (the trial's zero); without it, the simulated
+    rig's start position or 0 (a check made before the devices are opened).
+    """
     rig = config.limits
     where = proto.source_path
 
@@ -225,7 +228,12 @@ def check_limits(proto: Protocol, config: RigConfig) -> None:
                      f"{rig.max_speed_mm_s:g} mm/s")
     eff = proto.effective_limits(rig)
     lo, hi = eff.travel_mm
-    start = config.sim.slider.start_mm if config.slider.backend == "sim" else 0.0
+    if start_mm is None:
+        start = config.sim.slider.start_mm if config.slider.backend == "sim" else 0.0
+        from_where = ""
+    else:
+        start = start_mm
+        from_where = f" from the slider's position {start_mm:.3f} mm"
     zero_lo = zero_hi = 0.0  # where zero indentation may sit, relative to the start position
     for step in proto.steps:
         speed = getattr(step, "speed_mm_s", None)
@@ -244,8 +252,8 @@ def check_limits(proto: Protocol, config: RigConfig) -> None:
             continue
         for t in targets:
             if not lo <= start + t <= hi:
-                raise refuse(step.line, f"{step.kind} to {t:g} mm (absolute {start + t:g} mm) is "
-                                        f"outside the travel window [{lo:g}, {hi:g}] mm")
+                raise refuse(step.line, f"{step.kind} to {t:g} mm{from_where} (absolute {start + t:g} mm) "
+                                        f"is outside the travel window [{lo:g}, {hi:g}] mm")
 
 
 def _line_of(proto: Protocol, key: str) -> int:

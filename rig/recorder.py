@@ -4,10 +4,15 @@ The loop only puts small dicts on a queue; encoding, compression and disk I/O ha
 on the writer thread. Every `flush_s` the writer finishes the open chunk, flushes and
 fsyncs, so a crash loses at most about one second. Metadata and attachments are
 written at once, outside chunks, so even a log cut short names its trial.
+
+A recording that fails (disk full, an I/O error, a writer that falls `max_queue`
+messages behind) is never silent: `failure` says what happened, the loop reads it every
+tick and ends the trial as a fault, and what was flushed before stays readable.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import queue
@@ -104,10 +109,14 @@ class TrialInfo:
 class Recorder:
     """Owns one MCAP file. `put` is the only call the loop makes per tick."""
 
-    def __init__(self, path: str | Path, *, flush_s: float = 1.0, compression: str = "zstd") -> None:
+    def __init__(self, path: str | Path, *, flush_s: float = 1.0, compression: str = "zstd",
+                 max_queue: int = 20000) -> None:
         self.path = Path(path)
         self.flush_s = flush_s
+        self.max_queue = max_queue
         self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self.overflowed = False
+        self.flushed_messages = 0  # messages known to be on disk (fsynced)
         self._file = open(self.path, "wb")  # noqa: SIM115 - closed by the writer thread
         self._writer = Writer(self._file, chunk_size=256 * 1024, compression=_COMPRESSION[compression])
         self._writer.start(profile="", library=f"indentation-rig/{__version__}")
@@ -126,15 +135,29 @@ class Recorder:
 
     # ---------------------------------------------------------------- loop side
     def put(self, topic: str, log_time_ns: int, message: dict[str, Any]) -> None:
+        if self.error is not None or self._q.qsize() >= self.max_queue:
+            # The writer is dead or cannot keep up: holding more would only eat memory.
+            self.overflowed = self.overflowed or self.error is None
+            return
         self._q.put((topic, log_time_ns, message))
 
     def depth(self) -> int:
         return self._q.qsize()
 
+    @property
+    def failure(self) -> str | None:
+        """What went wrong with this recording, or None while it is healthy."""
+        if self.error is not None:
+            return f"recording failed: {_describe(self.error)}"
+        if self.overflowed:
+            return (f"recording cannot keep up: over {self.max_queue} messages waiting for the writer "
+                    "(disk too slow or blocked)")
+        return None
+
     def wait_idle(self, timeout_s: float = 2.0) -> bool:
         """Block until the writer has taken everything queued so far (not for the loop)."""
         deadline = time.monotonic() + timeout_s
-        while not self._q.empty() or self._busy:
+        while (not self._q.empty() or self._busy) and self.error is None:
             if time.monotonic() > deadline:
                 return False
             time.sleep(0.001)
@@ -155,7 +178,7 @@ class Recorder:
         if outcome is not None:
             self.write_metadata("outcome", outcome)
         self._q.put(_STOP)
-        self._thread.join(timeout_s)
+        self._thread.join(timeout_s if self.error is None else 1.0)
 
     # --------------------------------------------------------------- writer
     def _run(self) -> None:
@@ -187,10 +210,12 @@ class Recorder:
             self._writer.finish()
             self._file.flush()
             os.fsync(self._file.fileno())
+            self.flushed_messages = self.messages
         except BaseException as exc:  # noqa: BLE001 - disk full, I/O error: keep what is on disk, report it
             self.error = exc
         finally:
-            self._file.close()
+            with contextlib.suppress(OSError):  # closing flushes; the disk may still be full
+                self._file.close()
 
     def _write(self, item: tuple) -> bool:
         topic, stamp, payload = item
@@ -214,3 +239,10 @@ class Recorder:
         self._file.flush()
         os.fsync(self._file.fileno())
         self.flushes += 1
+        self.flushed_messages = self.messages
+
+
+def _describe(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and exc.strerror:
+        return f"{exc.strerror} (errno {exc.errno})"
+    return f"{type(exc).__name__}: {exc}"

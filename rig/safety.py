@@ -1,7 +1,9 @@
-"""Limits checked every tick: pure functions of one tick's state, so they are easy to test.
+"""Limits checked every tick and before every move: pure functions, so they are easy to test.
 
 The loop calls `check` before the sequencer may issue any command; a non-None result
-means: stop the slider now, then log the fault.
+means: stop the slider now, then log the fault. `check_move` is the one limit check
+every path that moves the slider goes through (protocol steps, the abort return,
+`rig move`, `rig home`), before the command is sent.
 """
 
 from __future__ import annotations
@@ -15,20 +17,25 @@ from rig.config import LimitsConfig
 class TickState:
     force_N: float
     position_abs_mm: float  # slider coordinates (the travel window is in these)
-    speed_mm_s: float  # measured from the last two positions
+    speed_mm_s: float | None  # from the last two fresh positions; None: not measurable this tick
     loadcell_age_s: float | None  # None: no reading yet
     alarm_code: int = 0  # 0 = drive reports no alarm
+    force_over_range: bool = False  # the load cell reported a force beyond its range
+    raw_force_N: float = 0.0  # the untared value the cell reported
 
 
 @dataclass(frozen=True)
 class Fault:
-    kind: str  # force_limit, travel, overspeed, loadcell_stale, drive_alarm, ...
+    kind: str  # force_limit, force_range, travel, overspeed, loadcell_stale, drive_alarm, move, ...
     message: str
 
 
 def check(state: TickState, limits: LimitsConfig) -> Fault | None:
     if state.alarm_code:
         return Fault("drive_alarm", f"drive alarm code 0x{state.alarm_code:02X}")
+    if state.force_over_range:
+        return Fault("force_range", f"load cell over range: it reports {state.raw_force_N:.3f} N, beyond "
+                                    "its range (loadcell.max_abs_N)")
     stale_s = limits.loadcell_stale_ms / 1000.0
     if state.loadcell_age_s is None or state.loadcell_age_s > stale_s:
         age = "no reading" if state.loadcell_age_s is None else f"{state.loadcell_age_s * 1000:.0f} ms"
@@ -41,7 +48,17 @@ def check(state: TickState, limits: LimitsConfig) -> Fault | None:
         return Fault("travel", f"position {state.position_abs_mm:.3f} mm outside the travel "
                                f"window [{lo:g}, {hi:g}] mm")
     max_speed = limits.max_speed_mm_s * limits.overspeed_factor
-    if abs(state.speed_mm_s) > max_speed:
+    if state.speed_mm_s is not None and abs(state.speed_mm_s) > max_speed:
         return Fault("overspeed", f"measured speed {abs(state.speed_mm_s):.2f} mm/s above "
                                   f"{max_speed:g} mm/s")
+    return None
+
+
+def check_move(to_mm: float, speed_mm_s: float, limits: LimitsConfig) -> str | None:
+    """Why a move to `to_mm` (slider coordinates) at `speed_mm_s` is not allowed, or None."""
+    lo, hi = limits.travel_mm
+    if not lo <= to_mm <= hi:
+        return f"target {to_mm:.3f} mm is outside the travel window [{lo:g}, {hi:g}] mm"
+    if not 0 < speed_mm_s <= limits.max_speed_mm_s:
+        return f"speed {speed_mm_s:g} mm/s is not within (0, {limits.max_speed_mm_s:g}] mm/s"
     return None

@@ -27,25 +27,32 @@ class RunOptions:
     speed: float = 1.0  # 1 = real time on the real clock; 0 = as fast as possible
     progress: bool = True
     log_path: Path | None = None
-    on_tick: Callable[[Snapshot], None] | None = None  # called every tick from the loop thread
+    # Called every tick on the loop thread: must not block (no terminal, socket or disk).
+    on_tick: Callable[[Snapshot], None] | None = None
     on_start: Callable[[Trial, Devices], None] | None = None  # after the devices open
 
 
-def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions) -> TrialResult:
-    """Open the devices, run the protocol, close the devices; Ctrl-C aborts safely."""
+def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None) -> TrialResult:
+    """Open the devices, run the protocol, close the devices; Ctrl-C aborts safely.
+
+    The protocol's limits are checked again from where the slider actually is before
+    anything moves (`LimitError`). `warn` gets each warning about the rig (stderr by default).
+    """
     clock = RealClock(config.loop.spin_ms / 1000.0) if opts.speed == 1.0 else VirtualClock(opts.speed)
     if opts.speed != 1.0 and config.slider.backend != "sim":
         raise RigError("--speed other than 1 needs the simulated rig (slider.backend: sim)")
     devices = open_devices(config, clock, speed=opts.speed)
+    for w in devices.warnings:
+        (warn or _stderr)(w)
     log_path = opts.log_path or default_log_path(opts.out_dir or config.recorder.out_dir, proto,
                                                  opts.specimen)
     clock_name = "real" if opts.speed == 1.0 else f"virtual x{opts.speed:g}" if opts.speed else "virtual"
     info = TrialInfo(specimen=opts.specimen, operator=opts.operator, notes=opts.notes,
-                     clock=clock_name, extra={"devices": devices.description})
+                     clock=clock_name, extra={"devices": devices.description, "backstop": devices.backstop,
+                                              "warnings": " | ".join(devices.warnings)})
     trial = Trial(proto, config, devices.slider, devices.loadcell, clock, log_path, info)
-    bar = ProgressBar(plan(proto, config).duration_s) if opts.progress else None
-    hooks = [h for h in (bar, opts.on_tick) if h is not None]
-    trial.on_tick = (lambda snap: [h(snap) for h in hooks]) if hooks else None
+    bar = ProgressBar(plan(proto, config).duration_s, lambda: trial.snapshot) if opts.progress else None
+    trial.on_tick = opts.on_tick
     if opts.on_start is not None:
         opts.on_start(trial, devices)
     presses = 0
@@ -66,6 +73,8 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions) -> TrialResu
     # The writer thread must not hold the GIL for the default 5 ms while a tick waits.
     sys.setswitchinterval(0.0005)
     try:
+        if bar:
+            bar.start()
         return trial.run()
     finally:
         sys.setswitchinterval(old_switch)
@@ -74,6 +83,10 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions) -> TrialResu
         if bar:
             bar.close()
         devices.close()
+
+
+def _stderr(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
 
 
 def _main_thread() -> bool:

@@ -71,6 +71,7 @@ def serve_sim(config: RigConfig, *, json_out: bool = False, exit_with_parent: bo
                 say({"position_mm": m.position_mm, "moving": m.moving,
                      "alarm_code": config.sim.faults.alarm_code, "requests": sim.drive.requests,
                      "moves": sim.drive.moves, "stops": sim.drive.stops,
+                     "stop_held": sim.drive.stop_held, "ignored_moves": sim.drive.ignored_moves,
                      "comm_timeout_s": sim.drive.comm_timeout_s})
 
     def read_stdin() -> None:

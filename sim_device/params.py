@@ -43,6 +43,8 @@ class LoadCellParams:
     mode: str = field(default="stream", metadata={"choices": ["stream", "poll"]})
     rate_Hz: float = field(default=200.0, **_pos(gt=0, le=2000))
     line_format: str = "{force_N:+.4f} N"
+    # poll mode: the reply leaves this long after the request (conversion and transmit time)
+    reply_ms: float = field(default=0.0, **_pos(ge=0, le=1000))
 
 
 @dataclass

@@ -2,7 +2,8 @@
 and an ASCII load cell on a pseudo-terminal, all in front of one `SimRig`.
 
 The drive implements the register map of `drivers.registers` (Oriental AZ style):
-direct-data moves executed with the slider physics, STOP, return-to-home, READY /
+direct-data moves executed with the slider physics, STOP (level-sensitive, as on the
+real drive: while the bit stays set, motion stops and every move is ignored), return-to-home, READY /
 MOVE / IN-POS / ALM-A status bits, alarm codes and reset, and the communication
 timeout: when a move is running and the master has been silent for longer than the
 configured timeout the drive stops and raises alarm 0x85, like the real one.
@@ -63,7 +64,13 @@ class SimDrive:
         self.requests = 0
         self.moves = 0
         self.stops = 0
+        self.ignored_moves = 0  # moves refused while STOP was held or an alarm was on
+        self.input_bits = 0  # the input command register's lower word, as last written
         self.first_stop_s: float | None = None  # monotonic time the first STOP arrived
+
+    @property
+    def stop_held(self) -> bool:
+        return bool(self.input_bits & (1 << self.regs.bit_stop))
 
     @property
     def alarm_code(self) -> int:
@@ -71,7 +78,7 @@ class SimDrive:
 
     def sync(self) -> None:
         self.rig.advance(time.monotonic() - self.origin_s)
-        if self.alarm_code and self.rig.slider.moving and not self.rig.slider.stopping:
+        if (self.alarm_code or self.stop_held) and self.rig.slider.moving and not self.rig.slider.stopping:
             self.rig.slider.stop()
 
     async def action(self, function_code: int, start_address: int, address: int, count: int,
@@ -103,6 +110,7 @@ class SimDrive:
             r.feedback_position: to_words(round(self.rig.feedback_position_mm() * self.spm)),
             r.output_status: [0, bits],
             r.alarm: to_words(code),
+            r.input_command: [0, self.input_bits],
         }
         if r.comm_timeout_ms is not None:
             values[r.comm_timeout_ms] = to_words(round(self.comm_timeout_s * 1000))
@@ -126,13 +134,15 @@ class SimDrive:
                              word32(r.direct_data + 6), word32(r.direct_data + 8))
         if address <= r.input_command + 1 < end:
             bits = values[r.input_command + 1 - address]
+            rising = bits & ~self.input_bits
+            self.input_bits = bits
             if bits & (1 << r.bit_stop):
                 self.stops += 1
                 self.first_stop_s = self.first_stop_s or time.monotonic()
                 self.rig.slider.stop()
-            elif bits & (1 << r.bit_zhome) and not self.alarm_code:
+            elif rising & (1 << r.bit_zhome) and not self.alarm_code:
                 self.rig.slider.move_to(0.0, self.params.drive.home_speed_mm_s)
-            if bits & (1 << r.bit_alarm_reset):
+            if rising & (1 << r.bit_alarm_reset):
                 self.params.faults.alarm_code = 0
         if word32(r.alarm_reset) == 1:
             self.params.faults.alarm_code = 0
@@ -140,7 +150,10 @@ class SimDrive:
             self.comm_timeout_s = max(ms, 0) / 1000.0
 
     def _start_move(self, op_type, position_steps, speed_hz, accel) -> None:
-        if self.alarm_code or position_steps is None or not speed_hz:
+        if self.alarm_code or self.stop_held:  # the real drive does not start: no reply says so
+            self.ignored_moves += 1
+            return
+        if position_steps is None or not speed_hz:
             return
         target = position_steps / self.spm
         if op_type == 2:  # incremental from the command position
@@ -346,6 +359,8 @@ class LoadCellPort:
                         req = bytes(pending[:cut]).strip()
                         del pending[: cut + 1]
                         if req and not f.loadcell_silent:
+                            if lc.reply_ms > 0:  # conversion and transmit time of a real cell
+                                self._stop.wait(lc.reply_ms / 1000.0)
                             _write_all(self.master, self._line())
                 continue
             next_t += period

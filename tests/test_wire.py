@@ -245,8 +245,8 @@ def test_positions_agree_between_transports(wire_sim):
     """TCP and RTU are two doors to one drive: a move made over one is seen over the other."""
     from rig.devices import open_slider
 
-    rtu = open_slider(wired_config(wire_sim, "rtu"))
-    tcp = open_slider(wired_config(wire_sim, "tcp"))
+    rtu, _, _ = open_slider(wired_config(wire_sim, "rtu"))
+    tcp, _, _ = open_slider(wired_config(wire_sim, "tcp"))
     try:
         rtu.move_to(2.0, 10.0, 200.0)
         deadline = time.monotonic() + 3
