@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+import subprocess
 import sys
 import tempfile
 import time
@@ -31,22 +32,47 @@ def _bench_protocol(duration_s: float) -> str:
             f"repeat: {repeats}\n")
 
 
-def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: str = "none") -> dict:
+class CpuLoad:
+    """N processes that do nothing but burn a CPU each: a busy lab PC, made on purpose."""
+
+    def __init__(self, n: int) -> None:
+        self.procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"],
+                                       stdin=subprocess.DEVNULL) for _ in range(n)]
+
+    def __enter__(self) -> CpuLoad:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for p in self.procs:
+            p.kill()
+        for p in self.procs:
+            p.wait(5)
+
+
+def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: str = "none",
+               load: int = 0, realtime: str = "auto") -> dict:
     from rig.trialrun import RunOptions, run_trial
 
     config = RigConfig()
     config.loop.rate_Hz = rate_Hz
+    config.loop.realtime = realtime
     config.sim.wire = wire
     proto = parse_protocol(_bench_protocol(duration_s), "<bench>")
     with tempfile.TemporaryDirectory() as tmp:
         log = Path(tmp) / "bench.mcap"
         if progress:
             where = "in-process devices" if wire == "none" else f"simulated devices over Modbus {wire.upper()}"
-            print(f"bench: {duration_s:g} s real-clock trial at {rate_Hz:g} Hz, {where} ...", file=sys.stderr)
-        result = run_trial(proto, config, RunOptions(speed=1.0, progress=False, log_path=log))
+            busy = f", {load} CPU-bound processes beside it" if load else ""
+            print(f"bench: {duration_s:g} s real-clock trial at {rate_Hz:g} Hz, {where}{busy} ...",
+                  file=sys.stderr)
+        with CpuLoad(load):
+            result = run_trial(proto, config, RunOptions(speed=1.0, progress=False, log_path=log))
         err = result.period_errors_ms
         replay = bench_replay(log)
+        scheduling = read_log_meta(log).get("realtime", "")
     return {
+        "load_processes": load,
+        "scheduling": scheduling,
         "devices": "in-process" if wire == "none" else f"modbus-{wire} + serial load cell",
         "rate_Hz": rate_Hz,
         "duration_s": round(result.duration_s, 2),
@@ -60,6 +86,12 @@ def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: s
         "outcome": result.outcome,
         "replay": replay,
     }
+
+
+def read_log_meta(path: Path) -> dict:
+    from rig.logs import read_log
+
+    return read_log(path).trial
 
 
 def bench_baseline(duration_s: float, rate_Hz: float) -> dict:
@@ -140,8 +172,9 @@ def max_rate(wire: str, rates=(100, 200, 400, 600, 800, 1000), seconds: float = 
 
 
 def run_bench(duration_s: float = 60.0, rate_Hz: float = 100.0, progress: bool = True,
-              wire: str = "none", find_max_rate: bool = False, ode_fit: bool = True) -> dict:
-    out = {"loop": bench_loop(duration_s, rate_Hz, progress, wire), "rls": bench_rls(),
+              wire: str = "none", find_max_rate: bool = False, ode_fit: bool = True, load: int = 0,
+              realtime: str = "auto") -> dict:
+    out = {"loop": bench_loop(duration_s, rate_Hz, progress, wire, load, realtime), "rls": bench_rls(),
            "record": bench_record(), "baseline": bench_baseline(min(duration_s, 30.0), rate_Hz)}
     if progress:
         print("bench: model fit (and the same fit by an ODE solver) ...", file=sys.stderr)
@@ -162,6 +195,7 @@ def format_bench(r: dict) -> str:
         f"max {lp['replay']['lateness_max_ms']:.3f} ms",
         f"          late ticks {lp['late_ticks']}  missed {lp['missed_ticks']}  "
         f"bus transactions/tick {lp['bus_transactions_per_tick']:.3f}",
+        f"          scheduling: {lp['scheduling']}; {lp['load_processes']} CPU-bound processes beside it",
         f"rls       {rls['update_us']:.2f} us per update",
         f"record    {rec['put_us']:.2f} us per sample on the loop side; writer "
         f"{rec['writer_us_per_sample']:.1f} us/sample; {rec['bytes_per_sample']:.1f} bytes/sample on disk",

@@ -395,7 +395,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from rig.bench import format_bench, run_bench
 
     result = run_bench(duration_s=args.duration, rate_Hz=args.rate, progress=not args.json,
-                       wire=args.wire, find_max_rate=args.max_rate)
+                       wire=args.wire, find_max_rate=args.max_rate, load=args.load,
+                       realtime="off" if args.no_realtime else "auto")
     print(json.dumps(result, indent=2) if args.json else format_bench(result))
     return 0
 
@@ -550,6 +551,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--wire", choices=["none", "rtu", "tcp"], default="none",
                    help="devices: in-process (none, default) or the simulated devices over Modbus "
                         "RTU on a pseudo-terminal / Modbus TCP on loopback")
+    r.add_argument("--load", type=int, default=0, metavar="N",
+                   help="run N CPU-bound processes beside the loop (a busy machine)")
+    r.add_argument("--no-realtime", action="store_true",
+                   help="run the loop at normal priority (default: SCHED_FIFO where allowed)")
     r.add_argument("--max-rate", action="store_true",
                    help="also find the highest loop rate without late ticks (5 s runs)")
     r.add_argument("--json", action="store_true")

@@ -14,6 +14,7 @@ import threading
 from dataclasses import fields
 
 from rig.config import RigConfig
+from rig.realtime import Realtime
 from sim_device.server import WireSim
 
 
@@ -22,6 +23,8 @@ def serve_sim(config: RigConfig, *, json_out: bool = False, exit_with_parent: bo
     # Like the controller: no thread may hold the interpreter for the default 5 ms while
     # a Modbus reply is due.
     sys.setswitchinterval(0.0005)
+    # Before any thread starts: they inherit the policy.
+    Realtime(config.sim.realtime, max(config.loop.realtime_priority - 1, 1)).enter()
     sim = WireSim(config.sim, tcp_port=tcp_port)
     ep = sim.start()
     gc.collect()

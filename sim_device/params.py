@@ -67,6 +67,8 @@ class FaultParams:
     loadcell_silent: bool = False  # the load cell stops sending
     garbage_lines: int = field(default=0, **_pos(ge=0))  # the next N load-cell lines are garbage
     loadcell_disconnect: bool = False  # the load cell's port goes away
+    ignore_moves: bool = False  # moves are acknowledged but never start (motor not excited)
+    ignore_stops: int = field(default=0, **_pos(ge=0))  # the next N STOPs are acknowledged, not acted on
 
 
 @dataclass
@@ -134,6 +136,9 @@ class SimParams:
     # How `rig run` reaches the simulated rig at --speed 1: Modbus RTU on a pseudo-terminal,
     # Modbus TCP on loopback, or "none" for the in-process devices.
     wire: str = field(default="rtu", metadata={"choices": ["rtu", "tcp", "none"]})
+    # `rig sim` stands in for hardware with CPUs of its own: it asks for real-time scheduling
+    # (below the loop's priority) so a busy machine does not make the simulated drive late.
+    realtime: str = field(default="auto", metadata={"choices": ["auto", "off"]})
     tissue: TissueParams = field(default_factory=TissueParams)
     slider: SliderParams = field(default_factory=SliderParams)
     loadcell: LoadCellParams = field(default_factory=LoadCellParams)

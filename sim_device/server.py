@@ -136,7 +136,10 @@ class SimDrive:
             bits = values[r.input_command + 1 - address]
             rising = bits & ~self.input_bits
             self.input_bits = bits
-            if bits & (1 << r.bit_stop):
+            if bits & (1 << r.bit_stop) and self.params.faults.ignore_stops > 0:
+                self.params.faults.ignore_stops -= 1
+                self.input_bits &= ~(1 << r.bit_stop)  # lost inside the drive
+            elif bits & (1 << r.bit_stop):
                 self.stops += 1
                 self.first_stop_s = self.first_stop_s or time.monotonic()
                 self.rig.slider.stop()
@@ -150,8 +153,8 @@ class SimDrive:
             self.comm_timeout_s = max(ms, 0) / 1000.0
 
     def _start_move(self, op_type, position_steps, speed_hz, accel) -> None:
-        if self.alarm_code or self.stop_held:  # the real drive does not start: no reply says so
-            self.ignored_moves += 1
+        if self.alarm_code or self.stop_held or self.params.faults.ignore_moves:
+            self.ignored_moves += 1  # the real drive does not start, and no reply says so
             return
         if position_steps is None or not speed_hz:
             return

@@ -30,16 +30,24 @@ LONG = "name: long ramp\nsteps:\n  - ramp: {to_mm: 30, speed_mm_s: 1}\n  - retur
 
 
 class DaemonProc:
-    def __init__(self, tmp: Path, sim: WireSim, env: dict | None = None) -> None:
+    def __init__(self, tmp: Path, sim: WireSim, env: dict | None = None, *, transport: str = "tcp",
+                 extra: dict | None = None) -> None:
         self.tmp = tmp
         self.sim = sim
         self.sock = tmp / "rigd.sock"
         self.out = tmp / "trials"
-        cfg = {"slider": {"backend": "modbus-tcp", "host": "127.0.0.1",
-                          "tcp_port": int(sim.endpoints.modbus_tcp.split(":")[1]),
-                          "profile": "oriental_az_sim", "comm_timeout_s": 0.3},
-               "loadcell": {"backend": "serial", "port": sim.endpoints.loadcell},
+        slider = {"profile": "oriental_az_sim", "comm_timeout_s": 0.3}
+        if transport == "tcp":
+            slider.update(backend="modbus-tcp", host="127.0.0.1",
+                          tcp_port=int(sim.endpoints.modbus_tcp.split(":")[1]))
+        else:
+            slider.update(backend="modbus-rtu", port=sim.endpoints.modbus_rtu)
+        cfg = {"slider": slider,
+               "loadcell": {"backend": "serial", "port": sim.endpoints.loadcell,
+                            "mode": sim.params.loadcell.mode},
                "recorder": {"out_dir": str(self.out)}}
+        for section, values in (extra or {}).items():
+            cfg.setdefault(section, {}).update(values)
         self.cfg_path = tmp / "rig.yaml"
         self.cfg_path.write_text(yaml.safe_dump(cfg))
         self.env = {**os.environ, **(env or {})}
