@@ -102,8 +102,8 @@ class SerialLoadCell:
         self._stop = threading.Event()
         self._serial = self._open()
         self._write_lock = threading.Lock()
-        self._thread = threading.Thread(target=self._read_loop, name=f"loadcell {port}", daemon=True)
-        self._thread.start()
+        self.thread = threading.Thread(target=self._read_loop, name=f"loadcell {port}", daemon=True)
+        self.thread.start()
 
     def _now(self) -> float:
         return self.clock.now() if self.clock is not None else time.monotonic()
@@ -138,7 +138,7 @@ class SerialLoadCell:
 
     def close(self) -> None:
         self._stop.set()
-        self._thread.join(2.0)
+        self.thread.join(2.0)
         # the port may already be gone
         with contextlib.suppress(Exception):
             self._serial.close()

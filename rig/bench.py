@@ -84,6 +84,7 @@ def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: s
         "period_err_max_ms": float(err.max()),
         "bus_transactions_per_tick": result.bus_transactions / max(result.samples, 1),
         "outcome": result.outcome,
+        "fault": result.fault,
         "replay": replay,
     }
 
@@ -196,6 +197,7 @@ def format_bench(r: dict) -> str:
         f"          late ticks {lp['late_ticks']}  missed {lp['missed_ticks']}  "
         f"bus transactions/tick {lp['bus_transactions_per_tick']:.3f}",
         f"          scheduling: {lp['scheduling']}; {lp['load_processes']} CPU-bound processes beside it",
+        f"          outcome {lp['outcome']}" + (f": {lp['fault']}" if lp.get("fault") else ""),
         f"rls       {rls['update_us']:.2f} us per update",
         f"record    {rec['put_us']:.2f} us per sample on the loop side; writer "
         f"{rec['writer_us_per_sample']:.1f} us/sample; {rec['bytes_per_sample']:.1f} bytes/sample on disk",

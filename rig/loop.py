@@ -186,7 +186,8 @@ class Trial:
         rt = Realtime(cfg.loop.realtime, cfg.loop.realtime_priority) if isinstance(self.clock, RealClock) \
             else None
         try:
-            self.realtime = rt.enter() if rt else RealtimeState("virtual clock", False, "")
+            helpers = [getattr(rec, "thread", None), getattr(self.loadcell, "thread", None)]
+            self.realtime = rt.enter(helpers) if rt else RealtimeState("virtual clock", False, "")
         except RigError:
             rec.close()
             self.log_path.unlink(missing_ok=True)
@@ -392,8 +393,14 @@ class Trial:
                     raise_fault(found, t, force, pos)
 
             # ---- operator stop requests (an estop may follow an abort that is returning)
-            req = self._take_stop_request() if fault is None else None
-            if req is not None and (stop_mode is None or req[0] == StopMode.ESTOP):
+            req = self._take_stop_request()
+            if req is not None and fault is not None:
+                req[3].settle(True, f"already stopped by a fault: {fault.message}")
+                req = None
+            elif req is not None and stop_mode is not None and req[0] != StopMode.ESTOP:
+                req[3].settle(True, f"already stopping ({stop_mode.value} in progress)")
+                req = None
+            if req is not None:
                 mode, user, received, ticket = req
                 ok = send_stop(t)
                 sent = time.monotonic()

@@ -14,6 +14,7 @@ import contextlib
 import ctypes
 import ctypes.util
 import os
+import threading
 from dataclasses import dataclass
 
 from rig.errors import RigError
@@ -44,9 +45,16 @@ class Realtime:
         self.mode = mode
         self.priority = priority
         self._old: tuple[int, int] | None = None
+        self._helpers: list[tuple[int, int, int]] = []  # (tid, old policy, old priority)
         self._locked = False
 
-    def enter(self) -> RealtimeState:
+    def enter(self, helpers: list[threading.Thread | None] = ()) -> RealtimeState:
+        """Real-time for the calling thread at `priority`, and for `helpers` just below it.
+
+        The helpers are the threads the loop waits on for the interpreter lock (the recorder's
+        writer, the load cell's reader): left at normal priority, a busy machine can preempt one
+        while it holds the lock, and the loop waits behind it (priority inversion).
+        """
         if self.mode == "off" or not hasattr(os, "sched_setscheduler"):
             return RealtimeState("normal", False, "off in the config" if self.mode == "off" else
                                  "not supported on this platform")
@@ -57,6 +65,14 @@ class Realtime:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.priority))
             self._old = old
             policy = f"SCHED_FIFO {self.priority}"
+            for thread in helpers:
+                tid = getattr(thread, "native_id", None)
+                if tid is None or not thread.is_alive():
+                    continue
+                with contextlib.suppress(OSError):  # a thread that just ended
+                    was = (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority)
+                    os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(max(self.priority - 1, 1)))
+                    self._helpers.append((tid, *was))
         except OSError as exc:
             problems.append(f"SCHED_FIFO refused: {exc.strerror}")
         self._locked = _mlockall()
@@ -70,6 +86,10 @@ class Realtime:
         return state
 
     def leave(self) -> None:
+        for tid, policy, prio in self._helpers:
+            with contextlib.suppress(OSError):
+                os.sched_setscheduler(tid, policy, os.sched_param(prio))
+        self._helpers = []
         if self._old is not None:
             policy, prio = self._old
             with contextlib.suppress(OSError):

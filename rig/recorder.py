@@ -130,8 +130,8 @@ class Recorder:
         self.error: BaseException | None = None
         self._closed = False
         self._busy = False
-        self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
-        self._thread.start()
+        self.thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
+        self.thread.start()
 
     # ---------------------------------------------------------------- loop side
     def put(self, topic: str, log_time_ns: int, message: dict[str, Any]) -> None:
@@ -178,7 +178,7 @@ class Recorder:
         if outcome is not None:
             self.write_metadata("outcome", outcome)
         self._q.put(_STOP)
-        self._thread.join(timeout_s if self.error is None else 1.0)
+        self.thread.join(timeout_s if self.error is None else 1.0)
 
     # --------------------------------------------------------------- writer
     def _run(self) -> None:
