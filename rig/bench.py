@@ -69,7 +69,8 @@ def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: s
             result = run_trial(proto, config, RunOptions(speed=1.0, progress=False, log_path=log))
         err = result.period_errors_ms
         replay = bench_replay(log)
-        scheduling = read_log_meta(log).get("realtime", "")
+        meta, health = read_log_meta(log)
+        scheduling = meta.get("realtime", "")
     return {
         "load_processes": load,
         "scheduling": scheduling,
@@ -85,14 +86,16 @@ def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: s
         "bus_transactions_per_tick": result.bus_transactions / max(result.samples, 1),
         "outcome": result.outcome,
         "fault": result.fault,
+        "bus_errors": int(health.get("bus_errors", 0)),
         "replay": replay,
     }
 
 
-def read_log_meta(path: Path) -> dict:
+def read_log_meta(path: Path) -> tuple[dict, dict]:
     from rig.logs import read_log
 
-    return read_log(path).trial
+    log = read_log(path)
+    return log.trial, (log.health[-1] if log.health else {})
 
 
 def bench_baseline(duration_s: float, rate_Hz: float) -> dict:
@@ -195,7 +198,7 @@ def format_bench(r: dict) -> str:
         f"          tick start after its slot p99 {lp['replay']['lateness_p99_ms']:.3f} ms  "
         f"max {lp['replay']['lateness_max_ms']:.3f} ms",
         f"          late ticks {lp['late_ticks']}  missed {lp['missed_ticks']}  "
-        f"bus transactions/tick {lp['bus_transactions_per_tick']:.3f}",
+        f"bus transactions/tick {lp['bus_transactions_per_tick']:.3f}  bus errors {lp['bus_errors']}",
         f"          scheduling: {lp['scheduling']}; {lp['load_processes']} CPU-bound processes beside it",
         f"          outcome {lp['outcome']}" + (f": {lp['fault']}" if lp.get("fault") else ""),
         f"rls       {rls['update_us']:.2f} us per update",
