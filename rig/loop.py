@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.base import LoadCell, Reading, Slider, SliderStatus
+from drivers.base import LoadCell, Slider, SliderStatus
 from rig import __version__
 from rig.clock import Clock, RealClock
 from rig.config import RigConfig
@@ -40,7 +40,7 @@ from rig.movewatch import MoveWatch
 from rig.protocol import Protocol, check_limits
 from rig.realtime import Realtime, RealtimeState
 from rig.recorder import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC, Recorder, TrialInfo
-from rig.safety import Fault, TickState, check, check_move
+from rig.safety import Fault, SpeedMeter, TickState, check, check_move
 from rig.sequencer import Move, Sequencer, Stop
 
 
@@ -302,7 +302,7 @@ class Trial:
         rls = self.rls
         status = SliderStatus(True, False, True, False)
         tare_sum, tare_n, tare_N = 0.0, 0, 0.0
-        last_fresh: Reading[float] | None = None
+        speedometer = SpeedMeter(2.0 * self.period)
         x_prev_m = 0.0
         fault: Fault | None = None
         fault_t = 0.0
@@ -357,15 +357,12 @@ class Trial:
             pr = slider.position()
             pos = pr.value
             status_fresh = False
-            if self._seq % status_every == 0 or (stopping is not None and not stopping.confirmed):
+            confirming = (stopping is not None and not stopping.confirmed) or (seq.done and watch is not None)
+            if self._seq % status_every == 0 or confirming:
                 sr = slider.status()
                 status, status_fresh = sr.value, sr.fresh
             moving = status.moving if status_fresh else None
-            speed = None
-            if pr.fresh:
-                if last_fresh is not None and pr.t_s > last_fresh.t_s:
-                    speed = (pos - last_fresh.value) / (pr.t_s - last_fresh.t_s)
-                last_fresh = pr
+            speed = speedometer.update(pr)
             raw = reading.force_N if reading else 0.0
             age = reading.age_s if reading else None
             self._last_age = age
@@ -504,7 +501,8 @@ class Trial:
                 return outcome, fault.message
             if stop_mode in (StopMode.ESTOP, StopMode.HOLD) and t - fault_t >= self.post_fault_s and settled:
                 return outcome, None
-            if seq.done and fault is None and stop_mode in (None, StopMode.ABORT):
+            # a protocol ends once the drive reports standing still at the last target
+            if seq.done and fault is None and stop_mode in (None, StopMode.ABORT) and watch is None:
                 return outcome, None
 
     def _health(self, rec: Recorder, t: float, now: float, mark: int) -> None:

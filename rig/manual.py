@@ -16,7 +16,7 @@ from rig.config import RigConfig
 from rig.devices import Devices, open_devices
 from rig.errors import DeviceError, LimitError
 from rig.movewatch import MoveWatch
-from rig.safety import TickState, check, check_move
+from rig.safety import SpeedMeter, TickState, check, check_move
 
 
 def _open(config: RigConfig) -> Devices:
@@ -67,7 +67,8 @@ def move(config: RigConfig, to_mm: float, speed_mm_s: float, *, home: bool = Fal
             slider.move_to(to_mm, speed_mm_s, config.slider.accel_mm_s2)
         t0 = time.monotonic()
         watch = MoveWatch(start, target, speed, config.slider.accel_mm_s2, 0.0, lim, tol)
-        last = first
+        speedometer = SpeedMeter(0.02)
+        speedometer.update(first)
         while True:
             time.sleep(0.01)
             now = time.monotonic() - t0
@@ -75,11 +76,7 @@ def move(config: RigConfig, to_mm: float, speed_mm_s: float, *, home: bool = Fal
             sr = slider.status()
             r = dev.loadcell.latest()
             pos, moving = pr.value, (sr.value.moving if sr.fresh else None)
-            speed_now = None
-            if pr.fresh:
-                if pr.t_s > last.t_s:
-                    speed_now = (pos - last.value) / (pr.t_s - last.t_s)
-                last = pr
+            speed_now = speedometer.update(pr)
             force = (r.force_N - tare) if r else 0.0
             fault = check(TickState(force, pos, speed_now, r.age_s if r else None,
                                     sr.value.alarm_code if sr.value.alarm else 0,

@@ -8,8 +8,10 @@ every path that moves the slider goes through (protocol steps, the abort return,
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
+from drivers.base import Reading
 from rig.config import LimitsConfig
 
 
@@ -62,3 +64,29 @@ def check_move(to_mm: float, speed_mm_s: float, limits: LimitsConfig) -> str | N
     if not 0 < speed_mm_s <= limits.max_speed_mm_s:
         return f"speed {speed_mm_s:g} mm/s is not within (0, {limits.max_speed_mm_s:g}] mm/s"
     return None
+
+
+class SpeedMeter:
+    """Speed from fresh positions at least `span_s` apart; stale readings are skipped.
+
+    Two readings a tick apart, or a fraction of a tick after a late one, would turn a single
+    encoder step into a false overspeed (one 0.01 mm step in 0.5 ms reads as 20 mm/s).
+    """
+
+    def __init__(self, span_s: float) -> None:
+        self.span_s = span_s
+        self._history: deque[tuple[float, float]] = deque()
+
+    def update(self, reading: Reading[float]) -> float | None:
+        """The speed, mm/s, or None while there is no fresh pair `span_s` apart."""
+        if not reading.fresh:
+            return None
+        h = self._history
+        t = reading.t_s
+        if h and t <= h[-1][0]:
+            return None
+        h.append((t, reading.value))
+        while len(h) > 2 and t - h[1][0] >= self.span_s:  # keep the newest one old enough
+            h.popleft()
+        t0, x0 = h[0]
+        return (reading.value - x0) / (t - t0) if t - t0 >= self.span_s else None

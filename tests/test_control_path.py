@@ -520,3 +520,23 @@ def wired(sim: WireSim, transport: str = "rtu") -> RigConfig:
 def rig(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "rig", *args], cwd=ROOT, capture_output=True, text=True,
                           timeout=timeout)
+
+
+def test_speed_is_measured_over_two_ticks_not_between_a_late_tick_and_the_next():
+    """A late tick followed by one on time leaves half a millisecond between two readings: one
+    0.01 mm encoder step over that reads as 20 mm/s. The meter spans at least two periods."""
+    from drivers.base import Reading
+    from rig.safety import SpeedMeter
+
+    meter = SpeedMeter(0.02)
+    speeds = []
+    t = 0.0
+    for k in range(60):
+        t = k * 0.01 + (0.0095 if k % 7 == 3 else 0.0)  # every 7th tick 9.5 ms late
+        x = round(5.0 * t * 100) / 100  # 5 mm/s, whole 0.01 mm steps
+        v = meter.update(Reading(x, t))
+        if v is not None:
+            speeds.append(v)
+    assert len(speeds) >= 50
+    assert max(abs(v - 5.0) for v in speeds) <= 1.0
+    assert meter.update(Reading(9.0, t + 0.01, fresh=False)) is None  # stale: no estimate

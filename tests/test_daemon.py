@@ -67,6 +67,9 @@ class DaemonProc:
                 time.sleep(0.05)
         raise AssertionError("daemon did not come up: " + (self.tmp / "daemon.log").read_text())
 
+    def log_text(self) -> str:
+        return (self.tmp / "daemon.log").read_text()
+
     def req(self, obj: dict) -> dict:
         return request(self.sock, obj, 10.0)
 

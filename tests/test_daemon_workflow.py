@@ -24,10 +24,17 @@ SHORT = ("name: short\nsteps:\n  - ramp: {to_mm: 3, speed_mm_s: 5}\n  - hold: {d
 TRAVEL = (-5.0, 45.0)
 
 
-def wait_position(sim: WireSim, at_least_mm: float, timeout_s: float = 10.0) -> None:
+def wait_position(sim: WireSim, at_least_mm: float, timeout_s: float = 10.0,
+                  d: DaemonProc | None = None) -> None:
+    """Until the slider passes `at_least_mm` (or, given the daemon, its trial has ended: the
+    outcome check that follows then says what happened)."""
     deadline = time.monotonic() + timeout_s
+    polls = 0
     while sim.rig.slider.position_mm < at_least_mm:
         assert time.monotonic() < deadline, f"slider never reached {at_least_mm} mm"
+        polls += 1
+        if d is not None and polls % 20 == 0 and d.req({"cmd": "status"})["state"] == "idle":
+            return
         time.sleep(0.005)
 
 
@@ -170,14 +177,14 @@ def test_soak_the_daemon_over_rtu(tmp_path, mode):
                 r = d.start_trial(SHORT, specimen=f"{mode}-{i}-{step.action}")
                 assert r["ok"], (i, step, r)
                 if step.action in ("abort", "hold", "estop"):
-                    wait_position(sim, sim.rig.slider.position_mm + 1.0)
+                    wait_position(sim, sim.rig.slider.position_mm + 1.0, d=d)
                     cmd = {"cmd": "estop"} if step.action == "estop" else {"cmd": "stop", "mode": step.action}
                     assert d.req(cmd)["ok"]
                 elif step.action == "alarm":
-                    wait_position(sim, sim.rig.slider.position_mm + 1.0)
+                    wait_position(sim, sim.rig.slider.position_mm + 1.0, d=d)
                     faults.alarm_code = 0x30
                 elif step.action == "silent":
-                    wait_position(sim, sim.rig.slider.position_mm + 1.0)
+                    wait_position(sim, sim.rig.slider.position_mm + 1.0, d=d)
                     faults.loadcell_silent = True
                 elif step.action == "stall":
                     faults.ignore_moves = True
@@ -189,7 +196,7 @@ def test_soak_the_daemon_over_rtu(tmp_path, mode):
                     faults.garbage_lines = 1
                 last = d.wait_idle()["last"]
                 faults.loadcell_silent = faults.ignore_moves = False
-                assert last["outcome"] == step.outcome, (i, step, last)
+                assert last["outcome"] == step.outcome, (i, step, last, d.log_text()[-2000:])
                 log = read_log(r["log"])
                 assert log.complete and log.outcome == step.outcome, (i, step)
                 assert log.n > 50 and (log.samples["seq"] == range(log.n)).all()
