@@ -114,6 +114,11 @@ class ModbusSlider:
     # ------------------------------------------------------------ bus calls
     def _call(self, what: str, fn, *args, **kwargs):
         self.stats.transactions += 1
+        if self._consecutive and self.link.transport == "rtu":
+            # RTU has no transaction id: a reply that came after its timeout would be taken for
+            # the answer to this request. Drop whatever arrived since.
+            with contextlib.suppress(Exception):
+                self.client.socket.reset_input_buffer()
         if self.link.transport == "tcp" and getattr(self.client, "socket", None) is not self._sock:
             self._sock = _no_delay(self.client)
         try:
