@@ -39,7 +39,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     proto = load_protocol(args.protocol, config)  # refused here, before anything moves
     opts = RunOptions(specimen=args.specimen, operator=args.operator, notes=args.notes,
-                      out_dir=args.out, speed=args.speed, progress=not args.quiet)
+                      out_dir=args.out, speed=args.speed, progress=not args.quiet, live_port=args.live)
     result = run_trial(proto, config, opts)
     print(f"trial {result.outcome}: {result.samples} samples in {result.duration_s:.1f} s "
           f"({result.late_ticks} late, {result.missed_ticks} missed ticks)")
@@ -425,6 +425,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="simulated rig only: 0 = as fast as possible, N = N times real time "
                         "(default 1: real time)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--live", type=int, nargs="?", const=8765, metavar="PORT",
+                   help="publish the trial live for Foxglove (WebSocket on 127.0.0.1:PORT, default 8765; "
+                        "needs the extra rig[live])")
     r.set_defaults(func=cmd_run)
 
     r = sub.add_parser("replay", help="summarise a log; export CSV; plot",

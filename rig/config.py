@@ -132,12 +132,22 @@ class RecorderConfig:
 
 
 @dataclass
+class LiveConfig:
+    """The live view (Foxglove WebSocket protocol; needs the extra `rig[live]`)."""
+
+    host: str = "127.0.0.1"  # loopback only unless you mean otherwise
+    port: int = field(default=8765, metadata={"ge": 0, "le": 65535})
+    max_queue: int = field(default=2000, metadata={"ge": 10})  # beyond it, the oldest are dropped
+
+
+@dataclass
 class DaemonConfig:
     socket: str = ""  # "" = /run/rig/rigd.sock as root, else $XDG_RUNTIME_DIR/rig/rigd.sock
     group: str = ""  # group allowed to use the socket besides the owner ("" = owner only)
     max_request_bytes: int = field(default=65536, metadata={"ge": 1024})
     watch_rate_Hz: float = field(default=10.0, metadata={"gt": 0, "le": 100})
     stall_s: float = field(default=1.0, metadata={"gt": 0})  # no tick this long: withhold watchdog pings
+    live: LiveConfig | None = None  # e.g. {port: 8765}: publish every trial live
 
 
 @dataclass

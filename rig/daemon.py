@@ -107,6 +107,7 @@ class Daemon:
         self._listener: socket.socket | None = None
         self._conn_threads: list[threading.Thread] = []
         self.watchdog: Watchdog | None = None
+        self.live = None  # rig.live.LiveView when daemon.live is configured
 
     def say(self, msg: str) -> None:
         print(f"rigd: {msg}", file=self.log, flush=True)
@@ -129,6 +130,17 @@ class Daemon:
             self._close_listener()
             raise
         self.say(f"devices: {self.devices.description}")
+        if self.config.daemon.live is not None:
+            from rig.live import LiveView
+
+            lv = self.config.daemon.live
+            try:
+                self.live = LiveView(lv.host, lv.port, max_queue=lv.max_queue)
+            except BaseException:
+                self.devices.close()
+                self._close_listener()
+                raise
+            self.say(f"live view: {self.live.url} (Foxglove: open connection, Foxglove WebSocket)")
         self.say(f"listening on {self.socket_path}")
         interval = watchdog_interval_s()
         if interval:
@@ -204,6 +216,9 @@ class Daemon:
         if self.devices:
             self.devices.close()
             self.devices = None
+        if self.live is not None:
+            self.live.close()
+            self.live = None
 
     def _close_listener(self) -> None:
         if self._listener is not None:
@@ -344,6 +359,7 @@ class Daemon:
             trial = Trial(proto, self.config, self.devices.slider, self.devices.loadcell,
                           RealClock(self.config.loop.spin_ms / 1000.0), log_path, info)
             trial.on_tick = self._on_tick
+            trial.live = self.live
             self.trial = trial
             self.trial_meta = {"protocol": proto.name, "specimen": specimen, "user": user,
                                "operator": operator, "log": str(log_path),

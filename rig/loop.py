@@ -137,6 +137,7 @@ class Trial:
         # (no terminal, socket or disk); displays read `snapshot` from their own thread.
         self.on_tick = None
         self.realtime: RealtimeState | None = None
+        self.live = None  # a rig.live.LiveView publishing the same messages, if any
         self._seq = self._late = self._missed = 0
         self._tick_times: list[float] = []
 
@@ -186,7 +187,8 @@ class Trial:
         rt = Realtime(cfg.loop.realtime, cfg.loop.realtime_priority) if isinstance(self.clock, RealClock) \
             else None
         try:
-            helpers = [getattr(rec, "thread", None), getattr(self.loadcell, "thread", None)]
+            helpers = [getattr(rec, "thread", None), getattr(self.loadcell, "thread", None),
+                       getattr(self.live, "thread", None)]
             self.realtime = rt.enter(helpers) if rt else RealtimeState("virtual clock", False, "")
         except RigError:
             rec.close()
@@ -272,8 +274,14 @@ class Trial:
         rec.attach("protocol.yaml", "application/yaml", self.proto.source_text.encode(), now_ns)
         rec.attach("config.yaml", "application/yaml", self.config.text().encode(), now_ns)
 
+    def _emit(self, rec: Recorder, topic: str, log_time_ns: int, message: dict) -> None:
+        """To the log, and to the live view if there is one (both only queue it)."""
+        rec.put(topic, log_time_ns, message)
+        if self.live is not None:
+            self.live.put(topic, log_time_ns, message)
+
     def _event(self, rec: Recorder, t: float, kind: str, message: str, data: dict | None = None) -> None:
-        rec.put(EVENT_TOPIC, self.clock.wall_ns(self._t0 + t),
+        self._emit(rec, EVENT_TOPIC, self.clock.wall_ns(self._t0 + t),
                 {"t_s": round(t, 6), "kind": kind, "message": message, "data": data or {}})
 
     def _safe_stop(self) -> bool:
@@ -469,7 +477,7 @@ class Trial:
             x_prev_m = (pos - seq.zero_mm) / 1000.0
 
             kind = "fault" if fault else seq.kind
-            rec.put(SAMPLE_TOPIC, clock.wall_ns(now), {
+            self._emit(rec, SAMPLE_TOPIC, clock.wall_ns(now), {
                 "seq": self._seq, "t_s": round(t, 6),
                 "position_mm": pos - seq.zero_mm,
                 "position_cmd_mm": round(seq.position_cmd_mm(t), 6),
@@ -509,7 +517,7 @@ class Trial:
         times = np.asarray(self._tick_times[max(mark - 1, 0):])
         err = np.abs(np.diff(times) - self.period) * 1000.0 if len(times) > 1 else np.zeros(1)
         s, c = self.slider.stats, self.loadcell.stats
-        rec.put(HEALTH_TOPIC, self.clock.wall_ns(now), {
+        self._emit(rec, HEALTH_TOPIC, self.clock.wall_ns(now), {
             "t_s": round(t, 6), "ticks": self._seq, "late_ticks": self._late,
             "missed_ticks": self._missed,
             "period_err_p50_ms": float(np.percentile(err, 50)),
@@ -519,6 +527,7 @@ class Trial:
             "loadcell_lines_ok": c.lines_ok, "loadcell_lines_bad": c.lines_bad,
             "loadcell_age_ms": (self._last_age or 0.0) * 1000.0,
             "queue_depth": rec.depth(),
+            "live_dropped": self.live.dropped if self.live is not None else 0,
         })
 
 

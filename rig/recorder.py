@@ -88,6 +88,7 @@ HEALTH_SCHEMA = {
         "loadcell_lines_bad": {"type": "integer"},
         "loadcell_age_ms": _num("age of the newest load-cell reading, ms"),
         "queue_depth": {"type": "integer", "description": "messages waiting for the writer"},
+        "live_dropped": {"type": "integer", "description": "messages the live view dropped (slow viewer)"},
     },
     "required": ["t_s", "ticks", "late_ticks", "period_err_p99_ms"],
 }

@@ -30,6 +30,7 @@ class RunOptions:
     # Called every tick on the loop thread: must not block (no terminal, socket or disk).
     on_tick: Callable[[Snapshot], None] | None = None
     on_start: Callable[[Trial, Devices], None] | None = None  # after the devices open
+    live_port: int | None = None  # publish live on this port (Foxglove WebSocket), None = off
 
 
 def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None) -> TrialResult:
@@ -53,6 +54,18 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None
     trial = Trial(proto, config, devices.slider, devices.loadcell, clock, log_path, info)
     bar = ProgressBar(plan(proto, config).duration_s, lambda: trial.snapshot) if opts.progress else None
     trial.on_tick = opts.on_tick
+    live = None
+    if opts.live_port is not None:
+        from rig.live import LiveView
+
+        host = config.daemon.live.host if config.daemon.live is not None else "127.0.0.1"
+        try:
+            live = LiveView(host, opts.live_port)
+        except BaseException:
+            devices.close()
+            raise
+        trial.live = live
+        (warn or _stderr)(f"live view: {live.url} (Foxglove: open connection, Foxglove WebSocket)")
     if opts.on_start is not None:
         opts.on_start(trial, devices)
     presses = 0
@@ -82,6 +95,8 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None
             signal.signal(signal.SIGINT, old)
         if bar:
             bar.close()
+        if live is not None:
+            live.close()
         devices.close()
 
 
