@@ -20,11 +20,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rig.analysis.data import PHASES, TrialData
+from rig.analysis.data import PHASES, TrialData, decimate
 from rig.analysis.fit import FitResult, fit
 from rig.models.core import Effect, Model
 
 MIN_DROP = 0.05
+SCREEN_SAMPLES = 2000  # per trial
 REFIT_LEADERS = 3
 DECISIVE_BIC = -10.0
 ABSORBED_BIC = 3 * DECISIVE_BIC  # very strong support, negligible error change: a look-alike
@@ -68,16 +69,6 @@ class Explanation:
     summary: str
 
 
-def decimate(t: TrialData, stride: int) -> TrialData:
-    """Every `stride`-th sample (the velocity was smoothed over 0.15 s already)."""
-    from rig.models.core import Motion
-
-    m = t.motion
-    sl = slice(None, None, stride)
-    return TrialData(t.name, Motion(m.t_s[sl], m.x_m[sl], m.v_m_s[sl], m.dt_s * stride), t.force_N[sl],
-                     t.phase[sl], t.baseline_noise_N, t.source, t.baseline_n)
-
-
 def candidates(model: Model, registry: dict[str, Effect]) -> list[Effect]:
     out = []
     for e in registry.values():
@@ -96,9 +87,9 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
     n = len(r_all)
     n_eff = max(n / L, 10.0)
     rss0 = float(np.sum(r_all ** 2))
-    # Screen every candidate on a 20 Hz copy of the data (five times fewer samples; the
-    # effects live on time scales of 0.05 s and up), then refit the leaders at full rate.
-    stride = max(round(0.05 / trials[0].motion.dt_s), 1)
+    # Screen every candidate on a decimated copy (a few thousand samples per trial: the
+    # effects live on time scales of many samples), then refit the leaders at full rate.
+    stride = max(1, min(t.n for t in trials) // SCREEN_SAMPLES)
     coarse = [decimate(t, stride) for t in trials]
     base_coarse = fit(base.model, coarse, starts=1, initial=base.values)
     rss0_c = float(np.sum(np.concatenate(base_coarse.residuals) ** 2))
