@@ -181,10 +181,20 @@ def _find_contact(t, pos, f, where):
     trend = np.polyval(f_base_fit, t - t[0])
     resid = pre - trend[:i_fit]
     sigma = 1.4826 * float(np.median(np.abs(resid - np.median(resid)))) if i_fit >= 10 else 0.0
-    above = (f - trend)[:i_load + 1] > 2.0 * sigma
+    lifted = (f - trend)[:k_peak + 1]
     # the last time before loading that the force sat at its resting level
-    quiet = np.flatnonzero(~above)
-    i_c = int(quiet[-1]) if len(quiet) else 0
+    quiet = np.flatnonzero(lifted[:i_load + 1] <= 2.0 * sigma)
+    i_quiet = int(quiet[-1]) if len(quiet) else 0
+    # a slow creep off the baseline (drag, long-range forces) can leave that level long before
+    # the touch: extend the first clear rise (5 % to 15 % of the peak) back to zero force
+    i5 = i_quiet + int(np.argmax(lifted[i_quiet:] > 0.5 * LOAD_FRACTION * rise))
+    i15 = i5 + int(np.argmax(lifted[i5:] > 1.5 * LOAD_FRACTION * rise))
+    i_c = i_quiet
+    if i15 > i5 and pos[i15] > pos[i5]:
+        slope = (lifted[i15] - lifted[i5]) / (pos[i15] - pos[i5])
+        x_touch = pos[i5] - lifted[i5] / slope if slope > 0 else pos[i_quiet]
+        if x_touch > pos[i_quiet]:
+            i_c = i_quiet + int(np.argmax(pos[i_quiet:i5 + 1] >= x_touch))
     f_base = float(np.polyval(f_base_fit, t[i_c] - t[0]))
     x = pos - pos[i_c]
     baseline = f[:i_c] - f_base

@@ -104,14 +104,20 @@ def check_time(t: np.ndarray, column: str, where: str, first_line: int) -> None:
                         f"{t[k]:g} s)", path=where, line=k + first_line + 1)
 
 
-def write_canonical_csv(rec: Record, out: str | Path) -> int:
-    """t_s,position_mm,force_N in the record's own zero and sign (what `rig import` writes)."""
-    with open(out, "w", newline="") as fh:
+def write_trial_csv(trial, out: str | Path) -> int:
+    """t_s,position_mm,force_N of a prepared trial: indentation from contact, loading positive,
+    force above the baseline (what `rig import` writes; read back, it gives the same trial)."""
+    m = trial.motion
+    try:
+        fh = open(out, "w", newline="")  # noqa: SIM115
+    except OSError as exc:
+        raise SpecError(f"cannot write: {exc.strerror or exc}", path=str(out)) from None
+    with fh:
         w = csv.writer(fh)
         w.writerow(CANONICAL)
-        for t, x, f in zip(rec.t_s, rec.position_m * 1000.0, rec.force_N, strict=True):
+        for t, x, f in zip(m.t_s, m.x_m * 1000.0, trial.force_N, strict=True):
             w.writerow([repr(float(t)), repr(float(x)), repr(float(f))])
-    return rec.n
+    return len(m.t_s)
 
 
 def _is_float(text: str) -> bool:

@@ -19,7 +19,8 @@ def looks_like_mach1(head: str) -> bool:
 
 
 def read_mach1(path: Path, block: int | None = None) -> Record:
-    """The first test function's data (or block number `block`, from 1), dividers joined."""
+    """One test function's data, dividers joined: block number `block` (from 1), by default the
+    longest (a file often holds a short find-contact step before the test)."""
     where = str(path)
     try:
         lines = path.read_text(errors="replace").splitlines()
@@ -53,7 +54,9 @@ def read_mach1(path: Path, block: int | None = None) -> Record:
         raise SpecError("a Mach-1 file without a <DATA> ... <END DATA> block", path=where)
     if block is not None and not 1 <= block <= len(blocks):
         raise SpecError(f"the file has {len(blocks)} data block(s), not {block}", path=where)
-    section, header_line, header, rows = blocks[(block or 1) - 1]
+    if block is None:  # the test itself, not a find-contact step before it: the longest block
+        block = 1 + max(range(len(blocks)), key=lambda k: len(blocks[k][3]))
+    section, header_line, header, rows = blocks[block - 1]
     t_i, z_i, f_i = _columns(header, where, header_line)
     out = np.empty((len(rows), 3))
     for k, (no, r) in enumerate(rows):
@@ -68,7 +71,8 @@ def read_mach1(path: Path, block: int | None = None) -> Record:
     from rig.records.csvfile import check_time
 
     check_time(t, header[t_i[0]], where, header_line)
-    notes = [f"Mach-1 {section}" + (f" (block {block or 1} of {len(blocks)})" if len(blocks) > 1 else "")]
+    notes = [f"Mach-1 {section}" + (f" (data block {block} of {len(blocks)}; --block picks another)"
+                                    if len(blocks) > 1 else "")]
     return Record(path.name, "mach1", t, out[:, 1] * z_i[1], out[:, 2] * f_i[1], length_unit="mm",
                   force_unit=split_header(header[f_i[0]])[1] or "N", notes=notes)
 
