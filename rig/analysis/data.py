@@ -104,6 +104,14 @@ def prepare(rec: Record, where: str = "") -> TrialData:
     else:
         x, f, baseline, note = _find_contact(t, pos, f, where)
         notes.append(note)
+        end = _end_of_contact(x, f)
+        if end < len(x):
+            # once the probe is back out, or the force back at the baseline on the way out, the
+            # sensor reads the free probe or the specimen pulling on it (adhesion), not the push
+            # the models describe
+            notes.append(f"analysed up to t = {t[end - 1] - t[0]:.4g} s, where the probe leaves the specimen "
+                         "on the way out")
+            t, x, f = t[:end], x[:end], f[:end]
     v = _velocity(x, dt)
     phase = _phases_from_steps(t, steps) if steps is not None else _phases_from_motion(t, x, v)
     base = np.asarray(baseline, dtype=float)
@@ -201,6 +209,14 @@ def _find_contact(t, pos, f, where):
     note = (f"contact at {_fmt_len(pos[i_c] - pos[0])} of travel, t = {t[i_c] - t[0]:.4g} s; "
             f"baseline force {_fmt_force(f_base)} subtracted")
     return x, f - f_base, baseline, note
+
+
+def _end_of_contact(x: np.ndarray, f: np.ndarray) -> int:
+    """One past the sample where, after the deepest point, the probe is back at the contact
+    point or the force back at its baseline (whichever comes first)."""
+    k_deep = len(x) - 1 - int(np.argmax(x[::-1] >= 0.99 * np.max(x)))  # the last time at depth
+    out = np.flatnonzero((x[k_deep:] <= 0.0) | (f[k_deep:] <= 0.0))
+    return k_deep + int(out[0]) + 1 if len(out) else len(x)
 
 
 def _rest_stretch(pos: np.ndarray, head: int) -> int:
