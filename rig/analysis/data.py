@@ -172,15 +172,20 @@ def _find_contact(t, pos, f, where):
         raise SpecError("no contact: the force never rises from its starting level", path=where)
     loaded = np.flatnonzero(f - f0 > LOAD_FRACTION * rise)
     i_load = int(loaded[0])
-    moved = pos[: i_load + 1] - pos[0]
-    approach = float(moved[-1]) if len(moved) else 0.0
-    if i_load < head or approach < 0.02 * travel:
-        # loaded from the first motion: a preload
-        rest = _rest_stretch(pos, head)
-        f_rest = float(np.median(f[:rest]))
-        x = pos - pos[0]
-        note = f"preload {_fmt_force(f_rest)} at the start: the model describes the force above it"
-        return x, f - f_rest, np.array([]), note
+    i_move = _rest_stretch(pos, head)
+    f_rest = float(np.median(f[:i_move]))
+    rest = f[:i_move] - f_rest
+    sigma_rest = 1.4826 * float(np.median(np.abs(rest))) if i_move >= 10 else 0.0
+    # the last time before loading that the force sat at its resting level
+    level = max(3.0 * sigma_rest, 0.005 * rise)
+    still = np.flatnonzero(f[i_move:i_load + 1] - f_rest <= level)
+    i_leave = i_move + (int(still[-1]) + 1 if len(still) else 0)
+    if pos[i_leave] - pos[i_move] < 0.02 * travel:
+        # the force rises with the first motion: the probe starts in contact
+        x = pos - pos[i_move - 1]  # from where it stood
+        note = (f"starts in contact: the force at rest, {_fmt_force(f_rest)} (a preload, or the sensor's "
+                "zero), is subtracted; the model describes the force above it")
+        return x, f - f_rest, rest if i_move >= MIN_BASELINE else np.array([]), note
     # the resting level (with its slow drift) from the first two thirds of the approach: the
     # last third may already carry the first touch
     i_fit = max(2 * i_load // 3, 1)

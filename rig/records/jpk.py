@@ -37,7 +37,8 @@ def read_jpk_force(path: Path) -> Record:
                        "(pip install 'indentation-rig[afm]')") from None
     try:
         data = afmformats.load_data(path)
-    except Exception as exc:  # noqa: BLE001 - the library raises many kinds; one line for the user
+    # the library raises many kinds, and its own derive from BaseException: one line for the user
+    except (Exception, afmformats.errors.AFMFileFormatError) as exc:  # noqa: BLE001
         raise SpecError(f"not a readable JPK force file ({type(exc).__name__}: {exc})",
                         path=str(path)) from None
     if not data:
