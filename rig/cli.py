@@ -387,7 +387,7 @@ def cmd_import(args: argparse.Namespace) -> int:
           f"{trial.scales.force_N / k:.4g} {u}, travel {trial.scales.length_m / kl:.4g} {ul}")
     for note in trial.notes:
         print(f"  {note}")
-    print(f"wrote {args.csv} (t_s,position_mm,force_N: indentation from contact, force above the baseline)")
+    print(f"wrote {args.csv} (t_s,indentation_mm,force_N: indentation from contact, force above the baseline)")
     return 0
 
 
@@ -542,7 +542,7 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("import", help="read an instrument's file and write the canonical CSV",
                        description="Read a record (JPK .jpk-force or text export, Mach-1 .txt, Instron CSV, "
                                    "CSV with units in the column names, MCAP log), find contact, the direction "
-                                   "of loading and the baseline, and write t_s,position_mm,force_N.")
+                                   "of loading and the baseline, and write t_s,indentation_mm,force_N.")
     r.add_argument("file", help="the instrument's file")
     r.add_argument("--csv", type=Path, required=True, metavar="OUT", help="canonical CSV to write")
     r.add_argument("--block", type=int, metavar="N", help="Mach-1 files: data block N (default: the longest)")

@@ -139,7 +139,8 @@ def write_csv(path, header: str, cols) -> None:
 def test_csv_units_in_the_header(tmp_path, header, kt, kx, kf):
     t, x, f = sls_record(0.01, 20e-6, 1.0, 20.0, 0.02, 3.0, 0.18, seed=3, rest_s=0.5, noise_N=1e-10)
     si = tmp_path / "si.csv"
-    write_csv(si, "t_s,position_m,force_N", (t, x, f))
+    length = "indentation_m" if "ndentation" in header else "position_m"
+    write_csv(si, f"t_s,{length},force_N", (t, x, f))
     other = tmp_path / "other.csv"
     write_csv(other, header, (t * kt, x * kx, f * kf))
     a, b = load_trial(si), load_trial(other)
@@ -220,7 +221,7 @@ def test_import_writes_the_canonical_csv_that_analyses_alike(tmp_path, capsys):
     assert main(["import", str(src), "--csv", str(out)]) == 0
     text = capsys.readouterr().out
     assert "mach1" in text and "starts in contact" in text and f"wrote {out}" in text
-    assert out.read_text().splitlines()[0] == "t_s,position_mm,force_N"
+    assert out.read_text().splitlines()[0] == "t_s,indentation_mm,force_N"
     a = fit(build_model("kelvin"), [load_trial(src)])
     b = fit(build_model("kelvin"), [load_trial(out)])
     for k, v in a.values.items():

@@ -26,6 +26,8 @@ from rig.models.core import Effect, Model
 
 MIN_DROP = 0.05
 SCREEN_SAMPLES = 2000  # per trial
+SCREEN_NFEV = 60  # iterations of a screen (each one a Jacobian)
+REFIT_NFEV = 20  # a leader's refit at full rate, from the screen's answer
 REFIT_LEADERS = 3
 DECISIVE_BIC = -10.0
 ABSORBED_BIC = 3 * DECISIVE_BIC  # very strong support, negligible error change: a look-alike
@@ -92,12 +94,14 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
     # effects live on time scales of many samples), then refit the leaders at full rate.
     stride = max(1, min(t.n for t in trials) // SCREEN_SAMPLES)
     coarse = [decimate(t, stride) for t in trials]
-    base_coarse = fit(base.model, coarse, starts=1, initial=base.values)
+    base_coarse = fit(base.model, coarse, starts=1, initial=base.values, tol=1e-8, max_nfev=SCREEN_NFEV,
+                      polish=False)
     rss0_c = float(np.sum(np.concatenate(base_coarse.residuals) ** 2))
     screened = []
     for e in candidates(base.model, registry):
         # a screen, not the final word: a candidate that has not converged by then is not the answer
-        res = fit(base.model + e, coarse, starts=1, initial=base_coarse.values, tol=1e-6, max_nfev=60)
+        res = fit(base.model + e, coarse, starts=1, initial=base_coarse.values, tol=1e-6, max_nfev=SCREEN_NFEV,
+                  polish=False)
         rss = float(np.sum(np.concatenate(res.residuals) ** 2))
         screened.append((rss / max(rss0_c, 1e-300), e, res))
     screened.sort(key=lambda x: x[0])
@@ -105,7 +109,9 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
     for i, (ratio, e, res_c) in enumerate(screened):
         model = base.model + e
         if i < REFIT_LEADERS:
-            res = fit(model, trials, starts=1, initial=res_c.values, tol=1e-8, max_nfev=60)
+            # from the screen's answer a few steps settle it on every sample
+            res = fit(model, trials, starts=1, initial=res_c.values, tol=1e-8, max_nfev=REFIT_NFEV,
+                      polish=False)
             ratio = float(np.sum(np.concatenate(res.residuals) ** 2)) / max(rss0, 1e-300)
             before = base
         else:
@@ -261,7 +267,8 @@ def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = 5) -> li
                       "indistinguishable": ex.indistinguishable})
         for name in list(added[:-1]):
             slimmer = Model([e for e in current.model.effects if e.name != name], name="")
-            trial_fit = fit(slimmer, current.trials, starts=1, initial=current.values)
+            trial_fit = fit(slimmer, current.trials, starts=1, initial=current.values, tol=1e-8,
+                            max_nfev=REFIT_NFEV, polish=False)
             r_all = np.concatenate(current.residuals)
             n_eff = max(len(r_all) / current.white_L, 10.0)
             rss_now = float(np.sum(r_all ** 2))

@@ -133,8 +133,9 @@ def noise_of(trials: list[TrialData], residuals: list[np.ndarray]) -> Noise:
 
 def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0,
         initial: dict[str, float] | None = None, tol: float = 1e-10, max_nfev: int = 400,
-        scales: Scales | None = None) -> FitResult:
-    """Fit `model` to all `trials` jointly (one parameter set)."""
+        scales: Scales | None = None, polish: bool = True) -> FitResult:
+    """Fit `model` to all `trials` jointly (one parameter set). `polish`: a last pass with
+    central differences (the fit a user reads; a screen can skip it)."""
     t0 = time.perf_counter()
     scales = scales or Scales.joint(trials)
     ps = ParamScaling(model, scales)
@@ -162,7 +163,7 @@ def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0
         nfev += sol.nfev
         if best is None or sol.cost < best.cost:
             best = sol
-    if tol <= 1e-8:
+    if polish and tol <= 1e-8:
         # a last pass with central differences: the forward-difference Jacobian's own error
         # (sqrt of machine precision) would otherwise decide the last digits, and a record in
         # other units (the same problem up to rounding) must land on the same parameters

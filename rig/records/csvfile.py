@@ -65,10 +65,14 @@ def read_csv_record(path: str | Path) -> Record:
         cols = pick_columns(header, where)
         idx = [cols[k][0] for k in ("time", "length", "force")]
         rows: list[list[float]] = []
+        kinds: list[str] = []
+        i_kind = header.index("step_kind") if "step_kind" in header else None
         try:
             for line_no, row in enumerate(reader, start=2):
                 if not row or all(not c.strip() for c in row):
                     continue
+                if i_kind is not None:
+                    kinds.append(row[i_kind].strip() if i_kind < len(row) else "")
                 try:
                     values = [float(row[i]) for i in idx]
                 except IndexError:
@@ -89,10 +93,18 @@ def read_csv_record(path: str | Path) -> Record:
     arr = np.array(rows)
     t = arr[:, 0] * cols["time"][1]
     check_time(t, header[idx[0]], where, first_line=2)
-    canonical = all(c in header for c in CANONICAL) and header[idx[0]] == "t_s"
-    return Record(Path(path).name, "csv", t, arr[:, 1] * cols["length"][1], arr[:, 2] * cols["force"][1],
-                  zero_is_surface=canonical, length_unit=cols["length"][2] or "1",
-                  force_unit=cols["force"][2])
+    x = arr[:, 1] * cols["length"][1]
+    f = arr[:, 2] * cols["force"][1]
+    units = {"length_unit": cols["length"][2] or "1", "force_unit": cols["force"][2]}
+    if i_kind is not None:
+        # the rig's own samples (`rig replay --csv`): its zero is the surface and its steps are the phases
+        k = np.array(kinds)
+        keep = ~np.isin(k, ["tare", "fault", "done"])
+        return Record(Path(path).name, "csv", t[keep], x[keep], f[keep], zero_is_surface=True, steps=k[keep],
+                      baseline_force_N=f[k == "tare"], **units)
+    # an indentation is counted from the surface; a position may start anywhere (contact is found)
+    surface = split_header(header[idx[1]])[0].lower().startswith("indentation")
+    return Record(Path(path).name, "csv", t, x, f, zero_is_surface=surface, **units)
 
 
 def check_time(t: np.ndarray, column: str, where: str, first_line: int) -> None:
@@ -104,9 +116,13 @@ def check_time(t: np.ndarray, column: str, where: str, first_line: int) -> None:
                         f"{t[k]:g} s)", path=where, line=k + first_line + 1)
 
 
+IMPORTED = ("t_s", "indentation_mm", "force_N")
+
+
 def write_trial_csv(trial, out: str | Path) -> int:
-    """t_s,position_mm,force_N of a prepared trial: indentation from contact, loading positive,
-    force above the baseline (what `rig import` writes; read back, it gives the same trial)."""
+    """t_s,indentation_mm,force_N of a prepared trial: indentation from contact, loading
+    positive, force above the baseline (what `rig import` writes; read back, it gives the same
+    trial)."""
     m = trial.motion
     try:
         fh = open(out, "w", newline="")  # noqa: SIM115
@@ -114,7 +130,7 @@ def write_trial_csv(trial, out: str | Path) -> int:
         raise SpecError(f"cannot write: {exc.strerror or exc}", path=str(out)) from None
     with fh:
         w = csv.writer(fh)
-        w.writerow(CANONICAL)
+        w.writerow(IMPORTED)
         for t, x, f in zip(m.t_s, m.x_m * 1000.0, trial.force_N, strict=True):
             w.writerow([repr(float(t)), repr(float(x)), repr(float(f))])
     return len(m.t_s)
