@@ -92,8 +92,8 @@ def test_unit_conversion_is_exact(tmp_path):
     units = (("t_s,position_um,force_nN", 1e6, 1e9), ("t_s,position_mm,force_N", 1e3, 1.0))
     for header, kx, kf in units:
         p = tmp_path / f"{kx}.csv"
-        rows = "\n".join(f"{a!r},{b * kx!r},{c * kf!r}" for a, b, c in zip(rec.t_s.tolist(), rec.position_m.tolist(),
-                                                                           rec.force_N.tolist(), strict=True))
+        cols = zip(rec.t_s.tolist(), rec.position_m.tolist(), rec.force_N.tolist(), strict=True)
+        rows = "\n".join(f"{a!r},{b * kx!r},{c * kf!r}" for a, b, c in cols)
         p.write_text(header + "\n" + rows + "\n")
         trials.append(load_trial(p))
     a, b = (fit(build_model("kelvin"), [tr]) for tr in trials)
