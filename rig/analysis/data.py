@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.ndimage import binary_closing, binary_opening
 from scipy.signal import savgol_filter
 
 from rig.errors import SpecError
@@ -283,6 +282,16 @@ def _velocity(x: np.ndarray, dt: float) -> np.ndarray:
     return savgol_filter(x, w, 2, deriv=1, delta=dt)
 
 
+def _drop_short_runs(mask: np.ndarray, k: int, value: bool) -> np.ndarray:
+    """`mask` with every run of `value` shorter than `k` samples flipped (not at the ends)."""
+    out = mask.copy()
+    edges = np.flatnonzero(np.diff(np.concatenate([[False], mask == value, [False]]).astype(np.int8)))
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
+        if b - a < k and a > 0 and b < len(mask):
+            out[a:b] = not value
+    return out
+
+
 def _split_holds(t: np.ndarray, hold: np.ndarray, phase: np.ndarray) -> None:
     idx = np.flatnonzero(hold)
     if len(idx) == 0:
@@ -309,7 +318,7 @@ def _phases_from_motion(t: np.ndarray, x: np.ndarray, v: np.ndarray) -> np.ndarr
     moving = np.abs(v) > MOVING_FRACTION * vmax
     # a blip shorter than a hundredth of the record is noise, not a step: open, then close
     k = max(3, len(t) // 100)
-    moving = binary_closing(binary_opening(moving, np.ones(k)), np.ones(k))
+    moving = _drop_short_runs(_drop_short_runs(moving, k, True), k, False)
     phase = np.full(len(t), "", dtype=object)
     phase[moving & (v > 0) & contact] = "ramp"
     phase[moving & (v < 0) & contact] = "return"
