@@ -145,7 +145,11 @@ NAMED_MODELS: dict[str, list[str]] = {
 def build_model(name: str, extra: list[str] | None = None,
                 registry: dict[str, Effect] | None = None) -> Model:
     from rig.errors import RigError
-    from rig.yamlspec import did_you_mean
+
+    def did_you_mean(name: str, known) -> str:  # the YAML layer only when there is a mistake to name
+        from rig.yamlspec import did_you_mean as near
+
+        return near(name, known)
 
     reg = registry or CATALOGUE
     if name not in NAMED_MODELS and name not in reg:
