@@ -267,7 +267,8 @@ def cmd_models(args: argparse.Namespace) -> int:
         print(json.dumps({"effects": {n: {"stage": e.stage, "equation": e.equation, "signature": e.signature,
                                           "source": e.source,
                                           "params": [{"name": p.name, "unit": p.unit, "init": p.init,
-                                                      "lo": p.lo, "hi": p.hi} for p in e.params]}
+                                                      "lo": p.lo, "hi": p.hi,
+                                                      "in_record_units": p.relative} for p in e.params]}
                                       for n, e in effects.items()},
                           "models": NAMED_MODELS}, indent=2))
         return 0
@@ -277,6 +278,8 @@ def cmd_models(args: argparse.Namespace) -> int:
         src = "" if e.source == "catalogue" else f"  ({e.source})"
         print(f"  {n:<18} {e.stage:<8} {e.equation}{src}\n  {'':<18} {'':<8} {params}\n"
               f"  {'':<18} {'':<8} missing: {e.signature}")
+    print("\n(catalogue starting values and bounds are in each record's own units: its peak force, its travel "
+          "and its loading time, combined as the parameter's unit says)")
     print("\nnamed models")
     for n, parts in NAMED_MODELS.items():
         print(f"  {n:<14} {' + '.join(parts)}")
