@@ -228,3 +228,26 @@ def test_import_writes_the_canonical_csv_that_analyses_alike(tmp_path, capsys):
         assert abs(b.values[k] / v - 1) < 1e-6, (k, v, b.values[k])
     assert main(["import", str(src), "--csv", str(tmp_path / "nodir" / "x.csv")]) == 2
     assert "cannot write" in capsys.readouterr().err
+
+
+def test_a_staircase_and_a_creeping_hold_are_found_in_the_motion(tmp_path):
+    """Three steps of a staircase give three ramps and three holds; a hold whose position
+    creeps slowly (force control) is still a hold."""
+    dt = 0.01
+    t = np.arange(0.0, 95.0, dt)
+    x = np.zeros_like(t)
+    for start in (2.0, 32.0, 62.0):  # 1 mm steps at 1 mm/s, then holds of 29 s
+        x += np.clip(t - start, 0.0, 1.0) * 1e-3
+    x += np.where(t > 63.0, (t - 63.0) * 2e-6, 0.0)  # the last hold creeps at 0.2 % of the ramp speed
+    f = first_order_lag(80.0 * x + 4000.0 * np.gradient(x, dt), dt, 5.0)
+    p = tmp_path / "stairs.csv"
+    write_csv(p, "t_s,position_mm,force_N", (t, x * 1e3, f))
+    tr = load_trial(p)
+
+    def runs(name: str) -> int:
+        m = (tr.phase == name).astype(int)
+        return int(np.sum(np.diff(np.concatenate([[0], m])) == 1))
+
+    assert runs("ramp") == 3 and runs("hold_early") == 3 and runs("hold_late") == 3
+    last_hold = (tr.motion.t_s > 70.0) & (tr.motion.t_s < 94.0)
+    assert set(tr.phase[last_hold]) == {"hold_late"}
