@@ -284,7 +284,8 @@ def cmd_models(args: argparse.Namespace) -> int:
         print(json.dumps({"effects": {n: {"stage": e.stage, "equation": e.equation, "signature": e.signature,
                                           "source": e.source,
                                           "params": [{"name": p.name, "unit": p.unit, "init": p.init,
-                                                      "lo": p.lo, "hi": p.hi} for p in e.params]}
+                                                      "lo": p.lo, "hi": p.hi,
+                                                      "in_record_units": p.relative} for p in e.params]}
                                       for n, e in effects.items()},
                           "models": NAMED_MODELS}, indent=2))
         return 0
@@ -294,6 +295,8 @@ def cmd_models(args: argparse.Namespace) -> int:
         src = "" if e.source == "catalogue" else f"  ({e.source})"
         print(f"  {n:<18} {e.stage:<8} {e.equation}{src}\n  {'':<18} {'':<8} {params}\n"
               f"  {'':<18} {'':<8} missing: {e.signature}")
+    print("\n(catalogue starting values and bounds are in each record's own units: its peak force, its travel "
+          "and its loading time, combined as the parameter's unit says)")
     print("\nnamed models")
     for n, parts in NAMED_MODELS.items():
         print(f"  {n:<14} {' + '.join(parts)}")
@@ -314,7 +317,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     from rig.analysis.report import write_report
     from rig.models.catalogue import build_model
 
-    inputs = load_inputs(args.inputs, args.holdout or [], args.plugin or [])
+    inputs = load_inputs(args.inputs, args.holdout or [], args.plugin or [], args.block)
     model = build_model(args.model, args.add or [], inputs.registry)
     res = fit(model, inputs.trials)
     out = result_json(res, args.inputs)
@@ -357,7 +360,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     if text:
         print("\n" + text)
     if held:
-        print("\n" + format_holdout(held))
+        print("\n" + format_holdout(held, res.force_unit))
     if ex is not None:
         print("\n" + format_explain(ex))
     if steps is not None:
@@ -371,24 +374,41 @@ def cmd_analyze(args: argparse.Namespace) -> int:
 def format_before_after(before, after) -> str:
     from rig.analysis.data import PHASES
 
+    k, u = after.force_unit
     added = [e for e in after.model.effect_names if e not in before.model.effect_names]
     rows = [("", before.model.name, after.model.name),
-            ("RMSE (N)", f"{before.overall.rmse_N:.4f}", f"{after.overall.rmse_N:.4f}"),
-            ("mean (N)", f"{before.overall.mean_N:+.4f}", f"{after.overall.mean_N:+.4f}"),
-            ("std (N)", f"{before.overall.std_N:.4f}", f"{after.overall.std_N:.4f}")]
+            (f"RMSE ({u})", f"{before.overall.rmse_N / k:.4g}", f"{after.overall.rmse_N / k:.4g}"),
+            (f"mean ({u})", f"{before.overall.mean_N / k:+.4g}", f"{after.overall.mean_N / k:+.4g}"),
+            (f"std ({u})", f"{before.overall.std_N / k:.4g}", f"{after.overall.std_N / k:.4g}")]
     for ph in PHASES:
         a, b = before.phases[ph], after.phases[ph]
-        rows.append((f"{ph} RMSE", f"{a.rmse_N:.4f}" if a else "-", f"{b.rmse_N:.4f}" if b else "-"))
+        rows.append((f"{ph} RMSE", f"{a.rmse_N / k:.4g}" if a else "-", f"{b.rmse_N / k:.4g}" if b else "-"))
     rows.append(("adequate", str(before.adequate).lower(), str(after.adequate).lower()))
     w0 = max(len(r[0]) for r in rows)
     w1 = max(len(r[1]) for r in rows)
-    lines = [f"adding {', '.join(added)}: before and after (noise {after.noise_N:.4f} N)"]
+    lines = [f"adding {', '.join(added)}: before and after (noise {after.f(after.noise_N)})"]
     lines += [f"  {r[0]:<{w0}}  {r[1]:>{w1}}  {r[2]}" for r in rows]
     drop = 1 - after.overall.rmse_N / before.overall.rmse_N
     lines.append(f"  error {'falls' if drop > 0 else 'rises'} by {abs(drop) * 100:.1f} %")
     lines.append("")
     lines.append(after.report())
     return "\n".join(lines)
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    from rig.analysis.data import load_trial
+    from rig.records.csvfile import write_trial_csv
+
+    trial = load_trial(args.file, args.block)
+    n = write_trial_csv(trial, args.csv)
+    k, u = trial.force_unit
+    kl, ul = trial.length_unit
+    print(f"{args.file}: {trial.source}, {n} samples at {1 / trial.motion.dt_s:.4g} Hz, peak force "
+          f"{trial.scales.force_N / k:.4g} {u}, travel {trial.scales.length_m / kl:.4g} {ul}")
+    for note in trial.notes:
+        print(f"  {note}")
+    print(f"wrote {args.csv} (t_s,indentation_mm,force_N: indentation from contact, force above the baseline)")
+    return 0
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -527,10 +547,16 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_models)
 
     r = sub.add_parser("analyze", help="fit force models to trials; compare; report",
-                       description="Fit a force model to one or more trials jointly (MCAP logs or CSV "
-                                   "files with t_s,position_mm,force_N), show the error overall and by "
-                                   "phase, compare all named models, test on held-out trials.")
-    r.add_argument("inputs", nargs="+", help="MCAP logs or CSV files")
+                       description="Fit a force model to one or more records jointly, show the error overall "
+                                   "and by phase, compare all named models, test on held-out records, find "
+                                   "the missing effect. Reads, by content: the rig's MCAP logs; CSV with "
+                                   "t_s,position_mm,force_N or other units in the column names (t_ms, "
+                                   "position_um, indentation_nm, force_nN, load_mN, force_gf, strain); JPK "
+                                   ".jpk-force files and text exports; Mach-1 .txt; Instron Bluehill CSV. "
+                                   "Contact, phases and every scale come from the record itself.")
+    r.add_argument("inputs", nargs="+", help="records: MCAP, CSV, JPK, Mach-1 or Instron files")
+    r.add_argument("--block", type=int, metavar="N",
+                   help="Mach-1 files: analyse data block N (default: the longest)")
     r.add_argument("--model", default="proposed", help="named model or effect (default: proposed)")
     r.add_argument("--add", action="append", metavar="EFFECT", help="add an effect to the model")
     r.add_argument("--plugin", action="append", metavar="FILE", help="load user effects from a Python file")
@@ -544,6 +570,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--report", metavar="DIR", help="write figures and report.md here")
     r.add_argument("--json", action="store_true", help="one JSON object on stdout")
     r.set_defaults(func=cmd_analyze)
+
+    r = sub.add_parser("import", help="read an instrument's file and write the canonical CSV",
+                       description="Read a record (JPK .jpk-force or text export, Mach-1 .txt, Instron CSV, "
+                                   "CSV with units in the column names, MCAP log), find contact, the direction "
+                                   "of loading and the baseline, and write t_s,indentation_mm,force_N.")
+    r.add_argument("file", help="the instrument's file")
+    r.add_argument("--csv", type=Path, required=True, metavar="OUT", help="canonical CSV to write")
+    r.add_argument("--block", type=int, metavar="N", help="Mach-1 files: data block N (default: the longest)")
+    r.set_defaults(func=cmd_import)
 
     r = sub.add_parser("bench", help="measure loop timing, estimator and logging costs",
                        description="Loop period jitter and late ticks at the loop rate on the real "

@@ -39,6 +39,9 @@ class SliderParams:
 class LoadCellParams:
     noise_N: float = field(default=0.08, **_pos(ge=0))
     resolution_N: float = field(default=0.001, **_pos(ge=0))
+    # The indicator's own low-pass filter (first order), applied to the signal and its noise
+    # alike, as a real indicator does; 0 = off.
+    lowpass_Hz: float = field(default=0.0, **_pos(ge=0))
     # On the wire: streamed lines at rate_Hz, or one line per request ("poll").
     mode: str = field(default="stream", metadata={"choices": ["stream", "poll"]})
     rate_Hz: float = field(default=200.0, **_pos(gt=0, le=2000))

@@ -99,6 +99,8 @@ class SimRig:
         self.probe_velocity_mm_s = 0.0
         self.sensor_force_N = 0.0  # what the bridge outputs before noise (delayed if configured)
         self._offset_on = False
+        self._lp_N = 0.0  # the indicator's low-pass filter state, and when it last ran
+        self._lp_t_s: float | None = None
         delay = fx.delay.delay_s if fx.delay else 0.0
         n_delay = round(delay / self.dt)
         self._delay_line: deque[float] | None = deque([0.0] * (n_delay + 1), maxlen=n_delay + 1) \
@@ -169,9 +171,22 @@ class SimRig:
         lc = self.params.loadcell
         with self.lock:
             value = self.sensor_force_N + (self.rng.normal(0.0, lc.noise_N) if lc.noise_N else 0.0)
+            if lc.lowpass_Hz > 0:
+                value = self._lowpass(value, lc.lowpass_Hz)
         if lc.resolution_N:
             value = round(value / lc.resolution_N) * lc.resolution_N
         return value
+
+    def _lowpass(self, value: float, cutoff_Hz: float) -> float:
+        """First-order low-pass over the time since the last conversion (y + tau dy/dt = u)."""
+        t = self.t_s
+        if self._lp_t_s is None:
+            self._lp_N = value
+        else:
+            a = math.exp(-2.0 * math.pi * cutoff_Hz * max(t - self._lp_t_s, 0.0))
+            self._lp_N = a * self._lp_N + (1.0 - a) * value
+        self._lp_t_s = t
+        return self._lp_N
 
     def feedback_position_mm(self) -> float:
         """The encoder's view of the slider: whole steps only."""

@@ -226,7 +226,12 @@ def test_csv_input_and_bad_csv(paper_logs, tmp_path):
     bad.write_text("time,pos,force\n0,0,0\n")
     proc = subprocess.run([sys.executable, "-m", "rig", "analyze", str(bad)], capture_output=True, text=True,
                           cwd=ROOT, timeout=60)
-    assert proc.returncode == 2 and "missing column(s) t_s, position_mm, force_N" in proc.stderr
+    assert proc.returncode == 2 and "column 'time' does not say its unit" in proc.stderr
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+    bad.write_text("t_s,pos_mm,weight\n0,0,0\n")
+    proc = subprocess.run([sys.executable, "-m", "rig", "analyze", str(bad)], capture_output=True, text=True,
+                          cwd=ROOT, timeout=60)
+    assert proc.returncode == 2 and "missing column(s) force_N" in proc.stderr
 
 
 def test_models_listing(capsys):

@@ -21,15 +21,15 @@ class Inputs:
     registry: dict[str, Effect]
 
 
-def load_inputs(paths: list[str], holdout: list[str], plugins: list[str]) -> Inputs:
+def load_inputs(paths: list[str], holdout: list[str], plugins: list[str], block: int | None = None) -> Inputs:
     registry = dict(CATALOGUE)
     for p in plugins:
         for e in load_plugin(p):
             if e.name in CATALOGUE:
                 raise RigError(f"{p}: effect '{e.name}' would replace the catalogue's; rename it")
             registry[e.name] = e
-    trials = [load_trial(p) for p in paths]
-    held = [load_trial(p) for p in holdout]
+    trials = [load_trial(p, block) for p in paths]
+    held = [load_trial(p, block) for p in holdout]
     for e in registry.values():
         if e.source == "plugin":
             m = build_model("linear_elastic", [e.name], registry)
@@ -47,7 +47,14 @@ def result_json(res: FitResult, paths: list[str]) -> dict:
                        for k, v in res.values.items()},
         "fit": {"rmse_N": res.overall.rmse_N, "mean_N": res.overall.mean_N, "std_N": res.overall.std_N,
                 "noise_N": res.noise_N, "noise_source": res.noise_source, "bic": res.bic,
+                "rmse_over_noise": res.overall.rmse_N / res.noise_N if res.noise_N > 0 else None,
+                "residual_correlation_samples": res.white_L, "noise_correlation_samples": res.noise_L,
                 "seconds": res.seconds},
+        "scales": {"length_m": res.scales.length_m, "force_N": res.scales.force_N, "time_s": res.scales.time_s},
+        "fit_variables": res.z,
+        "records": [{"trial": t.name, "source": t.source, "samples": t.n, "dt_s": t.motion.dt_s,
+                     "force_unit": t.force_unit[1], "length_unit": t.length_unit[1], "notes": t.notes}
+                    for t in res.trials],
         "phases": {ph: (s.as_dict() if s else None) for ph, s in res.phases.items()},
         "per_trial": res.per_trial,
         "adequate": res.adequate,
@@ -71,13 +78,16 @@ def compare(trials: list[TrialData], registry: dict[str, Effect]) -> list[FitRes
 
 
 def format_compare(results: list[FitResult], noise_N: float) -> str:
-    head = f"{'model':<14}{'RMSE N':>8}{'mean N':>9}{'std N':>8}" + "".join(f"{p:>12}" for p in PHASES)
+    k, u = results[0].force_unit
+    head = (f"{'model':<14}{'RMSE ' + u:>9}{'mean ' + u:>10}{'std ' + u:>9}{'/noise':>8}"
+            + "".join(f"{p:>12}" for p in PHASES))
     lines = [head, "-" * len(head)]
     for r in results:
-        ph = "".join(f"{(r.phases[p].rmse_N if r.phases[p] else float('nan')):>12.4f}" for p in PHASES)
-        lines.append(f"{r.model.name:<14}{r.overall.rmse_N:>8.4f}{r.overall.mean_N:>+9.4f}"
-                     f"{r.overall.std_N:>8.4f}{ph}" + ("   adequate" if r.adequate else ""))
-    lines.append(f"(sensor noise {noise_N:.4f} N)")
+        ph = "".join(f"{(r.phases[p].rmse_N / k if r.phases[p] else float('nan')):>12.4g}" for p in PHASES)
+        ratio = r.overall.rmse_N / noise_N if noise_N > 0 else float("inf")
+        lines.append(f"{r.model.name:<14}{r.overall.rmse_N / k:>9.4g}{r.overall.mean_N / k:>+10.3g}"
+                     f"{r.overall.std_N / k:>9.4g}{ratio:>8.1f}{ph}" + ("   adequate" if r.adequate else ""))
+    lines.append(f"(sensor noise {noise_N / k:.4g} {u}, {results[0].noise_source})")
     lines.append("")
     for r in results:
         params = ", ".join(f"{k} = {v:.4g}" for k, v in r.values.items())
@@ -87,31 +97,41 @@ def format_compare(results: list[FitResult], noise_N: float) -> str:
     return "\n".join(lines)
 
 
-def format_holdout(rows: list[dict]) -> str:
+def format_holdout(rows: list[dict], unit: tuple[float, str] = (1.0, "N")) -> str:
+    k, u = unit
     lines = ["held-out trials (parameters from the fit above)",
-             f"  {'trial':<48}{'RMSE N':>8}{'mean N':>9}" + "".join(f"{p:>12}" for p in PHASES)]
+             f"  {'trial':<48}{'RMSE ' + u:>9}{'mean ' + u:>10}" + "".join(f"{p:>12}" for p in PHASES)]
     for r in rows:
-        ph = "".join(f"{(r['phases'][p]['rmse_N'] if r['phases'][p] else float('nan')):>12.4f}" for p in PHASES)
-        lines.append(f"  {r['trial'][:47]:<48}{r['rmse_N']:>8.4f}{r['mean_N']:>+9.4f}{ph}")
+        ph = "".join(f"{(r['phases'][p]['rmse_N'] / k if r['phases'][p] else float('nan')):>12.4g}"
+                     for p in PHASES)
+        lines.append(f"  {r['trial'][:47]:<48}{r['rmse_N'] / k:>9.4g}{r['mean_N'] / k:>+10.3g}{ph}")
     return "\n".join(lines)
 
 
 def fe_points(trials: list[TrialData], residuals: list[np.ndarray]) -> list[dict]:
     """The paper's f-e plot, one ellipse per trial: centre (force after 30 s of relaxation,
-    mean error), radii (relaxation in the first 10 s, error std)."""
+    mean error), radii (relaxation in the first 10 s, error std).
+
+    The paper's holds last 60 s; for other holds the same fractions are used: the early
+    phase (a sixth of the hold) for "10 s" and half the hold for "30 s"."""
     out = []
     for t, r in zip(trials, residuals, strict=True):
+        early = np.flatnonzero(t.phase == "hold_early")
         hold = np.flatnonzero(np.isin(t.phase, ["hold_early", "hold_late"]))
-        if len(hold) == 0:
+        if len(early) < 2 or len(hold) < 4:
             continue
-        t0 = t.motion.t_s[hold[0]]
-        f_at = lambda dt, t=t, t0=t0: float(np.interp(t0 + dt, t.motion.t_s, t.force_N))  # noqa: E731
-        window = 0.25
-        f0 = float(np.mean(t.force_N[(t.motion.t_s >= t0) & (t.motion.t_s < t0 + window)]))
-        f10 = float(np.mean(t.force_N[(t.motion.t_s >= t0 + 10 - window) & (t.motion.t_s < t0 + 10 + window)]))
-        f30 = f_at(30.0)
+        ts = t.motion.t_s
+        run = hold[: int(np.argmax(np.diff(hold) > 1)) + 1] if np.any(np.diff(hold) > 1) else hold
+        t0, t_early, t_half = ts[run[0]], ts[early[0]] + (ts[early[-1]] - ts[early[0]]), \
+            ts[run[0]] + 0.5 * (ts[run[-1]] - ts[run[0]])
+        window = max(3, len(early) // 40)
+        f0 = float(np.mean(t.force_N[run[0]:run[0] + window]))
+        k_early = int(np.searchsorted(ts, t_early))
+        f_early = float(np.mean(t.force_N[max(k_early - window, 0):k_early + window]))
+        f_half = float(np.interp(t_half, ts, t.force_N))
         # the model error is measured - model; the paper plots the estimation error model - measured
         err = -r
-        out.append({"trial": t.name, "force_30s_N": f30, "mean_error_N": float(np.mean(err)),
-                    "relax_10s_N": f0 - f10, "std_error_N": float(np.std(err))})
+        out.append({"trial": t.name, "force_30s_N": f_half, "mean_error_N": float(np.mean(err)),
+                    "relax_10s_N": f0 - f_early, "std_error_N": float(np.std(err)),
+                    "hold_s": float(ts[run[-1]] - t0)})
     return out

@@ -1,23 +1,48 @@
-"""Trials for analysis: from MCAP logs or CSV files, on a uniform time grid, with phases.
+"""Trials for analysis: any record (the rig's logs, CSV, instrument files) on a uniform time
+grid, with contact, direction of loading, baseline, phases and the record's own scales.
 
-Phases: `ramp`, `hold_early` (first 10 s of a hold), `hold_late`, `return`, and
-`baseline` (before contact). From a log they come from the protocol steps; from a CSV
-they are found in the motion itself.
+Nothing here has a scale of its own: thresholds are fractions of the record's force and
+travel, windows are counted in samples from the record's own noise and speed, and the
+length, force and time scales every fit is expressed in come from the record.
+
+Phases: `ramp` (moving in), `hold_early` (the first sixth of a hold), `hold_late`,
+`return` (moving out); several steps of a staircase are several ramps and holds; a hold
+under force control, where the position creeps, is still a hold. From a rig log they come
+from the protocol steps; otherwise from the motion itself.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from scipy.signal import savgol_filter
 
-from rig.errors import RigError, SpecError
+from rig.errors import SpecError
 from rig.models.core import Motion
+from rig.records import Record, read_record
+from rig.records.units import FORCE_DISPLAY, LENGTH_DISPLAY, display_unit
 
 PHASES = ("ramp", "hold_early", "hold_late", "return")
-HOLD_EARLY_S = 10.0
+HOLD_EARLY_FRACTION = 1.0 / 6.0  # the paper's 10 s of a 60 s hold
+LOAD_FRACTION = 0.1  # the force has clearly risen at a tenth of its peak
+MOVING_FRACTION = 0.1  # moving: faster than a tenth of the record's ramp speed
+MIN_BASELINE = 200  # samples of force at rest that make a noise spectrum
+
+
+@dataclass(frozen=True)
+class Scales:
+    """The record's own length, force and time scales (SI): every fit is expressed in them."""
+
+    length_m: float
+    force_N: float
+    time_s: float
+
+    @classmethod
+    def joint(cls, trials: list[TrialData]) -> Scales:
+        return cls(max(t.scales.length_m for t in trials), max(t.scales.force_N for t in trials),
+                   float(np.median([t.scales.time_s for t in trials])))
 
 
 @dataclass
@@ -26,9 +51,18 @@ class TrialData:
     motion: Motion
     force_N: np.ndarray
     phase: np.ndarray  # phase name per sample ("" = outside every phase)
-    baseline_noise_N: float | None  # std of the force before contact, if there is enough of it
-    source: str  # "mcap" or "csv"
+    baseline_noise_N: float | None  # std of the force at rest before contact, if there is enough of it
+    source: str
     baseline_n: int = 0
+    scales: Scales | None = None
+    baseline_N: np.ndarray | None = None  # the force at rest before contact, detrended
+    force_unit: tuple[float, str] = (1.0, "N")  # how to show forces of this record
+    length_unit: tuple[float, str] = (1e-3, "mm")
+    notes: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.scales is None:
+            self.scales = record_scales(self.motion, self.force_N, self.phase)
 
     @property
     def n(self) -> int:
@@ -38,76 +72,236 @@ class TrialData:
         return self.phase == phase
 
 
-def load_trial(path: str | Path) -> TrialData:
-    path = Path(path)
-    if path.suffix.lower() == ".csv":
-        from rig.logs import read_csv_trial
+def decimate(t: TrialData, stride: int) -> TrialData:
+    """Every `stride`-th sample (the velocity is already smoothed), same scales and units."""
+    m = t.motion
+    sl = slice(None, None, stride)
+    return TrialData(t.name, Motion(m.t_s[sl], m.x_m[sl], m.v_m_s[sl], m.dt_s * stride), t.force_N[sl],
+                     t.phase[sl], t.baseline_noise_N, t.source, t.baseline_n, t.scales, t.baseline_N,
+                     t.force_unit, t.length_unit, t.notes)
 
-        d = read_csv_trial(path)
-        t, x_mm, f = d["t_s"], d["position_mm"], d["force_N"]
-        kinds = None
-    else:
-        from rig.logs import read_log
 
-        log = read_log(path)
-        if log.n < 10:
-            raise RigError(f"{path}: the log holds {log.n} samples: too few to analyse")
-        s = log.samples
-        keep = np.array([k not in ("tare", "fault", "done") for k in log.step_kind])
-        pre = ~keep & (np.array(log.step_kind) == "tare")
-        t, x_mm, f = s["t_s"], s["position_mm"], s["force_N"]
-        kinds = np.array(log.step_kind)
-        baseline = f[pre]
-        t, x_mm, f, kinds = t[keep], x_mm[keep], f[keep], kinds[keep]
-    t, x_mm, f, kinds = _uniform(t, x_mm, f, kinds)
+def load_trial(path: str | Path, block: int | None = None) -> TrialData:
+    return prepare(read_record(path, block), str(path))
+
+
+def prepare(rec: Record, where: str = "") -> TrialData:
+    """Contact, sign, baseline, uniform grid, velocity and phases of one record."""
+    where = where or rec.name
+    if rec.n < 10:
+        raise SpecError(f"{rec.n} samples: too few to analyse", path=where)
+    t, pos, f, steps = _uniform(rec.t_s, rec.position_m, rec.force_N, rec.steps)
     dt = float(np.median(np.diff(t)))
-    x = x_mm / 1000.0
-    if np.max(x) <= 0.0005:
-        raise SpecError("no contact: the position never goes past 0.5 mm", path=str(path))
-    v = _velocity(x, dt)
-    if kinds is not None:
-        phase = _phases_from_steps(t, kinds)
+    notes = list(rec.notes)
+    if rec.zero_is_surface:
+        x = pos
+        if np.max(x) <= 0.0:
+            raise SpecError("no contact: the position never goes past its zero (the surface)", path=where)
+        pre = np.arange(len(x)) < np.argmax(x > 0)
+        tare = rec.baseline_force_N
+        baseline = tare if tare is not None and len(tare) else f[pre]
     else:
-        phase = _phases_from_motion(t, x, v)
-        baseline = f[(x <= 0) & (np.arange(len(x)) < np.argmax(x > 0))]
-    noise = float(np.std(baseline)) if len(baseline) >= 20 else None
-    return TrialData(path.name, Motion(t, x, v, dt), f, phase, noise,
-                     "csv" if kinds is None else "mcap", len(baseline))
+        x, f, baseline, note = _find_contact(t, pos, f, where)
+        notes.append(note)
+        end = _end_of_contact(x, f)
+        if end < len(x):
+            # once the probe is back out, or the force back at the baseline on the way out, the
+            # sensor reads the free probe or the specimen pulling on it (adhesion), not the push
+            # the models describe
+            notes.append(f"analysed up to t = {t[end - 1] - t[0]:.4g} s, where the probe leaves the specimen "
+                         "on the way out")
+            t, x, f = t[:end], x[:end], f[:end]
+    v = _velocity(x, dt)
+    phase = _phases_from_steps(t, steps) if steps is not None else _phases_from_motion(t, x, v)
+    base = np.asarray(baseline, dtype=float)
+    base_detr = _detrend(base) if len(base) >= 3 else base
+    noise = float(np.std(base_detr)) if len(base) >= 20 else None
+    m = Motion(t, x, v, dt)
+    scales = record_scales(m, f, phase)
+    fu = display_unit(scales.force_N, FORCE_DISPLAY)
+    lu = display_unit(scales.length_m, LENGTH_DISPLAY)
+    return TrialData(Path(rec.name).name, m, f, phase, noise, rec.source, len(base), scales,
+                     base_detr if len(base) >= MIN_BASELINE else None, fu, lu, notes)
+
+
+def record_scales(m: Motion, f: np.ndarray, phase: np.ndarray) -> Scales:
+    """Travel into the specimen, peak force, and the loading time (the first ramp's length)."""
+    L = float(np.max(m.x_m)) if np.max(m.x_m) > 0 else float(np.ptp(m.x_m)) or 1.0
+    F = float(np.max(np.abs(f))) or 1.0
+    ramp = np.flatnonzero(phase == "ramp")
+    if len(ramp) >= 2:
+        ends = np.flatnonzero(np.diff(ramp) > 1)
+        last = ramp[ends[0]] if len(ends) else ramp[-1]
+        T = float(m.t_s[last] - m.t_s[ramp[0]])
+    else:
+        T = 0.0
+    if T <= 0:
+        T = float(m.t_s[-1] - m.t_s[0]) / 10.0
+    return Scales(L, F, max(T, 2 * m.dt_s))
+
+
+def _find_contact(t, pos, f, where):
+    """Loading direction, the force at rest, and the contact point (or a preload).
+
+    Force and position are turned so that loading is positive (compression read as
+    negative force, tension, heights that fall as the tip goes in). The force at rest is the
+    level before it rises; contact is where it last left that level before rising to a tenth
+    of its peak. When the force rises with the first motion the specimen was preloaded: the
+    position's zero is the start and the model describes the force above the preload.
+    """
+    n = len(f)
+    head = max(5, n // 100)
+    f0 = float(np.median(f[:head]))
+    # the deepest point of the travel decides the directions (adhesion on the way out can pull
+    # harder than the specimen pushed, so the force's own extreme does not)
+    excursion = np.abs(pos - pos[0])
+    if float(np.max(excursion)) <= 0:
+        raise SpecError("no contact: the position never moves", path=where)
+    k_deep = int(np.argmax(excursion >= 0.99 * np.max(excursion)))
+    near = slice(max(k_deep - head, 0), k_deep + head + 1)
+    if float(np.median(f[near])) < f0:
+        f = -f
+        f0 = -f0
+    if pos[k_deep] < pos[0]:
+        pos = -pos
+    travel = float(np.max(pos) - pos[0])
+    k_peak = int(np.argmax(f[: k_deep + head + 1]))
+    rise = float(f[k_peak] - f0)
+    if rise <= 0:
+        raise SpecError("no contact: the force never rises from its starting level", path=where)
+    loaded = np.flatnonzero(f - f0 > LOAD_FRACTION * rise)
+    i_load = int(loaded[0])
+    i_move = _rest_stretch(pos, head)
+    f_rest = float(np.median(f[:i_move]))
+    rest = f[:i_move] - f_rest
+    sigma_rest = 1.4826 * float(np.median(np.abs(rest))) if i_move >= 10 else 0.0
+    # the last time before loading that the force sat at its resting level
+    level = max(3.0 * sigma_rest, 0.005 * rise)
+    still = np.flatnonzero(f[i_move:i_load + 1] - f_rest <= level)
+    i_leave = i_move + (int(still[-1]) + 1 if len(still) else 0)
+    if pos[i_leave] - pos[i_move] < 0.02 * travel:
+        # the force rises with the first motion: the probe starts in contact
+        x = pos - pos[i_move - 1]  # from where it stood
+        note = (f"starts in contact: the force at rest, {_fmt_force(f_rest)} (a preload, or the sensor's "
+                "zero), is subtracted; the model describes the force above it")
+        return x, f - f_rest, rest if i_move >= MIN_BASELINE else np.array([]), note
+    # the resting level (with its slow drift) from the first two thirds of the approach: the
+    # last third may already carry the first touch
+    i_fit = max(2 * i_load // 3, 1)
+    pre = f[:i_fit]
+    f_base_fit = np.polyfit(t[:i_fit] - t[0], pre, 1) if i_fit >= 20 else (0.0, float(np.median(pre)))
+    trend = np.polyval(f_base_fit, t - t[0])
+    resid = pre - trend[:i_fit]
+    sigma = 1.4826 * float(np.median(np.abs(resid - np.median(resid)))) if i_fit >= 10 else 0.0
+    lifted = (f - trend)[:k_peak + 1]
+    # the last time before loading that the force sat at its resting level
+    quiet = np.flatnonzero(lifted[:i_load + 1] <= 2.0 * sigma)
+    i_quiet = int(quiet[-1]) if len(quiet) else 0
+    # a slow creep off the baseline (drag, long-range forces) can leave that level long before
+    # the touch: extend the first clear rise (5 % to 15 % of the peak) back to zero force
+    i5 = i_quiet + int(np.argmax(lifted[i_quiet:] > 0.5 * LOAD_FRACTION * rise))
+    i15 = i5 + int(np.argmax(lifted[i5:] > 1.5 * LOAD_FRACTION * rise))
+    i_c = i_quiet
+    if i15 > i5 and pos[i15] > pos[i5]:
+        slope = (lifted[i15] - lifted[i5]) / (pos[i15] - pos[i5])
+        x_touch = pos[i5] - lifted[i5] / slope if slope > 0 else pos[i_quiet]
+        if x_touch > pos[i_quiet]:
+            i_c = i_quiet + int(np.argmax(pos[i_quiet:i5 + 1] >= x_touch))
+    f_base = float(np.polyval(f_base_fit, t[i_c] - t[0]))
+    x = pos - pos[i_c]
+    baseline = f[:i_c] - f_base
+    note = (f"contact at {_fmt_len(pos[i_c] - pos[0])} of travel, t = {t[i_c] - t[0]:.4g} s; "
+            f"baseline force {_fmt_force(f_base)} subtracted")
+    return x, f - f_base, baseline, note
+
+
+def _end_of_contact(x: np.ndarray, f: np.ndarray) -> int:
+    """One past the sample where, after the deepest point, the probe is back at the contact
+    point or the force back at its baseline (whichever comes first)."""
+    k_deep = len(x) - 1 - int(np.argmax(x[::-1] >= 0.99 * np.max(x)))  # the last time at depth
+    out = np.flatnonzero((x[k_deep:] <= 0.0) | (f[k_deep:] <= 0.0))
+    return k_deep + int(out[0]) + 1 if len(out) else len(x)
+
+
+def _rest_stretch(pos: np.ndarray, head: int) -> int:
+    span = float(np.ptp(pos)) or 1.0
+    moving = np.flatnonzero(np.abs(pos - pos[0]) > 1e-3 * span)
+    return max(int(moving[0]) if len(moving) else head, 1)
+
+
+def _fmt_force(v: float) -> str:
+    k, u = display_unit(abs(v), FORCE_DISPLAY)
+    return f"{v / k:.4g} {u}"
+
+
+def _fmt_len(v: float) -> str:
+    k, u = display_unit(abs(v), LENGTH_DISPLAY)
+    return f"{v / k:.4g} {u}"
+
+
+def _detrend(y: np.ndarray) -> np.ndarray:
+    i = np.arange(len(y))
+    return y - np.polyval(np.polyfit(i, y, 1), i)
 
 
 def _uniform(t, x, f, kinds):
-    """Resample to a uniform grid when the sampling jitters by more than 1 % of a period."""
+    """Resample to a uniform grid (the median interval) when the sampling is not uniform to 1 %
+    (instruments change rate between segments)."""
     d = np.diff(t)
     dt = float(np.median(d))
     if dt <= 0:
-        raise RigError("time does not advance")
+        raise SpecError("time does not advance")
     if np.max(np.abs(d - dt)) <= 0.01 * dt:
         return t, x, f, kinds
-    tu = np.arange(t[0], t[-1] + 0.5 * dt, dt)
+    tu = t[0] + dt * np.arange(int(np.floor((t[-1] - t[0]) / dt + 1e-9)) + 1)
     idx = np.clip(np.searchsorted(t, tu), 0, len(t) - 1)
     return tu, np.interp(tu, t, x), np.interp(tu, t, f), (kinds[idx] if kinds is not None else None)
 
 
 def _velocity(x: np.ndarray, dt: float) -> np.ndarray:
-    """dx/dt over about 0.15 s (the encoder's steps make a raw difference noisy)."""
-    win = max(5, round(0.15 / dt) | 1)
-    if len(x) <= win:
+    """dx/dt, smoothed over as few samples as the position's own noise allows.
+
+    The window w is the shortest that keeps the derivative's noise (sigma_x * sqrt(12) /
+    (dt w^1.5) for a quadratic Savitzky-Golay fit) below 2 % of the record's ramp speed;
+    sigma_x comes from the position's second differences, so encoder steps and sensor
+    noise set it, not a number of seconds.
+    """
+    n = len(x)
+    if n < 7:
         return np.gradient(x, dt)
-    return savgol_filter(x, win, 2, deriv=1, delta=dt)
+    d2 = np.diff(x, 2)
+    sigma_x = 1.4826 * float(np.median(np.abs(d2 - np.median(d2)))) / np.sqrt(6.0)
+    if sigma_x == 0.0:  # quantised steps: most second differences are zero; use their spread
+        sigma_x = float(np.std(d2)) / np.sqrt(6.0)
+    coarse = np.gradient(savgol_filter(x, min(n - (1 - n % 2), 51), 2), dt) if n > 51 else np.gradient(x, dt)
+    speed = float(np.percentile(np.abs(coarse), 95)) or float(np.max(np.abs(coarse))) or 1.0
+    w = (sigma_x * np.sqrt(12.0) / (0.02 * speed * dt)) ** (2.0 / 3.0) if sigma_x > 0 else 5.0
+    w = int(np.clip(np.ceil(w), 5, max(5, n // 20))) | 1
+    if n <= w:
+        return np.gradient(x, dt)
+    return savgol_filter(x, w, 2, deriv=1, delta=dt)
+
+
+def _drop_short_runs(mask: np.ndarray, k: int, value: bool) -> np.ndarray:
+    """`mask` with every run of `value` shorter than `k` samples flipped (not at the ends)."""
+    out = mask.copy()
+    edges = np.flatnonzero(np.diff(np.concatenate([[False], mask == value, [False]]).astype(np.int8)))
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
+        if b - a < k and a > 0 and b < len(mask):
+            out[a:b] = not value
+    return out
 
 
 def _split_holds(t: np.ndarray, hold: np.ndarray, phase: np.ndarray) -> None:
-    start = None
-    for i in range(len(t) + 1):
-        inside = i < len(t) and hold[i]
-        if inside and start is None:
-            start = i
-        elif not inside and start is not None:
-            seg = np.arange(start, i)
-            early = t[seg] - t[start] < HOLD_EARLY_S
-            phase[seg[early]] = "hold_early"
-            phase[seg[~early]] = "hold_late"
-            start = None
+    idx = np.flatnonzero(hold)
+    if len(idx) == 0:
+        return
+    breaks = np.flatnonzero(np.diff(idx) > 1)
+    for seg in np.split(idx, breaks + 1):
+        span = t[seg[-1]] - t[seg[0]]
+        early = t[seg] - t[seg[0]] < HOLD_EARLY_FRACTION * span
+        phase[seg[early]] = "hold_early"
+        phase[seg[~early]] = "hold_late"
 
 
 def _phases_from_steps(t: np.ndarray, kinds: np.ndarray) -> np.ndarray:
@@ -119,10 +313,14 @@ def _phases_from_steps(t: np.ndarray, kinds: np.ndarray) -> np.ndarray:
 
 
 def _phases_from_motion(t: np.ndarray, x: np.ndarray, v: np.ndarray) -> np.ndarray:
-    vmax = np.max(np.abs(v))
-    moving = np.abs(v) > 0.1 * vmax
+    contact = x > 0
+    vmax = float(np.percentile(np.abs(v[contact]), 99)) if np.any(contact) else float(np.max(np.abs(v)))
+    moving = np.abs(v) > MOVING_FRACTION * vmax
+    # a blip shorter than a hundredth of the record is noise, not a step: open, then close
+    k = max(3, len(t) // 100)
+    moving = _drop_short_runs(_drop_short_runs(moving, k, True), k, False)
     phase = np.full(len(t), "", dtype=object)
-    phase[moving & (v > 0) & (x > 0)] = "ramp"
-    phase[moving & (v < 0) & (x > 0)] = "return"
-    _split_holds(t, ~moving & (x > 0.5 * np.max(x)), phase)
+    phase[moving & (v > 0) & contact] = "ramp"
+    phase[moving & (v < 0) & contact] = "return"
+    _split_holds(t, ~moving & (x > 0.02 * np.max(x)), phase)
     return phase

@@ -1,10 +1,16 @@
-"""Fitting force models to trials: bounded least squares on scaled parameters, several
-starts, one trial or several jointly (shared parameters), with a readable result.
+"""Fitting force models to trials: bounded least squares on parameters expressed in the
+record's own scales (each of order one), several starts, one trial or several jointly
+(shared parameters), with a readable result.
 
-Noise: the standard deviation of the force before contact when the log has a baseline,
-else from residual differences (std(diff(r)) / sqrt 2, which a smooth misfit barely
-touches). `adequate` means the residual is consistent with that noise: overall RMSE
-within 1.2x and no phase above 1.5x.
+Long records are fitted in two passes: the starts run on a decimated copy (a few thousand
+samples per trial: the effects live on time scales of many samples), and only the best
+is polished on every sample.
+
+Noise: the force at rest before contact when the record has enough of it, else the
+residual's short-lag differences (`rig.analysis.noise`), as a level and a correlation
+time. `adequate` means the residual is consistent with that noise: overall RMSE within
+1.2x, no phase above 1.5x, and no more correlated than the noise itself (1.5x its
+integral time scale).
 """
 
 from __future__ import annotations
@@ -15,12 +21,18 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from rig.analysis.data import PHASES, TrialData
+from rig.analysis.data import PHASES, Scales, TrialData, decimate
+from rig.analysis.noise import Noise, from_baseline, from_residual, integral_scale
+from rig.analysis.scaling import ParamScaling
 from rig.models.core import Model
 
 ADEQUATE_RMSE = 1.2
 ADEQUATE_PHASE = 1.5
-ADEQUATE_WHITE = 1.5  # the residual's integral time scale, samples: white noise gives about 1
+ADEQUATE_WHITE = 1.5  # residual correlation time over the noise's own
+SCREEN_SAMPLES = 4000  # per trial, for the starts of a long record
+AT_BOUND = 1e-4  # fit units (order one): closer than this to a bound is "at" it
+
+__all__ = ["ErrorStats", "FitResult", "error_table", "evaluate", "fit", "integral_scale", "noise_of"]
 
 
 @dataclass
@@ -58,47 +70,50 @@ class FitResult:
     nfev: int
     per_trial: list[dict] = field(default_factory=list)
     white_L: float = 1.0  # integral time scale of the residual, samples
+    noise_L: float = 1.0  # integral time scale of the noise, samples
+    scales: Scales | None = None
+    z: dict[str, float] = field(default_factory=dict)  # the fit variables (order one)
 
     @property
     def adequate(self) -> bool:
         worst = max((s.rmse_N for s in self.phases.values() if s is not None), default=0.0)
         return (self.overall.rmse_N <= ADEQUATE_RMSE * self.noise_N
-                and worst <= ADEQUATE_PHASE * self.noise_N and self.white_L <= ADEQUATE_WHITE)
+                and worst <= ADEQUATE_PHASE * self.noise_N
+                and self.white_L <= ADEQUATE_WHITE * max(self.noise_L, 1.0))
+
+    @property
+    def force_unit(self) -> tuple[float, str]:
+        return self.trials[0].force_unit
+
+    def f(self, value_N: float, signed: bool = False) -> str:
+        """A force in the record's own unit (nN for a cell, N for a stomach)."""
+        k, u = self.force_unit
+        return f"{value_N / k:{'+' if signed else ''}.4g} {u}"
+
+    def verdict(self) -> str:
+        if self.adequate:
+            return "adequate"
+        return f"NOT adequate (RMSE {self.overall.rmse_N / max(self.noise_N, 1e-300):.1f}x the noise)"
 
     def report(self) -> str:
-        """lmfit-style text report."""
+        """lmfit-style text report, forces in the record's own unit."""
         lines = [f"model      {self.model.name}  ({', '.join(self.model.effect_names)})",
                  f"trials     {', '.join(t.name for t in self.trials)}",
-                 f"fit        RMSE {self.overall.rmse_N:.4f} N, mean {self.overall.mean_N:+.4f} N, "
-                 f"std {self.overall.std_N:.4f} N; noise {self.noise_N:.4f} N ({self.noise_source}); "
-                 f"residual correlation {self.white_L:.1f} samples; "
-                 f"{'adequate' if self.adequate else 'NOT adequate'}",
-                 "parameters"]
+                 f"fit        RMSE {self.f(self.overall.rmse_N)}, mean {self.f(self.overall.mean_N, True)}, "
+                 f"std {self.f(self.overall.std_N)}; noise {self.f(self.noise_N)} ({self.noise_source}); "
+                 f"residual correlation {self.white_L:.1f} samples (noise {self.noise_L:.1f}); "
+                 f"{self.verdict()}",
+                 "parameters (SI)"]
         for p in self.model.params:
             err = self.stderr.get(p.name)
             e = f" +/- {err:.4g}" if err is not None else ""
             lines.append(f"  {p.name:<18} {self.values[p.name]:>12.5g}{e}  {p.unit}")
-        lines.append("error by phase (RMSE, N)")
-        lines.append("  " + "  ".join(f"{ph} {s.rmse_N:.4f}" if s else f"{ph} -"
+        lines.append(f"error by phase (RMSE, {self.force_unit[1]})")
+        lines.append("  " + "  ".join(f"{ph} {s.rmse_N / self.force_unit[0]:.4g}" if s else f"{ph} -"
                                       for ph, s in self.phases.items()))
         for w in self.warnings:
             lines.append(f"WARNING    {w}")
         return "\n".join(lines)
-
-
-def integral_scale(r: np.ndarray, max_lag: int = 3000) -> float:
-    """Samples per independent residual value."""
-    r = r - r.mean()
-    n = len(r)
-    if n < 10 or not np.any(r):
-        return 1.0
-    lag = min(max_lag, n // 4)
-    f = np.fft.rfft(r, 2 * n)
-    acf = np.fft.irfft(f * np.conj(f))[: lag + 1]
-    acf = acf / acf[0]
-    below = np.flatnonzero(acf < 0.05)
-    cut = below[0] if len(below) else lag
-    return float(np.clip(1.0 + 2.0 * acf[1:cut].sum(), 1.0, n / 20.0))
 
 
 def evaluate(model: Model, values: dict[str, float], trials: list[TrialData]) -> list[np.ndarray]:
@@ -112,59 +127,79 @@ def error_table(trials: list[TrialData], residuals: list[np.ndarray]) -> tuple[E
     return ErrorStats.of(r_all), phases
 
 
-def noise_of(trials: list[TrialData], residuals: list[np.ndarray]) -> tuple[float, str]:
-    """Sensor noise: a long pre-contact baseline if there is one, else residual differences.
-
-    The differences of a residual that is smooth at the sample scale (any model misfit is)
-    keep only the white sensor noise: var(diff) = 2 sigma^2.
-    """
-    base = [t.baseline_noise_N for t in trials if t.baseline_noise_N is not None and t.baseline_n >= 200]
-    if base:
-        return float(np.sqrt(np.mean(np.square(base)))), "pre-contact baseline"
-    d = np.concatenate([np.diff(r) for r in residuals])
-    return float(np.std(d) / np.sqrt(2.0)), "residual differences"
+def noise_of(trials: list[TrialData], residuals: list[np.ndarray]) -> Noise:
+    return from_baseline([t.baseline_N for t in trials]) or from_residual(residuals)
 
 
 def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0,
-        initial: dict[str, float] | None = None, tol: float = 1e-10, max_nfev: int = 400) -> FitResult:
-    """Fit `model` to all `trials` jointly (one parameter set)."""
+        initial: dict[str, float] | None = None, tol: float = 1e-10, max_nfev: int = 400,
+        scales: Scales | None = None, polish: bool = True) -> FitResult:
+    """Fit `model` to all `trials` jointly (one parameter set). `polish`: a last pass with
+    central differences (the fit a user reads; a screen can skip it)."""
     t0 = time.perf_counter()
-    params = model.params
-    scale = np.array([p.typical for p in params])
-    lo = np.array([p.lo for p in params]) / scale
-    hi = np.array([p.hi for p in params]) / scale
-    init = np.array([(initial or {}).get(p.name, p.init) for p in params]) / scale
+    scales = scales or Scales.joint(trials)
+    ps = ParamScaling(model, scales)
+    init, lo, hi = ps.start_and_bounds(initial)
     init = _inside(init, lo, hi)
-    f_meas = [t.force_N for t in trials]
-    def resid(z: np.ndarray) -> np.ndarray:
-        vals = dict(zip(model.param_names, z * scale, strict=True))
-        out = [model.predict(vals, t.motion) - f for t, f in zip(trials, f_meas, strict=True)]
-        r = np.concatenate(out)
-        return np.nan_to_num(r, nan=1e6, posinf=1e6, neginf=-1e6)
-
     rng = np.random.default_rng(seed)
     candidates = [init]
     for _ in range(max(starts - 1, 0)):
-        # log-uniform spread around the initial guess, kept inside the bounds
-        jitter = init * np.exp(rng.uniform(-1.5, 1.5, len(init)))
-        candidates.append(_inside(jitter, lo, hi))
-    best = None
+        # log-uniform spread around the starting point, kept inside the bounds
+        candidates.append(_inside(init * np.exp(rng.uniform(-1.5, 1.5, len(init))), lo, hi))
+    stride = max(1, min(t.n for t in trials) // SCREEN_SAMPLES)
     nfev = 0
+    if stride > 1 and len(candidates) > 1:
+        coarse = [decimate(t, stride) for t in trials]
+        best_c = None
+        for z0 in candidates:
+            sol = _solve(model, ps, coarse, scales, z0, lo, hi, tol, max_nfev)
+            nfev += sol.nfev
+            if best_c is None or sol.cost < best_c.cost:
+                best_c = sol
+        candidates = [_inside(best_c.x, lo, hi)]
+    best = None
     for z0 in candidates:
-        sol = least_squares(resid, z0, bounds=(lo, hi), method="trf", x_scale=1.0, max_nfev=max_nfev,
-                            ftol=tol, xtol=tol, gtol=tol)
+        sol = _solve(model, ps, trials, scales, z0, lo, hi, tol, max_nfev)
         nfev += sol.nfev
         if best is None or sol.cost < best.cost:
             best = sol
+    if polish and tol <= 1e-8:
+        # a last pass with central differences: the forward-difference Jacobian's own error
+        # (sqrt of machine precision) would otherwise decide the last digits, and a record in
+        # other units (the same problem up to rounding) must land on the same parameters
+        again = _solve(model, ps, trials, scales, _inside(best.x, lo, hi), lo, hi, tol * 1e-3, max_nfev,
+                       jac="3-point")
+        nfev += again.nfev
+        if again.cost <= best.cost:
+            best = again
+    return _result(model, ps, trials, scales, best, lo, hi, nfev, t0)
+
+
+def _solve(model, ps: ParamScaling, trials, scales: Scales, z0, lo, hi, tol, max_nfev, jac="2-point"):
+    f_meas = [t.force_N for t in trials]
+    names = model.param_names
+    inv_F = 1.0 / scales.force_N
+
+    def resid(z: np.ndarray) -> np.ndarray:
+        vals = dict(zip(names, ps.to_si(z), strict=True))
+        r = np.concatenate([model.predict(vals, t.motion) - f for t, f in zip(trials, f_meas, strict=True)])
+        return np.nan_to_num(r * inv_F, nan=1e6, posinf=1e6, neginf=-1e6)
+
+    return least_squares(resid, z0, bounds=(lo, hi), method="trf", x_scale=1.0, max_nfev=max_nfev,
+                         ftol=tol, xtol=tol, gtol=tol, jac=jac)
+
+
+def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> FitResult:
     z = best.x
-    values = dict(zip(model.param_names, z * scale, strict=True))
+    si = ps.to_si(z)
+    values = {k: float(v) for k, v in zip(model.param_names, si, strict=True)}
     predictions = evaluate(model, values, trials)
-    residuals = [f - p for f, p in zip(f_meas, predictions, strict=True)]
+    residuals = [t.force_N - p for t, p in zip(trials, predictions, strict=True)]
     overall, phases = error_table(trials, residuals)
-    noise, noise_src = noise_of(trials, residuals)
-    stderr = _stderr(best, model.param_names, scale, overall)
+    noise = noise_of(trials, residuals)
+    stderr = _stderr(best, model.param_names, ps.scale_vector(ps._n(z)), overall)
     n = overall.n
-    bic = n * np.log(max(overall.rmse_N ** 2, 1e-300)) + len(params) * np.log(n)
+    bic = n * np.log(max(overall.rmse_N ** 2, 1e-300)) + len(model.params) * np.log(n)
     warnings = _warnings(model, values, z, lo, hi)
     per_trial = []
     for t, r in zip(trials, residuals, strict=True):
@@ -172,21 +207,22 @@ def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0
         per_trial.append({"trial": t.name, **o.as_dict(),
                           "phases": {k: (v.rmse_N if v else None) for k, v in ph.items()}})
     white = float(np.mean([integral_scale(r) for r in residuals]))
-    return FitResult(model, trials, values, stderr, predictions, residuals, overall, phases, noise,
-                     noise_src, float(bic), warnings, time.perf_counter() - t0, nfev, per_trial, white)
+    return FitResult(model, trials, values, stderr, predictions, residuals, overall, phases, noise.std_N,
+                     noise.source, float(bic), warnings, time.perf_counter() - t0, nfev, per_trial, white,
+                     noise.scale_samples, scales, dict(zip(model.param_names, map(float, z), strict=True)))
 
 
 def _inside(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """`z` moved strictly inside finite bounds (least_squares refuses a start on a bound)."""
     with np.errstate(invalid="ignore"):
         span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
-    lo_in = np.where(np.isfinite(lo), lo + 1e-6 * span, -np.inf)
-    hi_in = np.where(np.isfinite(hi), hi - 1e-6 * span, np.inf)
+    lo_in = np.where(np.isfinite(lo), lo + 1e-6 * np.minimum(span, 1.0), -np.inf)
+    hi_in = np.where(np.isfinite(hi), hi - 1e-6 * np.minimum(span, 1.0), np.inf)
     return np.clip(z, lo_in, hi_in)
 
 
 def _stderr(sol, names: list[str], scale, overall: ErrorStats) -> dict[str, float | None]:
-    """Standard errors from the Jacobian (white-noise assumption: optimistic for 100 Hz data)."""
+    """Standard errors from the Jacobian (white-noise assumption: optimistic for correlated residuals)."""
     J = sol.jac
     dof = max(overall.n - len(names), 1)
     s2 = 2.0 * sol.cost / dof
@@ -204,9 +240,8 @@ def _warnings(model: Model, values: dict[str, float], z, lo, hi) -> list[str]:
         owner = next(e.name for e in model.effects if p in e.params)
         if p.warn_negative and v < 0:
             out.append(f"{owner}.{p.name} is negative ({v:.4g} {p.unit}): physically meaningless")
-        span = (h - low) if np.isfinite(h - low) else None
-        near = 1e-3 * (span if span else max(abs(zi), 1.0))
-        if (np.isfinite(low) and zi - low <= near) or (np.isfinite(h) and h - zi <= near):
+        if (np.isfinite(low) and zi - low <= AT_BOUND * max(1.0, abs(low))) or \
+                (np.isfinite(h) and h - zi <= AT_BOUND * max(1.0, abs(h))):
             out.append(f"{owner}.{p.name} = {v:.4g} {p.unit} sits at its bound: the data push it "
                        "out of the physical range")
     return out

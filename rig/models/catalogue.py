@@ -7,6 +7,7 @@ import numpy as np
 from rig.models.core import Effect, Model, Motion, Param, first_order_lag
 
 INF = np.inf
+FRICTION_ROUNDING = 0.02
 
 
 def _linear_elastic(x, v, k_N_per_m):
@@ -61,8 +62,9 @@ def _drift(m: Motion, force, drift_N_per_s):
 
 
 def _friction(m: Motion, force, friction_N):
-    # Coulomb friction with the sign rounded over 0.05 mm/s (the guide does not chatter)
-    return friction_N * np.tanh(m.v_m_s / 5e-5)
+    # Coulomb friction with the sign rounded over 2 % of the record's own speed (the guide
+    # does not chatter at rest)
+    return friction_N * np.tanh(m.v_m_s / max(FRICTION_ROUNDING * m.speed_m_s, 1e-300))
 
 
 def _delay(m: Motion, force, delay_s):
@@ -70,54 +72,62 @@ def _delay(m: Motion, force, delay_s):
 
 
 E = Effect
+
+
+def P(name: str, unit: str, init: float, lo: float = -INF, hi: float = INF, **kw) -> Param:
+    """A catalogue parameter: init and bounds in the record's own units (see rig.analysis.scaling)."""
+    return Param(name, unit, init, lo, hi, relative=True, **kw)
+
+
+# Starting values and bounds are in units of the record's force F, travel L and loading time T
+# (the first ramp's duration): k = 1 means F at depth L; tau1 = 0.5 means half the loading time.
 CATALOGUE: dict[str, Effect] = {e.name: e for e in [
-    E("linear_elastic", "drive", (Param("k_N_per_m", "N/m", 100.0, -INF, INF, warn_negative=True),),
+    E("linear_elastic", "drive", (P("k_N_per_m", "N/m", 1.0, warn_negative=True),),
       _linear_elastic, "k x",
       "residual curved in the ramp (stiffening) and a step at the ramp-hold corner"),
-    E("poly_elastic", "drive", (Param("k1_N_per_m3", "N/m^3", 5e4, -INF, INF, 5e4),
-                                Param("k2_N_per_m2", "N/m^2", 500.0, -INF, INF, 500.0),
-                                Param("k3_N_per_m", "N/m", 10.0, -INF, INF, 20.0)),
+    E("poly_elastic", "drive", (P("k1_N_per_m3", "N/m^3", 0.5),
+                                P("k2_N_per_m2", "N/m^2", 0.2),
+                                P("k3_N_per_m", "N/m", 0.2)),
       _poly_elastic, "k1 x^3 + k2 x^2 + k3 x",
       "ramp residual growing with depth: the force stiffens faster than the model"),
-    E("power_elastic", "drive", (Param("k_N_per_m_n", "N/m^n", 100.0, 0.0, INF, 100.0),
-                                 Param("n", "1", 1.5, 0.5, 4.0, 1.0)),
+    E("power_elastic", "drive", (P("k_N_per_m_n", "N/m^n", 1.0, 0.0),
+                                 P("n", "1", 1.5, 0.2, 6.0)),
       _power_elastic, "k x^n (Hertz when n = 1.5)",
       "ramp residual shaped like a power of depth"),
-    E("viscous", "drive", (Param("eta_N_s_per_m", "N s/m", 100.0, -INF, INF, 500.0, warn_negative=True),),
+    E("viscous", "drive", (P("eta_N_s_per_m", "N s/m", 0.1, warn_negative=True),),
       _viscous, "eta dx/dt",
       "residual steps at ramp start and end proportional to speed"),
-    E("hc_damping", "drive", (Param("b_N_s_per_m_n1", "N s/m^(n+1)", 1e4, -INF, INF, 1e4, warn_negative=True),
-                              Param("n", "1", 1.5, 0.5, 4.0, 1.0)),
+    E("hc_damping", "drive", (P("b_N_s_per_m_n1", "N s/m^(n+1)", 0.1, warn_negative=True),
+                              P("n", "1", 1.5, 0.2, 6.0)),
       _hc_damping, "b x^n dx/dt (Hunt-Crossley)",
       "ramp residual growing with depth and speed; drops at the ramp end"),
-    E("nonlinear_damping", "drive", (Param("tau2_N_s_per_m2", "N s/m^2", 1e5, -INF, INF, 1e5,
-                                           warn_negative=True),),
+    E("nonlinear_damping", "drive", (P("tau2_N_s_per_m2", "N s/m^2", 0.1, warn_negative=True),),
       _nonlinear_damping, "tau2 x dx/dt (paper)",
       "ramp residual proportional to depth x speed; a drop at the ramp end"),
-    E("relaxation", "lag", (Param("tau1_s", "s", 5.0, 0.01, 1000.0, 5.0),),
+    E("relaxation", "lag", (P("tau1_s", "s", 0.5, 1e-4, 1e4),),
       _relaxation, "f + tau1 df/dt = drive (paper)",
       "hold residual decaying: the force relaxes but the model holds"),
-    E("relaxation2", "branch", (Param("k_m_N_per_m", "N/m", 50.0, 0.0, INF, 50.0),
-                                Param("tau_m_s", "s", 30.0, 0.1, 2000.0, 30.0)),
+    E("relaxation2", "branch", (P("k_m_N_per_m", "N/m", 0.5, 0.0),
+                                P("tau_m_s", "s", 3.0, 1e-3, 1e5)),
       _relaxation2, "Maxwell branch: f2 + tau_m df2/dt = k_m tau_m dx/dt, in parallel",
       "hold residual still decaying with a second, slower time constant"),
-    E("offset", "sensor", (Param("offset_N", "N", 0.0, -INF, INF, 0.1),),
+    E("offset", "sensor", (P("offset_N", "N", 0.0),),
       _offset, "constant force offset (tare error)",
       "residual constant, also before contact and after retraction"),
-    E("drift", "sensor", (Param("drift_N_per_s", "N/s", 0.0, -INF, INF, 0.001),),
+    E("drift", "sensor", (P("drift_N_per_s", "N/s", 0.0),),
       _drift, "force drift linear in time",
       "residual growing linearly with time, also before contact"),
-    E("contact_offset", "geometry", (Param("x0_mm", "mm", 0.5, 0.0, 20.0, 1.0),),
+    E("contact_offset", "geometry", (P("x0_mm", "mm", 0.02, -0.3, 0.9),),
       _contact_offset, "indentation = max(x - x0, 0)",
-      "model force too early at the start of the ramp (contact later than assumed)"),
-    E("delay", "delay", (Param("delay_s", "s", 0.02, 0.0, 2.0, 0.05),),
+      "model force too early (or too late) at the start of the ramp: contact elsewhere than assumed"),
+    E("delay", "delay", (P("delay_s", "s", 0.01, 0.0, 1.0),),
       _delay, "force measured late by a fixed delay",
       "residual proportional to the force's rate of change: peaks at ramp corners"),
-    E("compliance", "geometry", (Param("k_frame_N_per_m", "N/m", 5000.0, 10.0, 1e7, 5000.0),),
+    E("compliance", "geometry", (P("k_frame_N_per_m", "N/m", 10.0, 1e-2, 1e6),),
       _compliance, "indentation = x - f / k_frame",
       "ramp residual growing with force: the tissue sees less than the slider moved",
       needs_force=True),
-    E("friction", "sensor", (Param("friction_N", "N", 0.0, -INF, INF, 0.1),),
+    E("friction", "sensor", (P("friction_N", "N", 0.0),),
       _friction, "Coulomb friction in the probe guide, sign of velocity",
       "residual steps at ramp start and end with the sign of velocity"),
 ]}
@@ -135,7 +145,11 @@ NAMED_MODELS: dict[str, list[str]] = {
 def build_model(name: str, extra: list[str] | None = None,
                 registry: dict[str, Effect] | None = None) -> Model:
     from rig.errors import RigError
-    from rig.yamlspec import did_you_mean
+
+    def did_you_mean(name: str, known) -> str:  # the YAML layer only when there is a mistake to name
+        from rig.yamlspec import did_you_mean as near
+
+        return near(name, known)
 
     reg = registry or CATALOGUE
     if name not in NAMED_MODELS and name not in reg:

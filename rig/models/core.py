@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.signal import lfilter
@@ -37,6 +38,9 @@ class Param:
     scale: float | None = None  # typical magnitude, for the fit's scaling (default: |init| or 1)
     doc: str = ""
     warn_negative: bool = False  # a negative value is physically meaningless
+    # init, lo and hi are in the record's own units (force, length and time scales of the data,
+    # combined as the unit says) rather than SI: the catalogue's parameters are
+    relative: bool = False
 
     @property
     def typical(self) -> float:
@@ -51,6 +55,12 @@ class Motion:
     x_m: np.ndarray  # indentation from the trial zero (the probe position), m
     v_m_s: np.ndarray  # its time derivative, smoothed
     dt_s: float
+
+    @cached_property
+    def speed_m_s(self) -> float:
+        """The record's own ramp speed (robust maximum of |v|)."""
+        v = np.abs(self.v_m_s)
+        return float(np.percentile(v, 99)) if len(v) else 0.0
 
 
 @dataclass(frozen=True)

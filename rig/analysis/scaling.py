@@ -1,0 +1,116 @@
+"""Parameters in the record's own units: every parameter is fitted as a number of order one.
+
+A parameter's unit string (`N/m^3`, `N s/m^(n+1)`, `s`, `mm`, `Hz`...) says how it scales
+with force F, length L and time T; its fit variable is its value divided by F^a L^b T^c,
+with the record's own F, L and T. Catalogue parameters give their starting values and
+bounds in those units (`relative=True`), so a cell in nN over seconds and a stomach in N
+over minutes start from the same place; a plugin's parameters are in SI and are converted.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from rig.analysis.data import Scales
+from rig.models.core import Model
+
+_BASE = {"N": (1, 0, 0, 1.0), "m": (0, 1, 0, 1.0), "mm": (0, 1, 0, 1e-3), "um": (0, 1, 0, 1e-6),
+         "s": (0, 0, 1, 1.0), "ms": (0, 0, 1, 1e-3), "Hz": (0, 0, -1, 1.0), "1": (0, 0, 0, 1.0),
+         "rad": (0, 0, 0, 1.0), "deg": (0, 0, 0, 1.0), "%": (0, 0, 0, 1.0)}
+_TOKEN = re.compile(r"^(?P<base>[A-Za-z%1]+)(?:\^(?P<exp>\(?[-+0-9.n ]+\)?))?$")
+
+
+@dataclass(frozen=True)
+class Dim:
+    """value_SI = z * F^a * L^(b + bn*n) * T^c * factor (bn: exponents that follow a shape parameter n)."""
+
+    a: float = 0.0
+    b: float = 0.0
+    c: float = 0.0
+    bn: float = 0.0
+    factor: float = 1.0
+    known: bool = True
+
+    def scale(self, s: Scales, n: float = 0.0) -> float:
+        return (s.force_N ** self.a * s.length_m ** (self.b + self.bn * n) * s.time_s ** self.c) / self.factor
+
+
+def parse_unit(unit: str) -> Dim:
+    """'N s/m^(n+1)' -> F^1 L^-(n+1) T^1; an unknown unit scales as 1 (known=False)."""
+    num, _, den = unit.strip().partition("/")
+    a = b = c = bn = 0.0
+    factor = 1.0
+    for part, sign in ((num, 1.0), (den, -1.0)):
+        for tok in part.split():
+            m = _TOKEN.match(tok)
+            if not m or m["base"] not in _BASE:
+                return Dim(known=False)
+            ea, eb, ec, fac = _BASE[m["base"]]
+            e, en = _exponent(m["exp"])
+            if en and m["base"] not in ("m", "mm", "um"):
+                return Dim(known=False)
+            a += sign * ea * e
+            b += sign * eb * e
+            c += sign * ec * e
+            bn += sign * eb * en
+            factor *= fac ** (sign * e)
+    return Dim(a, b, c, bn, factor)
+
+
+def _exponent(text: str | None) -> tuple[float, float]:
+    """'3' -> (3, 0); 'n' -> (0, 1); '(n+1)' -> (1, 1)."""
+    if not text:
+        return 1.0, 0.0
+    t = text.replace("(", "").replace(")", "").replace(" ", "")
+    if "n" not in t:
+        return float(t), 0.0
+    const = t.replace("n", "", 1)
+    return (float(const) if const not in ("", "+", "-") else 0.0), 1.0
+
+
+@dataclass
+class ParamScaling:
+    """Maps a model's fit variables z (order one) to SI values and back, for given scales."""
+
+    model: Model
+    scales: Scales
+
+    def __post_init__(self) -> None:
+        self.dims = [parse_unit(p.unit) for p in self.model.params]
+        names = self.model.param_names
+        self._n_index = names.index("n") if "n" in names else None
+
+    def _n(self, vals: np.ndarray) -> float:
+        return float(vals[self._n_index]) if self._n_index is not None else 0.0
+
+    def scale_vector(self, n: float) -> np.ndarray:
+        return np.array([d.scale(self.scales, n) if d.known else 1.0 for d in self.dims])
+
+    def to_si(self, z: np.ndarray) -> np.ndarray:
+        n = self._n(z)  # a shape exponent is dimensionless: its z is its value
+        return z * self.scale_vector(n)
+
+    def to_z(self, si: np.ndarray) -> np.ndarray:
+        return si / self.scale_vector(self._n(si))
+
+    def start_and_bounds(self, initial: dict[str, float] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """z of the starting point and the bounds: relative parameters as written, SI ones converted."""
+        params = self.model.params
+        n0 = next((p.init for p in params if p.name == "n"), 0.0)
+        sv = self.scale_vector(n0)
+        init = np.array([p.init if p.relative else p.init / s for p, s in zip(params, sv, strict=True)])
+        lo = np.array([p.lo if p.relative else p.lo / s for p, s in zip(params, sv, strict=True)])
+        hi = np.array([p.hi if p.relative else p.hi / s for p, s in zip(params, sv, strict=True)])
+        if initial:
+            si = np.array([initial.get(p.name, np.nan) for p in params])
+            z_prev = self.to_z(np.where(np.isnan(si), init * sv, si))
+            init = np.where(np.isnan(si), init, z_prev)
+        return init, lo, hi
+
+
+def values_dict(model: Model, si: np.ndarray) -> dict[str, float]:
+    return {k: float(v) for k, v in zip(model.param_names, si, strict=True)}
+

@@ -1,0 +1,70 @@
+"""Reading measured records from the files instruments write, recognised by their content:
+the rig's own MCAP logs and CSV, JPK AFM force files and text exports, Biomomentum Mach-1
+`.txt`, Instron Bluehill CSV, and CSV with units in the column names."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from rig.errors import RigError, SpecError
+from rig.records.record import Record
+
+MCAP_MAGIC = b"\x89MCAP"
+LOOKED_FOR = ("an MCAP log, a CSV with t_s,position_mm,force_N (or units in the column names), a JPK "
+              ".jpk-force file or text export, a Mach-1 .txt, or an Instron Bluehill CSV")
+
+__all__ = ["LOOKED_FOR", "Record", "read_record"]
+
+
+def read_record(path: str | Path, block: int | None = None) -> Record:
+    """Open any supported file; one clear line when it is none of them."""
+    from rig.records.csvfile import looks_like_csv, read_csv_record
+    from rig.records.instron import looks_like_instron, read_instron
+    from rig.records.jpk import looks_like_jpk_force, looks_like_jpk_text, read_jpk_force, read_jpk_text
+    from rig.records.mach1 import looks_like_mach1, read_mach1
+
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            raw = fh.read(8192)
+    except IsADirectoryError:
+        raise SpecError("is a directory, not a record", path=str(path)) from None
+    except OSError as exc:
+        raise SpecError(f"cannot open: {exc.strerror or exc}", path=str(path)) from None
+    if raw.startswith(MCAP_MAGIC):
+        return _read_mcap(path)
+    if looks_like_jpk_force(raw, path):
+        return read_jpk_force(path)
+    if b"\x00" in raw:
+        raise SpecError(f"a binary file this tool cannot read (looked for {LOOKED_FOR})", path=str(path))
+    head = raw.decode("utf-8", errors="replace")
+    if not head.strip():
+        raise SpecError("file is empty", path=str(path), line=1)
+    if looks_like_mach1(head):
+        return read_mach1(path, block)
+    if looks_like_jpk_text(head):
+        return read_jpk_text(path)
+    if looks_like_instron(head):
+        return read_instron(path)
+    if looks_like_csv(head):
+        return read_csv_record(path)
+    if path.suffix.lower() == ".mcap":
+        return _read_mcap(path)  # says what is wrong with the log
+    raise SpecError(f"not a file this tool can read (looked for {LOOKED_FOR})", path=str(path))
+
+
+def _read_mcap(path: Path) -> Record:
+    from rig.logs import read_log
+
+    log = read_log(path)
+    if log.n < 10:
+        raise RigError(f"{path}: the log holds {log.n} samples: too few to analyse")
+    s = log.samples
+    kinds = np.array(log.step_kind)
+    keep = ~np.isin(kinds, ["tare", "fault", "done"])
+    tare = kinds == "tare"
+    return Record(path.name, "mcap", s["t_s"][keep], s["position_mm"][keep] / 1000.0, s["force_N"][keep],
+                  zero_is_surface=True, steps=kinds[keep], baseline_force_N=s["force_N"][tare],
+                  length_unit="mm", force_unit="N")

@@ -1,0 +1,144 @@
+"""CSV files: the rig's own (t_s,position_mm,force_N) and researchers' files whose column
+names carry their units (`t_ms`, `position_um`, `indentation_nm`, `force_nN`, `load_mN`,
+`force_gf`, `strain`...)."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from rig.errors import SpecError
+from rig.records.record import Record
+from rig.records.units import quantity, split_header, to_si
+
+CANONICAL = ("t_s", "position_mm", "force_N")
+
+
+def looks_like_csv(head: str) -> bool:
+    first = next((ln for ln in head.splitlines() if ln.strip()), "")
+    return "," in first and not first.lstrip().startswith(("#", "<"))
+
+
+def pick_columns(header: list[str], where: str) -> dict[str, tuple[int, float, str]]:
+    """Which column is time, length and force, with the factor to SI and the written unit."""
+    found: dict[str, tuple[int, float, str]] = {}
+    for i, h in enumerate(header):
+        name, unit = split_header(h)
+        kind = quantity(name)
+        if kind is None and unit is not None:
+            kind = quantity(h.replace(" ", "_").split("_")[0])
+        if kind is None or kind in found:
+            continue
+        if kind == "strain":
+            if "length" not in found:
+                found["length"] = (i, to_si(h, "strain", unit, where), unit or "1")
+            continue
+        if kind == "length" and "length" in found and header[found["length"][0]].lower().startswith("strain"):
+            found["length"] = (i, to_si(h, kind, unit, where), unit or "")
+            continue
+        found[kind] = (i, to_si(h, kind, unit, where), unit or "")
+    missing = [k for k in ("time", "length", "force") if k not in found]
+    if missing:
+        want = {"time": "t_s", "length": "position_mm", "force": "force_N"}
+        raise SpecError(f"missing column(s) {', '.join(want[k] for k in missing)} (a time, a position or "
+                        "indentation, and a force column, each with its unit, e.g. t_s,position_mm,force_N "
+                        "or t_ms,indentation_um,force_nN)", path=where, line=1)
+    return found
+
+
+def read_csv_record(path: str | Path) -> Record:
+    where = str(path)
+    try:
+        fh = open(path, newline="", encoding="utf-8-sig")  # noqa: SIM115
+    except OSError as exc:
+        raise SpecError(f"cannot open CSV: {exc.strerror or exc}", path=where) from None
+    with fh:
+        reader = csv.reader(fh)
+        try:
+            header = [h.strip() for h in next(reader)]
+        except StopIteration:
+            raise SpecError("file is empty", path=where, line=1) from None
+        except (csv.Error, UnicodeDecodeError) as exc:
+            raise SpecError(f"not a readable CSV ({exc})", path=where, line=1) from None
+        cols = pick_columns(header, where)
+        idx = [cols[k][0] for k in ("time", "length", "force")]
+        rows: list[list[float]] = []
+        kinds: list[str] = []
+        i_kind = header.index("step_kind") if "step_kind" in header else None
+        try:
+            for line_no, row in enumerate(reader, start=2):
+                if not row or all(not c.strip() for c in row):
+                    continue
+                if i_kind is not None:
+                    kinds.append(row[i_kind].strip() if i_kind < len(row) else "")
+                try:
+                    values = [float(row[i]) for i in idx]
+                except IndexError:
+                    raise SpecError(f"row has {len(row)} fields, header has {len(header)}",
+                                    path=where, line=line_no) from None
+                except ValueError:
+                    bad = next(i for i in idx if not _is_float(row[i]))
+                    raise SpecError(f"column {header[bad]}: '{row[bad]}' is not a number",
+                                    path=where, line=line_no) from None
+                if not all(np.isfinite(values)):
+                    col = header[idx[[np.isfinite(v) for v in values].index(False)]]
+                    raise SpecError(f"column {col} is NaN or infinite", path=where, line=line_no)
+                rows.append(values)
+        except (csv.Error, UnicodeDecodeError) as exc:
+            raise SpecError(f"not a readable CSV ({exc})", path=where) from None
+    if len(rows) < 2:
+        raise SpecError("fewer than two data rows", path=where)
+    arr = np.array(rows)
+    t = arr[:, 0] * cols["time"][1]
+    check_time(t, header[idx[0]], where, first_line=2)
+    x = arr[:, 1] * cols["length"][1]
+    f = arr[:, 2] * cols["force"][1]
+    units = {"length_unit": cols["length"][2] or "1", "force_unit": cols["force"][2]}
+    if i_kind is not None:
+        # the rig's own samples (`rig replay --csv`): its zero is the surface and its steps are the phases
+        k = np.array(kinds)
+        keep = ~np.isin(k, ["tare", "fault", "done"])
+        return Record(Path(path).name, "csv", t[keep], x[keep], f[keep], zero_is_surface=True, steps=k[keep],
+                      baseline_force_N=f[k == "tare"], **units)
+    # an indentation is counted from the surface; a position may start anywhere (contact is found)
+    surface = split_header(header[idx[1]])[0].lower().startswith("indentation")
+    return Record(Path(path).name, "csv", t, x, f, zero_is_surface=surface, **units)
+
+
+def check_time(t: np.ndarray, column: str, where: str, first_line: int) -> None:
+    d = np.diff(t)
+    if np.any(d <= 0):
+        k = int(np.argmax(d <= 0))
+        what = "duplicated" if d[k] == 0 else "decreasing (unsorted)"
+        raise SpecError(f"{column} is {what} at row {k + first_line + 1} ({column} = {t[k + 1]:g} after "
+                        f"{t[k]:g} s)", path=where, line=k + first_line + 1)
+
+
+IMPORTED = ("t_s", "indentation_mm", "force_N")
+
+
+def write_trial_csv(trial, out: str | Path) -> int:
+    """t_s,indentation_mm,force_N of a prepared trial: indentation from contact, loading
+    positive, force above the baseline (what `rig import` writes; read back, it gives the same
+    trial)."""
+    m = trial.motion
+    try:
+        fh = open(out, "w", newline="")  # noqa: SIM115
+    except OSError as exc:
+        raise SpecError(f"cannot write: {exc.strerror or exc}", path=str(out)) from None
+    with fh:
+        w = csv.writer(fh)
+        w.writerow(IMPORTED)
+        for t, x, f in zip(m.t_s, m.x_m * 1000.0, trial.force_N, strict=True):
+            w.writerow([repr(float(t)), repr(float(x)), repr(float(f))])
+    return len(m.t_s)
+
+
+def _is_float(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True

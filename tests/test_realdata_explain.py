@@ -1,0 +1,77 @@
+"""A hidden effect added to a real measurement is named first by --explain.
+
+Each shared record is first explained as well as the catalogue allows: the model `--auto`
+builds on the clean record. One effect is then hidden in the record, sized from the record's
+own range (a tenth of its peak force of drift over the record or of offset, a twentieth of
+it of Coulomb friction, a delay of a twentieth of its loading time), and taken out of the
+model if `--auto` had put it in. `--explain` must name it first."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rig.analysis.data import TrialData, load_trial
+from rig.analysis.explain import auto, explain
+from rig.analysis.fit import fit
+from rig.cli import main
+from rig.models import CATALOGUE, build_model
+from rig.models.core import Model
+from rig.records.csvfile import write_trial_csv
+
+REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
+RECORDS = ["polymergel-creep.jpk-force", "brain-creep.jpk-force"]
+SIZES = {"drift": 0.1, "offset": 0.1, "friction": 0.05, "delay": 0.05}
+
+pytestmark = pytest.mark.skipif(not all((REALDATA / r).is_file() for r in RECORDS),
+                                reason=f"the real measurements are not at {REALDATA}")
+pytest.importorskip("afmformats", reason="reading JPK files needs the afm extra (afmformats)")
+
+
+def hide(t: TrialData, effect: str) -> TrialData:
+    """The record with one effect added, sized from its own force and time scales."""
+    m, size = t.motion, SIZES[effect]
+    F, f = t.scales.force_N, t.force_N.copy()
+    if effect == "drift":
+        f += size * F * (m.t_s - m.t_s[0]) / (m.t_s[-1] - m.t_s[0])
+    elif effect == "offset":
+        f += size * F
+    elif effect == "friction":  # the guide's friction, its sign rounded over 2 % of the speed
+        f += size * F * np.tanh(m.v_m_s / (0.02 * m.speed_m_s))
+    elif effect == "delay":  # the force read late
+        f = np.interp(m.t_s - size * t.scales.time_s, m.t_s, f, left=f[0])
+    return dataclasses.replace(t, force_N=f, name=f"{t.name}+{effect}")
+
+
+@pytest.fixture(scope="module", params=RECORDS)
+def explained(request):
+    trial = load_trial(REALDATA / request.param)
+    steps = auto(fit(build_model("proposed"), [trial]), dict(CATALOGUE))
+    return trial, steps[-1]["fit"]
+
+
+@pytest.mark.parametrize("effect", sorted(SIZES))
+def test_hidden_effect_in_a_real_record_is_named_first(explained, effect):
+    trial, clean = explained
+    base_model = Model([e for e in clean.model.effects if e.name != effect])
+    base = fit(base_model, [hide(trial, effect)], starts=1, initial=clean.values)
+    ex = explain(base, dict(CATALOGUE))
+    assert ex.suggestions, ex.summary
+    assert ex.suggestions[0].effect == effect, [(s.effect, round(s.delta_bic, 1)) for s in ex.ranked[:4]]
+    assert ex.summary.startswith(f"most likely missing: {effect}")
+    assert ex.suggestions[0].rmse_drop > 0.2  # it explains a good part of the error
+
+
+def test_hidden_offset_through_the_command_line(tmp_path, capsys):
+    trial = load_trial(REALDATA / RECORDS[0])
+    csv = tmp_path / "gel+offset.csv"
+    write_trial_csv(hide(trial, "offset"), csv)
+    assert main(["analyze", str(csv), "--add", "relaxation2", "--explain", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["suggestions"][0]["effect"] == "offset", out["diagnosis"]
+    assert out["diagnosis"].startswith("most likely missing: offset")
+    assert out["adequate"] is False and out["fit"]["rmse_over_noise"] > 1.2
