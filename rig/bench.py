@@ -128,6 +128,27 @@ def bench_rls(n: int = 200_000) -> dict:
     return {"updates": n, "update_us": dt / n * 1e6}
 
 
+def bench_model(n: int = 200_000) -> dict:
+    """One tick of a saved model in the loop (`OnlineModel.step`), for the paper's model and for
+    a richer one (a second relaxation branch, offset and drift)."""
+    from rig.models.catalogue import build_model
+    from rig.models.online import OnlineModel
+
+    values = {"k1_N_per_m3": 5.6e4, "k2_N_per_m2": 550.0, "k3_N_per_m": 14.0, "tau2_N_s_per_m2": 2.3e5,
+              "tau1_s": 8.0, "k_m_N_per_m": 60.0, "tau_m_s": 40.0, "offset_N": 0.1, "drift_N_per_s": 0.001}
+    x = (np.minimum(np.arange(n) % 10_000, 3000) * 1e-5).tolist()  # ramps to 30 mm and holds
+    out = {}
+    richer = ["relaxation2", "offset", "drift"]
+    for label, extra in (("proposed", []), ("proposed+relaxation2+offset+drift", richer)):
+        online = OnlineModel(build_model("proposed", extra), values, 0.01)
+        step = online.step
+        t0 = time.perf_counter()
+        for i in range(n):
+            step(i * 0.01, x[i])
+        out[label] = (time.perf_counter() - t0) / n * 1e6
+    return {"steps": n, "step_us": out}
+
+
 def bench_record(n: int = 50_000) -> dict:
     """Loop-side cost of one sample: building its dict and queueing it (the writer runs apart)."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -179,6 +200,7 @@ def run_bench(duration_s: float = 60.0, rate_Hz: float = 100.0, progress: bool =
               wire: str = "none", find_max_rate: bool = False, ode_fit: bool = True, load: int = 0,
               realtime: str = "auto") -> dict:
     out = {"loop": bench_loop(duration_s, rate_Hz, progress, wire, load, realtime), "rls": bench_rls(),
+           "model": bench_model(),
            "record": bench_record(), "baseline": bench_baseline(min(duration_s, 30.0), rate_Hz)}
     if progress:
         print("bench: model fit (and the same fit by an ODE solver) ...", file=sys.stderr)
@@ -202,6 +224,7 @@ def format_bench(r: dict) -> str:
         f"          scheduling: {lp['scheduling']}; {lp['load_processes']} CPU-bound processes beside it",
         f"          outcome {lp['outcome']}" + (f": {lp['fault']}" if lp.get("fault") else ""),
         f"rls       {rls['update_us']:.2f} us per update",
+        "model     " + "; ".join(f"{k} {v:.2f} us per tick" for k, v in r["model"]["step_us"].items()),
         f"record    {rec['put_us']:.2f} us per sample on the loop side; writer "
         f"{rec['writer_us_per_sample']:.1f} us/sample; {rec['bytes_per_sample']:.1f} bytes/sample on disk",
         f"replay    {lp['replay']['samples_per_s']:,.0f} samples/s",

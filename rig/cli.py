@@ -39,7 +39,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     proto = load_protocol(args.protocol, config)  # refused here, before anything moves
     opts = RunOptions(specimen=args.specimen, operator=args.operator, notes=args.notes,
-                      out_dir=args.out, speed=args.speed, progress=not args.quiet, live_port=args.live)
+                      out_dir=args.out, speed=args.speed, progress=not args.quiet, live_port=args.live,
+                      model_path=args.model)
     result = run_trial(proto, config, opts)
     print(f"trial {result.outcome}: {result.samples} samples in {result.duration_s:.1f} s "
           f"({result.late_ticks} late, {result.missed_ticks} missed ticks)")
@@ -201,9 +202,11 @@ def cmd_start(args: argparse.Namespace) -> int:
 
     path = Path(args.protocol).resolve()
     text = read_text(path, "protocol file")
-    reply = _reply(request(_socket(args), {"cmd": "start", "protocol_text": text, "protocol_path": str(path),
-                                           "specimen": args.specimen, "operator": args.operator,
-                                           "notes": args.notes}))
+    req = {"cmd": "start", "protocol_text": text, "protocol_path": str(path), "specimen": args.specimen,
+           "operator": args.operator, "notes": args.notes}
+    if args.model:
+        req.update(model_text=read_text(Path(args.model).resolve(), "model file"), model_path=args.model)
+    reply = _reply(request(_socket(args), req))
     for w in reply.get("warnings") or []:
         print(w, file=sys.stderr)
     print(f"started '{reply['protocol']}'; log {reply['log']}")
@@ -277,6 +280,15 @@ def cmd_models(args: argparse.Namespace) -> int:
     from rig.models.catalogue import CATALOGUE, NAMED_MODELS
     from rig.models.plugins import load_plugin
 
+    if args.action:
+        if args.action[0] != "show" or len(args.action) != 2:
+            raise RigError("usage: rig models [show MODEL.json]")
+        from rig.models.saved import load
+
+        saved = load(args.action[1])
+        print(json.dumps(saved.as_dict(), indent=2) if args.json else saved.describe())
+        return 0
+
     effects = dict(CATALOGUE)
     for p in args.plugin or []:
         effects.update({e.name: e for e in load_plugin(p)})
@@ -345,6 +357,10 @@ def cmd_analyze(args: argparse.Namespace) -> int:
                         "delta_bic": s["delta_bic"], "adequate": s["fit"].adequate, "why": s.get("why", "")}
                        for s in steps]
         out["auto_final"] = result_json(steps[-1]["fit"], args.inputs)
+    if args.save:
+        from rig.models.saved import from_fit, save
+
+        out["saved"] = str(save(from_fit(res, args.inputs), args.save))
     if args.report:
         out["report"] = str(write_report(res, args.report, compare=results, holdout=held, text=text,
                                          before=before, steps=steps,
@@ -368,6 +384,8 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         print(format_auto(steps))
     if args.report:
         print(f"\nreport: {out['report']}")
+    if args.save:
+        print(f"\nmodel saved: {out['saved']} (run it in the loop: rig run PROTOCOL --model {out['saved']})")
     return 0
 
 
@@ -445,6 +463,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="simulated rig only: 0 = as fast as possible, N = N times real time "
                         "(default 1: real time)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--model", metavar="MODEL.json",
+                   help="run this saved model (rig analyze --save) in the loop: force_model_N, model_error_N")
     r.add_argument("--live", type=int, nargs="?", const=8765, metavar="PORT",
                    help="publish the trial live for Foxglove (WebSocket on 127.0.0.1:PORT, default 8765; "
                         "needs the extra rig[live])")
@@ -514,6 +534,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--specimen", default="specimen")
     r.add_argument("--operator", default="", help="default: your user name")
     r.add_argument("--notes", default="")
+    r.add_argument("--model", metavar="MODEL.json", help="run this saved model in the loop")
     r = client("stop", "stop the running trial, then return to the start position", cmd_stop)
     r.add_argument("--hold", action="store_true", help="stop and stay where it is")
     client("estop", "emergency stop: stop the motor now, nothing else", cmd_estop)
@@ -542,6 +563,8 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("models", help="list the effects catalogue and the named models",
                        description="The effects a force model is built from, with equations, parameters "
                                    "and where each one's absence shows in a trial; and the named models.")
+    r.add_argument("action", nargs="*", metavar="show MODEL.json",
+                   help="print a saved model (rig analyze --save) instead")
     r.add_argument("--plugin", action="append", help="also list the effects in this Python file")
     r.add_argument("--json", action="store_true")
     r.set_defaults(func=cmd_models)
@@ -568,6 +591,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--auto", action="store_true",
                    help="add effects one by one while the error falls; print the steps")
     r.add_argument("--report", metavar="DIR", help="write figures and report.md here")
+    r.add_argument("--save", metavar="MODEL.json",
+                   help="save the fitted model (effects, parameters, what it was fitted on) to run it "
+                        "in the loop (rig run --model)")
     r.add_argument("--json", action="store_true", help="one JSON object on stdout")
     r.set_defaults(func=cmd_analyze)
 

@@ -50,6 +50,8 @@ class LimitsConfig:
     overshoot_mm: float = field(default=0.1, metadata={"gt": 0})
     # After a STOP, the drive must report standing still within this; STOP is re-sent meanwhile.
     stop_confirm_s: float = field(default=2.0, metadata={"gt": 0})
+    # Without a load cell the force limit applies to the model's estimate times (1 + margin).
+    model_force_margin: float = field(default=0.25, metadata={"ge": 0})
 
     def __post_init__(self) -> None:
         lo, hi = self.travel_mm
@@ -109,7 +111,8 @@ class SliderConfig:
 
 @dataclass
 class LoadCellConfig:
-    backend: str = field(default="sim", metadata={"choices": ["sim", "serial"]})
+    # none: no load cell; the force is the model's estimate (`model:` must name one)
+    backend: str = field(default="sim", metadata={"choices": ["sim", "serial", "none"]})
     port: str = ""  # serial device or pyserial URL (e.g. loop://)
     baudrate: int = field(default=115200, metadata={"gt": 0})
     mode: str = field(default="stream", metadata={"choices": ["stream", "poll"]})
@@ -161,6 +164,9 @@ class RigConfig:
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
     sim: SimParams = field(default_factory=SimParams)
+    # A saved model (`rig analyze ... --save`) run in the loop from the measured position:
+    # force_model_N and model_error_N in every sample.
+    model: str = ""
     source_text: str = field(default="", repr=False, compare=False)
     source_path: str = field(default="<built-in simulated rig>", repr=False, compare=False)
 

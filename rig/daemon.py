@@ -324,7 +324,8 @@ class Daemon:
         try:
             pos = self.devices.slider.read_position_mm()
             status = self.devices.slider.read_status()
-            r = self.devices.loadcell.latest()
+            cell = self.devices.loadcell
+            r = cell.latest() if cell is not None else None
             return {"position_mm": pos, "force_N": r.force_N if r else None,
                     "alarm_code": status.alarm_code, "moving": status.moving}
         except RigError as exc:
@@ -356,8 +357,9 @@ class Daemon:
                              clock="real", extra={"requested_by": user, "devices": self.devices.description,
                                                   "daemon": "rigd", "backstop": self.devices.backstop,
                                                   "warnings": " | ".join(warnings)})
+            model = self._model(req)
             trial = Trial(proto, self.config, self.devices.slider, self.devices.loadcell,
-                          RealClock(self.config.loop.spin_ms / 1000.0), log_path, info)
+                          RealClock(self.config.loop.spin_ms / 1000.0), log_path, info, model=model)
             trial.on_tick = self._on_tick
             trial.live = self.live
             self.trial = trial
@@ -374,6 +376,21 @@ class Daemon:
             self.say(w)
         notify(f"STATUS=running '{proto.name}'")
         return {"ok": True, "log": str(log_path), "protocol": proto.name, "warnings": warnings}
+
+    def _model(self, req: dict):
+        """The model sent with the request ("model_text"), else the config's `model:`."""
+        from rig.models.online import check_online
+        from rig.models.saved import loads
+        from rig.trialrun import load_model_for
+
+        text = req.get("model_text")
+        if text is None:
+            return load_model_for(self.config, None)
+        if not isinstance(text, str):
+            raise RequestError('"model_text" must be the model file\'s contents')
+        saved = loads(text, str(req.get("model_path") or "<model>"))
+        check_online(saved.model)
+        return saved
 
     def _read_position(self) -> float:
         """A fresh position while no trial owns the devices (the caller holds state_lock)."""

@@ -20,7 +20,7 @@ from rig.errors import RigError
 @dataclass
 class Devices:
     slider: Slider
-    loadcell: LoadCell
+    loadcell: LoadCell | None  # None: no load cell (loadcell.backend: none)
     rig: object | None = None  # the SimRig behind in-process devices (tests, fault injection)
     sim: object | None = None  # the SimProcess behind simulated devices on the wire
     description: str = ""
@@ -33,7 +33,8 @@ class Devices:
         for dev in (self.slider, self.loadcell):
             # closing is best effort; the devices may be gone
             with contextlib.suppress(Exception):
-                dev.close()
+                if dev is not None:
+                    dev.close()
         if self.sim is not None:
             self.sim.close()
 
@@ -47,7 +48,7 @@ def uses_wire(config: RigConfig, speed: float) -> bool:
 def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0) -> Devices:
     """Devices for a run at `speed` (1 = real time; the simulated rig goes on the wire then)."""
     sb, lb = config.slider.backend, config.loadcell.backend
-    if (sb == "sim") != (lb == "sim"):
+    if (sb == "sim") != (lb == "sim") and lb != "none":
         raise RigError(f"slider backend '{sb}' and load-cell backend '{lb}': the simulated rig "
                        "provides both devices, so use 'sim' for both or for neither")
     if sb == "sim" and not uses_wire(config, speed):
@@ -56,8 +57,9 @@ def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0) -> Devi
 
         sim = SimRig(config.sim)
         origin = clock.now()
-        cell = InProcessLoadCell(sim, clock, origin)
-        cell.max_abs_N = config.loadcell.max_abs_N
+        cell = InProcessLoadCell(sim, clock, origin) if lb != "none" else None
+        if cell is not None:
+            cell.max_abs_N = config.loadcell.max_abs_N
         return Devices(InProcessSlider(sim, clock, origin), cell, sim,
                        description="simulated rig, in-process", backstop="in-process: none needed")
     sim_proc = None
@@ -70,7 +72,7 @@ def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0) -> Devi
     try:
         slider, backstop, warnings = open_slider(cfg, clock)
         try:
-            loadcell = open_loadcell(cfg, clock)
+            loadcell = open_loadcell(cfg, clock) if lb != "none" else None
         except BaseException:
             slider.close()
             raise
@@ -78,7 +80,8 @@ def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0) -> Devi
         if sim_proc is not None:
             sim_proc.close()
         raise
-    desc = f"{slider.link.describe()}; load cell {cfg.loadcell.port}"
+    desc = f"{slider.link.describe()}; " + (f"load cell {cfg.loadcell.port}" if loadcell is not None
+                                            else "no load cell")
     if sim_proc is not None:
         desc = f"simulated rig on the wire: {desc}"
     return Devices(slider, loadcell, sim=sim_proc, description=desc, backstop=backstop, warnings=warnings)
@@ -100,7 +103,8 @@ def wire_config(config: RigConfig, endpoints: dict) -> RigConfig:
     s.steps_per_mm = config.sim.slider.steps_per_mm
     s.device_id = config.sim.drive.device_id
     lc = cfg.loadcell
-    lc.backend, lc.port, lc.mode = "serial", endpoints["loadcell"], config.sim.loadcell.mode
+    if lc.backend != "none":
+        lc.backend, lc.port, lc.mode = "serial", endpoints["loadcell"], config.sim.loadcell.mode
     return cfg
 
 

@@ -21,6 +21,7 @@ from rig.recorder import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC
 
 NUMERIC_FIELDS = ("seq", "t_s", "position_mm", "position_cmd_mm", "force_N", "stiffness_N_per_m",
                   "force_pred_N", "error_N", "forgetting", "step", "late_ms")
+OPTIONAL_FIELDS = ("force_model_N", "model_error_N")
 
 
 @dataclass
@@ -97,6 +98,9 @@ def read_log(path: str | Path, keep_raw: bool = False) -> TrialLog:
     samples = rows[SAMPLE_TOPIC]
     cols = {name: np.array([s.get(name, np.nan) for s in samples], dtype=float)
             for name in NUMERIC_FIELDS}
+    for name in OPTIONAL_FIELDS:  # present when a model ran in the loop
+        if samples and name in samples[0]:
+            cols[name] = np.array([s.get(name, np.nan) for s in samples], dtype=float)
     return TrialLog(
         path=path, samples=cols,
         step_kind=[s.get("step_kind", "") for s in samples],

@@ -30,14 +30,16 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.base import LoadCell, Slider, SliderStatus
+from drivers.base import LinkStats, LoadCell, Slider, SliderStatus
 from rig import __version__
 from rig.clock import Clock, RealClock
 from rig.config import RigConfig
 from rig.errors import DeviceError, RigError
 from rig.estimator import StiffnessRLS
+from rig.models.online import OnlineModel
+from rig.models.saved import SavedModel
 from rig.movewatch import MoveWatch
-from rig.protocol import Protocol, check_limits
+from rig.protocol import Approach, Protocol, check_limits
 from rig.realtime import Realtime, RealtimeState
 from rig.recorder import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC, Recorder, TrialInfo
 from rig.safety import Fault, SpeedMeter, TickState, check, check_move
@@ -65,6 +67,7 @@ class Snapshot:
     stiffness_N_per_m: float = 0.0
     log_path: str = ""
     fault: str = ""
+    force_model_N: float | None = None  # the loaded model's force, when one runs in the loop
 
 
 @dataclass
@@ -115,7 +118,7 @@ class Trial:
 
     def __init__(self, proto: Protocol, config: RigConfig, slider: Slider, loadcell: LoadCell,
                  clock: Clock, log_path: Path, info: TrialInfo | None = None,
-                 *, start_mm: float | None = None) -> None:
+                 *, start_mm: float | None = None, model: SavedModel | None = None) -> None:
         self.proto = proto
         self.config = config
         self.limits = proto.effective_limits(config.limits)
@@ -137,6 +140,14 @@ class Trial:
         # (no terminal, socket or disk); displays read `snapshot` from their own thread.
         self.on_tick = None
         self.realtime: RealtimeState | None = None
+        self.model = model
+        self.online = OnlineModel(model.model, model.values, self.period) if model is not None else None
+        if loadcell is None and self.online is None:
+            raise RigError("loadcell.backend is none: the force can only come from a model; give --model "
+                           "MODEL.json (or model: in the config)")
+        if loadcell is None and any(isinstance(s, Approach) for s in proto.steps):
+            raise RigError(f"{proto.source_path}: an approach step finds contact by force: it needs a "
+                           "load cell")
         self.live = None  # a rig.live.LiveView publishing the same messages, if any
         self._seq = self._late = self._missed = 0
         self._tick_times: list[float] = []
@@ -205,7 +216,8 @@ class Trial:
         rec.wait_idle(timeout_s=2.0)
         # Last, right before the first tick: a polled cell's reading ages from its reply, and
         # the header's fsync above can take longer than the stale limit on a busy disk.
-        self._prime_loadcell()
+        if self.loadcell is not None:
+            self._prime_loadcell()
         t0 = self._t0 = self.clock.now()
         outcome, fault_msg = "completed", None
         try:
@@ -269,10 +281,14 @@ class Trial:
             "software_version": __version__, "host": socket.gethostname(),
             "clock": info.clock, "rate_Hz": f"{self.rate:g}", "notes": info.notes,
             "python": sys.version.split()[0], "start_mm": f"{self._start_mm:.4f}",
-            "realtime": self.realtime.describe() if self.realtime else "", **info.extra,
+            "realtime": self.realtime.describe() if self.realtime else "",
+            "force_source": "load cell" if self.loadcell is not None else "model (no load cell)",
+            "model": self.model.model.name if self.model is not None else "", **info.extra,
         })
         rec.attach("protocol.yaml", "application/yaml", self.proto.source_text.encode(), now_ns)
         rec.attach("config.yaml", "application/yaml", self.config.text().encode(), now_ns)
+        if self.model is not None:
+            rec.attach("model.json", "application/json", self.model.text().encode(), now_ns)
 
     def _emit(self, rec: Recorder, topic: str, log_time_ns: int, message: dict) -> None:
         """To the log, and to the live view if there is one (both only queue it)."""
@@ -308,6 +324,9 @@ class Trial:
                     {"specimen": self.info.specimen, "start_mm": start_mm,
                      "steps": len(seq.steps)})
         rls = self.rls
+        online = self.online
+        if online is not None:
+            online.reset()
         status = SliderStatus(True, False, True, False)
         tare_sum, tare_n, tare_N = 0.0, 0, 0.0
         speedometer = SpeedMeter(2.0 * self.period)
@@ -361,9 +380,12 @@ class Trial:
             self._tick_times.append(now)
 
             # ---- measure: only fresh values feed the speed estimate and the move checks
-            reading = cell.latest()
+            reading = cell.latest() if cell is not None else None
             pr = slider.position()
             pos = pr.value
+            x_rel_mm = pos - seq.zero_mm  # from the trial's zero as it stands at the start of the tick
+            t_log = round(t, 6)
+            force_model = online.step(t_log, x_rel_mm / 1000.0) if online is not None else None
             status_fresh = False
             confirming = (stopping is not None and not stopping.confirmed) or (seq.done and watch is not None)
             if self._seq % status_every == 0 or confirming:
@@ -373,8 +395,10 @@ class Trial:
             speed = speedometer.update(pr)
             raw = reading.force_N if reading else 0.0
             age = reading.age_s if reading else None
+            if cell is None:  # no load cell: the model's estimate stands in, and is what is checked
+                raw, age = force_model, 0.0
             self._last_age = age
-            if seq.index < 0 and reading is not None and not reading.over_range:
+            if seq.index < 0 and reading is not None and not reading.over_range and cell is not None:
                 tare_sum += raw  # taring: zero the load cell on the mean of the first tare_s
                 tare_n += 1
                 tare_N = tare_sum / tare_n
@@ -382,8 +406,10 @@ class Trial:
 
             # ---- safety first: stop, then explain
             if fault is None:
-                found = check(TickState(force, pos, speed, age, status.alarm_code if status.alarm else 0,
-                                        bool(reading and reading.over_range), raw), lim)
+                checked = force if cell is not None else force * (1.0 + lim.model_force_margin)
+                found = check(TickState(checked, pos, speed, age, status.alarm_code if status.alarm else 0,
+                                        bool(reading and reading.over_range), raw,
+                                        "measured" if cell is not None else "estimated"), lim)
                 if found is None and rec.failure:
                     found = Fault("recording", rec.failure)
                 if found is None and seq.fault:
@@ -477,9 +503,9 @@ class Trial:
             x_prev_m = (pos - seq.zero_mm) / 1000.0
 
             kind = "fault" if fault else seq.kind
-            self._emit(rec, SAMPLE_TOPIC, clock.wall_ns(now), {
-                "seq": self._seq, "t_s": round(t, 6),
-                "position_mm": pos - seq.zero_mm,
+            sample = {
+                "seq": self._seq, "t_s": t_log,
+                "position_mm": x_rel_mm,
                 "position_cmd_mm": round(seq.position_cmd_mm(t), 6),
                 "force_N": force,
                 "stiffness_N_per_m": est.stiffness_N_per_m,
@@ -487,7 +513,12 @@ class Trial:
                 "forgetting": est.forgetting, "contact": est.updated,
                 "step": seq.index, "step_kind": kind,
                 "late_ms": round(lateness * 1000.0, 4),
-            })
+            }
+            if force_model is not None:
+                sample["force_model_N"] = force_model
+                if cell is not None:
+                    sample["model_error_N"] = force - force_model
+            self._emit(rec, SAMPLE_TOPIC, clock.wall_ns(now), sample)
             self._seq += 1
 
             if t >= next_health:
@@ -498,8 +529,8 @@ class Trial:
             self.snapshot = Snapshot(
                 state=self.snapshot.state, t_s=t, step=seq.index, step_kind=kind,
                 steps_total=len(seq.steps), time_left_s=seq.time_left_s(t), force_N=force,
-                position_mm=pos - seq.zero_mm, stiffness_N_per_m=est.stiffness_N_per_m,
-                log_path=str(self.log_path), fault=self.snapshot.fault)
+                position_mm=x_rel_mm, stiffness_N_per_m=est.stiffness_N_per_m,
+                log_path=str(self.log_path), fault=self.snapshot.fault, force_model_N=force_model)
             if self.on_tick is not None:
                 self.on_tick(self.snapshot)
 
@@ -516,7 +547,8 @@ class Trial:
     def _health(self, rec: Recorder, t: float, now: float, mark: int) -> None:
         times = np.asarray(self._tick_times[max(mark - 1, 0):])
         err = np.abs(np.diff(times) - self.period) * 1000.0 if len(times) > 1 else np.zeros(1)
-        s, c = self.slider.stats, self.loadcell.stats
+        s = self.slider.stats
+        c = self.loadcell.stats if self.loadcell is not None else LinkStats()
         self._emit(rec, HEALTH_TOPIC, self.clock.wall_ns(now), {
             "t_s": round(t, 6), "ticks": self._seq, "late_ticks": self._late,
             "missed_ticks": self._missed,

@@ -28,11 +28,12 @@ def position(config: RigConfig) -> dict:
     try:
         pos = dev.slider.read_position_mm()
         status = dev.slider.read_status()
-        reading = dev.loadcell.latest()
+        cell = dev.loadcell
+        reading = cell.latest() if cell is not None else None
         deadline = time.monotonic() + 0.5
-        while reading is None and time.monotonic() < deadline:
+        while cell is not None and reading is None and time.monotonic() < deadline:
             time.sleep(0.01)
-            reading = dev.loadcell.latest()
+            reading = cell.latest()
         return {"position_mm": pos, "moving": status.moving, "ready": status.ready,
                 "alarm_code": status.alarm_code,
                 "force_N": reading.force_N if reading else None, "devices": dev.description}
@@ -59,6 +60,8 @@ def move(config: RigConfig, to_mm: float, speed_mm_s: float, *, home: bool = Fal
         if not first.fresh:
             raise DeviceError("cannot read the slider's position: not moving")
         start = first.value
+        if dev.loadcell is None:
+            raise DeviceError("rig move needs a load cell to watch the force (loadcell.backend is none)")
         reading = dev.loadcell.latest()
         tare = reading.force_N if reading else 0.0
         if home:

@@ -53,6 +53,8 @@ SAMPLE_SCHEMA = {
         "step": {"type": "integer", "description": "step index (-1 tare)"},
         "step_kind": {"type": "string", "description": "tare, ramp, hold, return, approach, fault, done"},
         "late_ms": _num("tick start after its scheduled time, ms"),
+        "force_model_N": _num("the loaded model's force from the measured position (if a model runs), N"),
+        "model_error_N": _num("force_N - force_model_N, N"),
     },
     "required": ["seq", "t_s", "position_mm", "position_cmd_mm", "force_N", "stiffness_N_per_m",
                  "force_pred_N", "error_N", "forgetting", "step", "late_ms"],

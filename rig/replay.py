@@ -108,11 +108,47 @@ def summarize(log: TrialLog) -> dict:
         out["estimator"]["hold_end"] = {"stiffness_N_per_m": hc.stiffness_N_per_m,
                                         "measured_N_per_m": hc.measured_N_per_m,
                                         "rel_diff": hc.rel_diff}
+    if "model.json" in log.attachments and "force_model_N" in s:
+        out["model"] = model_check(log, config.loop.rate_Hz if config else 100.0)
     if config is not None:
         again = rerun_estimator(log, config)
         diff = float(np.max(np.abs(again - s["stiffness_N_per_m"])))
         out["estimator"]["rerun_max_diff_N_per_m"] = diff
         out["estimator"]["reproduced"] = bool(diff <= 1e-6 * max(1.0, float(np.max(np.abs(again)))))
+    return out
+
+
+def model_check(log: TrialLog, rate_Hz: float) -> dict:
+    """The model that ran in the loop: its error by step kind, and the same model evaluated
+    offline (vectorised, `Model.predict`) on the logged positions against the logged values."""
+    from rig.models.online import offline_force
+    from rig.models.saved import loads
+
+    saved = loads(log.attachments["model.json"].decode(), f"{log.path}:model.json")
+    s = log.samples
+    online = s["force_model_N"]
+    offline = offline_force(saved.model, saved.values, s["t_s"], s["position_mm"] / 1000.0, 1.0 / rate_Hz)
+    diff = float(np.max(np.abs(offline - online)))
+    out = {"model": saved.model.name, "offline_max_diff_N": diff, "offline_agrees": diff <= 1e-9,
+           "force_source": log.trial.get("force_source", "load cell")}
+    if "model_error_N" in s:
+        err = s["model_error_N"]
+        kinds = np.array(log.step_kind)
+        by_kind = {}
+        for kind in ("ramp", "hold", "return"):
+            sel = kinds == kind
+            if sel.any():
+                by_kind[kind] = {"rmse_N": float(np.sqrt(np.mean(err[sel] ** 2))),
+                                 "mean_N": float(np.mean(err[sel])), "samples": int(sel.sum())}
+        hold = np.flatnonzero(kinds == "hold")
+        if len(hold):  # the paper's early and late hold (first sixth / the rest)
+            cut = hold[0] + max(len(hold) // 6, 1)
+            for name, sel in (("hold_early", hold[hold < cut]), ("hold_late", hold[hold >= cut])):
+                if len(sel):
+                    by_kind[name] = {"rmse_N": float(np.sqrt(np.mean(err[sel] ** 2))),
+                                     "mean_N": float(np.mean(err[sel])), "samples": len(sel)}
+        out["error_by_phase"] = by_kind
+        out["rmse_N"] = float(np.sqrt(np.mean(err ** 2)))
     return out
 
 
@@ -145,6 +181,14 @@ def format_summary(d: dict) -> str:
         h = e["hold_end"]
         lines.append(f"hold end   k = {h['stiffness_N_per_m']:.2f} N/m vs measured F/x = "
                      f"{h['measured_N_per_m']:.2f} N/m ({h['rel_diff'] * 100:+.2f} %)")
+    if "model" in d:
+        m = d["model"]
+        lines.append(f"model      {m['model']} ran in the loop ({m['force_source']}); offline on the logged "
+                     f"positions it {'agrees' if m['offline_agrees'] else 'DOES NOT agree'} "
+                     f"(max diff {m['offline_max_diff_N']:.1e} N)")
+        if "error_by_phase" in m:
+            parts = ", ".join(f"{k} {v['rmse_N']:.4f}" for k, v in m["error_by_phase"].items())
+            lines.append(f"           error RMSE {m['rmse_N']:.4f} N; by phase (N): {parts}")
     if "reproduced" in e:
         verdict = "reproduces" if e["reproduced"] else "DOES NOT reproduce"
         lines.append(f"re-run     the estimator {verdict} the logged estimates "

@@ -24,6 +24,7 @@ class TickState:
     alarm_code: int = 0  # 0 = drive reports no alarm
     force_over_range: bool = False  # the load cell reported a force beyond its range
     raw_force_N: float = 0.0  # the untared value the cell reported
+    force_source: str = "measured"  # or "estimated": the model's force on a rig without a load cell
 
 
 @dataclass(frozen=True)
@@ -43,8 +44,9 @@ def check(state: TickState, limits: LimitsConfig) -> Fault | None:
         age = "no reading" if state.loadcell_age_s is None else f"{state.loadcell_age_s * 1000:.0f} ms"
         return Fault("loadcell_stale", f"load cell silent ({age}; limit {limits.loadcell_stale_ms:g} ms)")
     if state.force_N > limits.max_force_N:
-        return Fault("force_limit",
-                     f"force {state.force_N:.3f} N above the limit of {limits.max_force_N:g} N")
+        what = "force" if state.force_source == "measured" else \
+            f"estimated force x (1 + margin {limits.model_force_margin:g})"
+        return Fault("force_limit", f"{what} {state.force_N:.3f} N above the limit of {limits.max_force_N:g} N")
     lo, hi = limits.travel_mm
     if not lo <= state.position_abs_mm <= hi:
         return Fault("travel", f"position {state.position_abs_mm:.3f} mm outside the travel "

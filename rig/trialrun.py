@@ -31,6 +31,7 @@ class RunOptions:
     on_tick: Callable[[Snapshot], None] | None = None
     on_start: Callable[[Trial, Devices], None] | None = None  # after the devices open
     live_port: int | None = None  # publish live on this port (Foxglove WebSocket), None = off
+    model_path: str | None = None  # a saved model to run in the loop (default: the config's `model:`)
 
 
 def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None) -> TrialResult:
@@ -39,6 +40,7 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None
     The protocol's limits are checked again from where the slider actually is before
     anything moves (`LimitError`). `warn` gets each warning about the rig (stderr by default).
     """
+    model = load_model_for(config, opts.model_path)
     clock = RealClock(config.loop.spin_ms / 1000.0) if opts.speed == 1.0 else VirtualClock(opts.speed)
     if opts.speed != 1.0 and config.slider.backend != "sim":
         raise RigError("--speed other than 1 needs the simulated rig (slider.backend: sim)")
@@ -51,7 +53,11 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None
     info = TrialInfo(specimen=opts.specimen, operator=opts.operator, notes=opts.notes,
                      clock=clock_name, extra={"devices": devices.description, "backstop": devices.backstop,
                                               "warnings": " | ".join(devices.warnings)})
-    trial = Trial(proto, config, devices.slider, devices.loadcell, clock, log_path, info)
+    try:
+        trial = Trial(proto, config, devices.slider, devices.loadcell, clock, log_path, info, model=model)
+    except BaseException:
+        devices.close()
+        raise
     bar = ProgressBar(plan(proto, config).duration_s, lambda: trial.snapshot) if opts.progress else None
     trial.on_tick = opts.on_tick
     live = None
@@ -98,6 +104,21 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None
         if live is not None:
             live.close()
         devices.close()
+
+
+def load_model_for(config: RigConfig, path: str | None):
+    """The saved model named on the command line, else in the config (relative to the config)."""
+    from rig.models.online import check_online
+    from rig.models.saved import load
+
+    if not path and config.model:
+        base = Path(config.source_path).parent if config.source_path.endswith((".yaml", ".yml")) else Path()
+        path = str(base / config.model)
+    if not path:
+        return None
+    saved = load(path)
+    check_online(saved.model)
+    return saved
 
 
 def _stderr(text: str) -> None:

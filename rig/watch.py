@@ -32,6 +32,9 @@ def format_status(reply: dict) -> str:
             f"stiffness {snap['stiffness_N_per_m']:.1f} N/m",
             f"log       {t.get('log')}",
         ]
+        if snap.get("force_model_N") is not None:
+            lines.insert(-1, f"model     {snap['force_model_N']:.3f} N   error "
+                             f"{snap['force_N'] - snap['force_model_N']:+.3f} N (measured - model)")
         if snap.get("fault"):
             lines.append(f"FAULT     {snap['fault']}")
     elif snap:
@@ -71,6 +74,9 @@ class Watcher:
             f"  k        {snap['stiffness_N_per_m']:8.1f} N/m"
             + (f"   FAULT {snap['fault']}" if snap.get("fault") else ""),
         ]
+        if snap.get("force_model_N") is not None:
+            block.insert(2, f"  model    {snap['force_model_N']:8.3f} N   error "
+                            f"{snap['force_N'] - snap['force_model_N']:+.3f} N")
         if self.tty and self._drawn:
             self.out.write(f"\x1b[{self._drawn}F")
         text = "\n".join(line + ("\x1b[K" if self.tty else "") for line in block) + "\n"

@@ -1,0 +1,122 @@
+"""A fitted model on disk (`rig analyze ... --save MODEL.json`), and back.
+
+The file carries what it takes to run the model again and to judge it: the effects, the
+parameters (SI, with units and standard errors), the trials and noise it was fitted on,
+and the software version. Only catalogue effects are saved: a plugin's code is not.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rig import __version__
+from rig.errors import RigError
+from rig.models.catalogue import CATALOGUE
+from rig.models.core import Model
+
+FORMAT = "indentation-rig model 1"
+
+
+@dataclass
+class SavedModel:
+    model: Model
+    values: dict[str, float]  # SI
+    stderr: dict[str, float | None] = field(default_factory=dict)
+    trials: list[str] = field(default_factory=list)
+    noise_N: float | None = None
+    rmse_N: float | None = None
+    software_version: str = __version__
+    source: str = ""
+
+    def as_dict(self) -> dict:
+        units = {p.name: p.unit for p in self.model.params}
+        return {"format": FORMAT, "model": self.model.name, "effects": self.model.effect_names,
+                "parameters": {k: {"value": v, "unit": units[k], "stderr": self.stderr.get(k)}
+                               for k, v in self.values.items()},
+                "fitted_on": {"trials": self.trials, "noise_N": self.noise_N, "rmse_N": self.rmse_N},
+                "software_version": self.software_version}
+
+    def text(self) -> str:
+        return json.dumps(self.as_dict(), indent=2) + "\n"
+
+    def describe(self) -> str:
+        lines = [f"model     {self.model.name}  ({' + '.join(self.model.effect_names)})"]
+        if self.source:
+            lines.insert(0, f"file      {self.source}")
+        for p in self.model.params:
+            err = self.stderr.get(p.name)
+            e = f" +/- {err:.3g}" if err is not None else ""
+            lines.append(f"  {p.name:<18} {self.values[p.name]:>12.5g}{e}  {p.unit}")
+        if self.trials:
+            lines.append(f"fitted on {', '.join(self.trials)}")
+        if self.noise_N is not None and self.rmse_N is not None:
+            lines.append(f"          RMSE {self.rmse_N:.4g} N, noise {self.noise_N:.4g} N")
+        lines.append(f"software  indentation-rig {self.software_version}")
+        return "\n".join(lines)
+
+
+def from_fit(res, trials: list[str]) -> SavedModel:
+    unknown = [e.name for e in res.model.effects if e.source != "catalogue"]
+    if unknown:
+        raise RigError(f"--save: effect(s) {', '.join(unknown)} come from a plugin; only catalogue effects "
+                       "can be saved")
+    return SavedModel(res.model, dict(res.values), dict(res.stderr), trials, res.noise_N,
+                      res.overall.rmse_N)
+
+
+def save(saved: SavedModel, path: str | Path) -> Path:
+    path = Path(path)
+    try:
+        path.write_text(saved.text())
+    except OSError as exc:
+        raise RigError(f"cannot write {path}: {exc.strerror}") from None
+    return path
+
+
+def loads(text: str, source: str = "<model>") -> SavedModel:
+    def bad(msg: str) -> RigError:
+        return RigError(f"{source}: {msg}")
+
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise bad(f"not JSON (line {exc.lineno}: {exc.msg})") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise bad(f"not a saved model (expected \"format\": \"{FORMAT}\"; write one with "
+                  "`rig analyze ... --save MODEL.json`)")
+    effects = data.get("effects")
+    if not isinstance(effects, list) or not effects:
+        raise bad("\"effects\" must be a non-empty list")
+    missing = [e for e in effects if e not in CATALOGUE]
+    if missing:
+        raise bad(f"unknown effect(s) {', '.join(map(str, missing))} (`rig models` lists the catalogue)")
+    try:
+        model = Model([CATALOGUE[e] for e in effects], name=str(data.get("model") or ""))
+    except ValueError as exc:
+        raise bad(str(exc)) from None
+    params = data.get("parameters")
+    if not isinstance(params, dict):
+        raise bad("\"parameters\" must be an object")
+    values, stderr = {}, {}
+    for name in model.param_names:
+        entry = params.get(name)
+        value = entry.get("value") if isinstance(entry, dict) else None
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise bad(f"parameter '{name}' needs a numeric \"value\"")
+        values[name] = float(value)
+        err = entry.get("stderr")
+        stderr[name] = float(err) if isinstance(err, int | float) and not isinstance(err, bool) else None
+    fitted = data.get("fitted_on") or {}
+    return SavedModel(model, values, stderr, list(fitted.get("trials") or []), fitted.get("noise_N"),
+                      fitted.get("rmse_N"), str(data.get("software_version", "?")), source)
+
+
+def load(path: str | Path) -> SavedModel:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise RigError(f"cannot read model file {path}: {exc.strerror}") from None
+    return loads(text, str(path))
