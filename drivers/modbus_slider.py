@@ -77,6 +77,17 @@ def open_client(link: ModbusLink) -> ModbusSerialClient | ModbusTcpClient:
     return client
 
 
+def _matches(reply, args: tuple, kwargs: dict) -> bool:
+    """A read reply carries as many registers as asked for; a write reply echoes address and count."""
+    if "count" in kwargs:
+        return len(getattr(reply, "registers", ())) == kwargs["count"]
+    if len(args) == 2 and isinstance(args[1], list):
+        address, values = args
+        same_count = getattr(reply, "count", len(values)) == len(values)
+        return getattr(reply, "address", address) == address and same_count
+    return True
+
+
 def _no_delay(client) -> object:
     """TCP_NODELAY on the client's socket (pymodbus makes a new one on every reconnect).
 
@@ -114,11 +125,6 @@ class ModbusSlider:
     # ------------------------------------------------------------ bus calls
     def _call(self, what: str, fn, *args, **kwargs):
         self.stats.transactions += 1
-        if self._consecutive and self.link.transport == "rtu":
-            # RTU has no transaction id: a reply that came after its timeout would be taken for
-            # the answer to this request. Drop whatever arrived since.
-            with contextlib.suppress(Exception):
-                self.client.socket.reset_input_buffer()
         if self.link.transport == "tcp" and getattr(self.client, "socket", None) is not self._sock:
             self._sock = _no_delay(self.client)
         try:
@@ -129,6 +135,9 @@ class ModbusSlider:
             return self._failed(what, f"link error: {exc}")
         if reply is None or reply.isError():
             return self._failed(what, f"exception reply {getattr(reply, 'exception_code', '?')}")
+        if not _matches(reply, args, kwargs):
+            # RTU has no transaction id: this is the late answer to an earlier request.
+            return self._failed(what, "the reply does not match the request (a late reply to an earlier one)")
         self._consecutive = 0
         return reply
 
@@ -136,10 +145,22 @@ class ModbusSlider:
         self.stats.errors += 1
         self._consecutive += 1
         self.last_error = f"{what}: {why}"
+        if self.link.transport == "rtu":
+            self._drain()
         if self._consecutive >= self.max_consecutive_errors:
             raise DeviceError(f"slider ({self.link.describe()}): {self._consecutive} failed "
                               f"transactions in a row; last: {self.last_error}")
         return None
+
+    def _drain(self) -> None:
+        """After a failed RTU transaction: let a late reply arrive, then drop it, so the next
+        request is not answered by it. Costs one timeout, only after a failure."""
+        sock = getattr(self.client, "socket", None)
+        if sock is None:
+            return
+        with contextlib.suppress(Exception):
+            time.sleep(self.link.timeout_s)
+            sock.reset_input_buffer()
 
     def _write(self, what: str, address: int, values: list[int]) -> bool:
         return self._call(what, self.client.write_registers, address, values) is not None
@@ -214,7 +235,9 @@ class ModbusSlider:
                  *to_words(max(round(accel * spm), 1)),
                  *to_words(round(self.current_percent * 10)),  # 1 = 0.1 %
                  *to_words(1)]  # trigger: apply all and start
-        self._write_checked("move", self.regs.direct_data, block)
+        # An absolute move is idempotent: a write whose reply was lost is sent once more.
+        if not self._write("move", self.regs.direct_data, block):
+            self._write_checked("move (again)", self.regs.direct_data, block)
 
     def stop(self, attempts: int = 3) -> bool:
         """STOP bit on the input command, retried at once if not acknowledged; released by the

@@ -53,7 +53,9 @@ class MoveWatch:
             self.started = True
         elapsed = t_s - self.t0_s
         far = abs(self.to_mm - self.from_mm) > self.tolerance_mm
-        if not self.started and far and elapsed > lim.move_start_s:
+        # Judged only on a fresh position: a link that fails for a while is not a drive that stands.
+        if not self.started and far and elapsed > lim.move_start_s and position_mm is not None \
+                and moving is not True:
             return (f"the drive did not start the move to {self.to_mm:.3f} mm within "
                     f"{lim.move_start_s:g} s (STOP held by another master, drive disabled, or an alarm)")
         if t_s > self.deadline_s:
