@@ -29,7 +29,7 @@ from rig.models.core import Model
 ADEQUATE_RMSE = 1.2
 ADEQUATE_PHASE = 1.5
 ADEQUATE_WHITE = 1.5  # residual correlation time over the noise's own
-SCREEN_SAMPLES = 2000  # per trial, for the starts of a long record
+SCREEN_SAMPLES = 4000  # per trial, for the starts of a long record
 AT_BOUND = 1e-4  # fit units (order one): closer than this to a bound is "at" it
 
 __all__ = ["ErrorStats", "FitResult", "error_table", "evaluate", "fit", "integral_scale", "noise_of"]
@@ -236,7 +236,7 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     residuals = [t.force_N - p for t, p in zip(trials, predictions, strict=True)]
     overall, phases = error_table(trials, residuals)
     noise = noise_of(trials, residuals)
-    stderr = _stderr(best, model.param_names, ps.scale_vector(ps._n(z)), overall)
+    stderr = _stderr(best, model.param_names, ps.jacobian(z), overall)
     n = overall.n
     bic = n * np.log(max(overall.rmse_N ** 2, 1e-300)) + len(model.params) * np.log(n)
     warnings = _warnings(model, values, z, lo, hi)
@@ -260,13 +260,15 @@ def _inside(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.clip(z, lo_in, hi_in)
 
 
-def _stderr(sol, names: list[str], scale, overall: ErrorStats) -> dict[str, float | None]:
-    """Standard errors from the Jacobian (white-noise assumption: optimistic for correlated residuals)."""
+def _stderr(sol, names: list[str], to_si, overall: ErrorStats) -> dict[str, float | None]:
+    """Standard errors from the Jacobian (white-noise assumption: optimistic for correlated
+    residuals), carried from the fit variables to SI through `to_si` = d(SI)/dz."""
     J = sol.jac
     dof = max(overall.n - len(names), 1)
     s2 = 2.0 * sol.cost / dof
     try:
-        err = np.sqrt(np.clip(np.diag(np.linalg.inv(J.T @ J)) * s2, 0.0, None)) * scale
+        cov = to_si @ np.linalg.inv(J.T @ J) @ to_si.T * s2
+        err = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     except np.linalg.LinAlgError:
         return dict.fromkeys(names)
     return {n: (float(e) if np.isfinite(e) else None) for n, e in zip(names, err, strict=True)}
