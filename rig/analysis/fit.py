@@ -203,7 +203,9 @@ def _newton_polish(resid, sol, lo, hi, steps: int = 3):
     settles them, so the same problem posed in other units gives the same parameters.
     """
     z = sol.x.copy()
-    free = (z - lo > 1e-6 * np.maximum(1.0, np.abs(lo))) & (hi - z > 1e-6 * np.maximum(1.0, np.abs(hi)))
+    with np.errstate(invalid="ignore"):
+        free = ((~np.isfinite(lo) | (z - lo > 1e-6 * np.maximum(1.0, np.abs(lo))))
+                & (~np.isfinite(hi) | (hi - z > 1e-6 * np.maximum(1.0, np.abs(hi)))))
     if not np.any(free):
         return sol
     r = resid(z)
@@ -220,10 +222,12 @@ def _newton_polish(resid, sol, lo, hi, steps: int = 3):
         trial = np.clip(z + step, lo, hi)
         r_new = resid(trial)
         cost_new = 0.5 * float(r_new @ r_new)
-        if not cost_new <= cost:
+        # near the optimum the cost no longer resolves the step (rounding): a step that does not
+        # make it worse beyond that is taken, since it is where the gradient vanishes
+        if not cost_new <= cost * (1.0 + 1e-12):
             break
         z, r, cost = trial, r_new, cost_new
-    if cost < sol.cost or np.array_equal(z, sol.x):
+    if cost <= sol.cost * (1.0 + 1e-12):
         sol.x, sol.cost, sol.fun = z, cost, r
     return sol
 
