@@ -172,10 +172,12 @@ def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0
         nfev += again.nfev
         if again.cost <= best.cost:
             best = again
+        best = _newton_polish(_residual_fn(model, ps, trials, scales), best, lo, hi)
     return _result(model, ps, trials, scales, best, lo, hi, nfev, t0)
 
 
-def _solve(model, ps: ParamScaling, trials, scales: Scales, z0, lo, hi, tol, max_nfev, jac="2-point"):
+def _residual_fn(model, ps: ParamScaling, trials, scales: Scales):
+    """Residual in units of the record's force, as a function of the fit variables."""
     f_meas = [t.force_N for t in trials]
     names = model.param_names
     inv_F = 1.0 / scales.force_N
@@ -185,8 +187,49 @@ def _solve(model, ps: ParamScaling, trials, scales: Scales, z0, lo, hi, tol, max
         r = np.concatenate([model.predict(vals, t.motion) - f for t, f in zip(trials, f_meas, strict=True)])
         return np.nan_to_num(r * inv_F, nan=1e6, posinf=1e6, neginf=-1e6)
 
-    return least_squares(resid, z0, bounds=(lo, hi), method="trf", x_scale=1.0, max_nfev=max_nfev,
-                         ftol=tol, xtol=tol, gtol=tol, jac=jac)
+    return resid
+
+
+def _solve(model, ps: ParamScaling, trials, scales: Scales, z0, lo, hi, tol, max_nfev, jac="2-point"):
+    return least_squares(_residual_fn(model, ps, trials, scales), z0, bounds=(lo, hi), method="trf",
+                         x_scale=1.0, max_nfev=max_nfev, ftol=tol, xtol=tol, gtol=tol, jac=jac)
+
+
+def _newton_polish(resid, sol, lo, hi, steps: int = 3):
+    """Gauss-Newton steps with a central-difference Jacobian from an interior optimum.
+
+    A trust-region solver stops when the cost stops falling, which along a nearly flat
+    direction (terms that trade off) leaves the last digits to chance; a full Newton step
+    settles them, so the same problem posed in other units gives the same parameters.
+    """
+    z = sol.x.copy()
+    with np.errstate(invalid="ignore"):
+        free = ((~np.isfinite(lo) | (z - lo > 1e-6 * np.maximum(1.0, np.abs(lo))))
+                & (~np.isfinite(hi) | (hi - z > 1e-6 * np.maximum(1.0, np.abs(hi)))))
+    if not np.any(free):
+        return sol
+    r = resid(z)
+    cost = 0.5 * float(r @ r)
+    for _ in range(steps):
+        h = 6e-6 * np.maximum(1.0, np.abs(z))
+        J = np.empty((len(r), int(free.sum())))
+        for j, i in enumerate(np.flatnonzero(free)):
+            dz = np.zeros_like(z)
+            dz[i] = h[i]
+            J[:, j] = (resid(z + dz) - resid(z - dz)) / (2 * h[i])
+        step = np.zeros_like(z)
+        step[free] = np.linalg.lstsq(J, -r, rcond=None)[0]
+        trial = np.clip(z + step, lo, hi)
+        r_new = resid(trial)
+        cost_new = 0.5 * float(r_new @ r_new)
+        # near the optimum the cost no longer resolves the step (rounding): a step that does not
+        # make it worse beyond that is taken, since it is where the gradient vanishes
+        if not cost_new <= cost * (1.0 + 1e-12):
+            break
+        z, r, cost = trial, r_new, cost_new
+    if cost <= sol.cost * (1.0 + 1e-12):
+        sol.x, sol.cost, sol.fun = z, cost, r
+    return sol
 
 
 def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> FitResult:
@@ -197,7 +240,7 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     residuals = [t.force_N - p for t, p in zip(trials, predictions, strict=True)]
     overall, phases = error_table(trials, residuals)
     noise = noise_of(trials, residuals)
-    stderr = _stderr(best, model.param_names, ps.scale_vector(ps._n(z)), overall)
+    stderr = _stderr(best, model.param_names, ps.jacobian(z), overall)
     n = overall.n
     bic = n * np.log(max(overall.rmse_N ** 2, 1e-300)) + len(model.params) * np.log(n)
     warnings = _warnings(model, values, z, lo, hi)
@@ -221,13 +264,15 @@ def _inside(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.clip(z, lo_in, hi_in)
 
 
-def _stderr(sol, names: list[str], scale, overall: ErrorStats) -> dict[str, float | None]:
-    """Standard errors from the Jacobian (white-noise assumption: optimistic for correlated residuals)."""
+def _stderr(sol, names: list[str], to_si, overall: ErrorStats) -> dict[str, float | None]:
+    """Standard errors from the Jacobian (white-noise assumption: optimistic for correlated
+    residuals), carried from the fit variables to SI through `to_si` = d(SI)/dz."""
     J = sol.jac
     dof = max(overall.n - len(names), 1)
     s2 = 2.0 * sol.cost / dof
     try:
-        err = np.sqrt(np.clip(np.diag(np.linalg.inv(J.T @ J)) * s2, 0.0, None)) * scale
+        cov = to_si @ np.linalg.inv(J.T @ J) @ to_si.T * s2
+        err = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     except np.linalg.LinAlgError:
         return dict.fromkeys(names)
     return {n: (float(e) if np.isfinite(e) else None) for n, e in zip(names, err, strict=True)}

@@ -25,23 +25,24 @@ def plot_trial_fit(res: FitResult, k: int, out: Path, title_extra: str = "") -> 
     plt = pyplot()
     tr = res.trials[k]
     t = tr.motion.t_s
+    kf, u = tr.force_unit
     fig, (ax, axr) = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True, height_ratios=[3, 1.3],
                                   constrained_layout=True)
     _shade(ax, t, tr.phase)
-    ax.plot(t, tr.force_N, color="k", lw=0.7, label="measured")
-    ax.plot(t, res.predictions[k], color="tab:red", lw=1.4, label=f"model: {res.model.name}")
-    ax.set_ylabel("force (N)")
+    ax.plot(t, tr.force_N / kf, color="k", lw=0.7, label="measured")
+    ax.plot(t, res.predictions[k] / kf, color="tab:red", lw=1.4, label=f"model: {res.model.name}")
+    ax.set_ylabel(f"force ({u})")
     handles, labels = ax.get_legend_handles_labels()
     handles += [Patch(color=PHASE_COLOURS[p]) for p in PHASES]
     ax.legend(handles, labels + list(PHASES), fontsize=8, ncol=3, loc="upper right")
-    ax.set_title(f"{tr.name}{title_extra}\nRMSE {res.per_trial[k]['rmse_N']:.3f} N "
-                 f"(noise {res.noise_N:.3f} N)", fontsize=9)
+    ax.set_title(f"{tr.name}{title_extra}\nRMSE {res.f(res.per_trial[k]['rmse_N'])} "
+                 f"(noise {res.f(res.noise_N)})", fontsize=9)
     _shade(axr, t, tr.phase)
-    axr.plot(t, res.residuals[k], color="tab:blue", lw=0.6)
+    axr.plot(t, res.residuals[k] / kf, color="tab:blue", lw=0.6)
     axr.axhline(0, color="k", lw=0.6)
     for s in (-2, 2):
-        axr.axhline(s * res.noise_N, color="grey", lw=0.6, ls="--")
-    axr.set_ylabel("residual (N)\nmeasured - model")
+        axr.axhline(s * res.noise_N / kf, color="grey", lw=0.6, ls="--")
+    axr.set_ylabel(f"residual ({u})\nmeasured - model")
     axr.set_xlabel("time (s)")
     fig.savefig(out, dpi=110)
     plt.close(fig)
@@ -53,12 +54,13 @@ def plot_phase_errors(results: list[FitResult], out: Path) -> Path:
     fig, ax = plt.subplots(figsize=(9, 4.5), constrained_layout=True)
     width = 0.8 / max(len(results), 1)
     x = np.arange(len(PHASES))
+    kf, u = results[0].force_unit
     for i, r in enumerate(results):
-        vals = [r.phases[p].rmse_N if r.phases[p] else 0.0 for p in PHASES]
+        vals = [r.phases[p].rmse_N / kf if r.phases[p] else 0.0 for p in PHASES]
         ax.bar(x + i * width - 0.4 + width / 2, vals, width, label=r.model.name)
-    ax.axhline(results[0].noise_N, color="k", ls="--", lw=1, label="sensor noise")
+    ax.axhline(results[0].noise_N / kf, color="k", ls="--", lw=1, label="sensor noise")
     ax.set_xticks(x, PHASES)
-    ax.set_ylabel("RMSE (N)")
+    ax.set_ylabel(f"RMSE ({u})")
     ax.set_yscale("log")
     ax.set_title("error by phase")
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
@@ -74,21 +76,25 @@ def plot_fe(res: FitResult, out: Path) -> Path | None:
     if len(pts) < 2:
         return None
     plt = pyplot()
+    kf, u = res.force_unit
     fig, ax = plt.subplots(figsize=(7, 5.5), constrained_layout=True)
+    xs = [p["force_30s_N"] / kf for p in pts]
+    ys = [p["mean_error_N"] / kf for p in pts]
+    rxs = [p["relax_10s_N"] / kf for p in pts]
+    rys = [p["std_error_N"] / kf for p in pts]
+    floor = 1e-3 * max(max(xs), 1e-300)  # an ellipse never thinner than a thousandth of the force
     for i, p in enumerate(pts):
         c = f"C{i % 10}"
-        ax.add_patch(Ellipse((p["force_30s_N"], p["mean_error_N"]), 2 * max(p["relax_10s_N"], 1e-3),
-                             2 * p["std_error_N"], fill=False, color=c, lw=1.5))
-        ax.plot(p["force_30s_N"], p["mean_error_N"], "o", color=c, label=p["trial"][:40])
-    xs = [p["force_30s_N"] for p in pts]
-    rx = max(p["relax_10s_N"] for p in pts)
-    ry = max(abs(p["mean_error_N"]) + p["std_error_N"] for p in pts)
+        ax.add_patch(Ellipse((xs[i], ys[i]), 2 * max(rxs[i], floor), 2 * rys[i], fill=False, color=c, lw=1.5))
+        ax.plot(xs[i], ys[i], "o", color=c, label=p["trial"][:40])
+    rx = max(rxs)
+    ry = max(abs(y) + r for y, r in zip(ys, rys, strict=True))
     ax.set_xlim(min(xs) - 1.3 * rx, max(xs) + 1.3 * rx)
     ax.set_ylim(-1.3 * ry, 1.3 * ry)
     ax.axhline(0, color="k", lw=0.6)
-    ax.set_xlabel("measured force after 30 s of relaxation (N)")
-    ax.set_ylabel("mean estimation error (N)")
-    ax.set_title(f"f-e plot, model {res.model.name}: radii = relaxation in the first 10 s (x), "
+    ax.set_xlabel(f"measured force at mid-hold, 30 s of a 60 s hold ({u})")
+    ax.set_ylabel(f"mean estimation error ({u})")
+    ax.set_title(f"f-e plot, model {res.model.name}: radii = relaxation in the first sixth of the hold (x), "
                  "error std (y)", fontsize=9)
     ax.legend(fontsize=7)
     fig.savefig(out, dpi=110)
@@ -107,11 +113,12 @@ def plot_residual_steps(fits: list[tuple[str, FitResult]], out: Path) -> Path:
             ax = axes[i][k]
             tr = r.trials[k]
             _shade(ax, tr.motion.t_s, tr.phase)
-            ax.plot(tr.motion.t_s, r.residuals[k], lw=0.5, color="tab:blue")
+            kf, u = tr.force_unit
+            ax.plot(tr.motion.t_s, r.residuals[k] / kf, lw=0.5, color="tab:blue")
             ax.axhline(0, color="k", lw=0.5)
-            ax.set_title(f"{label}: RMSE {r.per_trial[k]['rmse_N']:.3f} N", fontsize=8)
+            ax.set_title(f"{label}: RMSE {r.f(r.per_trial[k]['rmse_N'])}", fontsize=8)
             if k == 0:
-                ax.set_ylabel("residual (N)", fontsize=8)
+                ax.set_ylabel(f"residual ({u})", fontsize=8)
             if i == len(fits) - 1:
                 ax.set_xlabel(f"time (s), {tr.name[:30]}", fontsize=8)
     fig.savefig(out, dpi=100)
@@ -133,17 +140,18 @@ def write_report(res: FitResult, out_dir: str | Path, *, compare: list[FitResult
     if compare:
         md += ["## All named models", "", "```", text, "```", ""]
     if holdout:
-        md += ["## Held-out trials", "", "| trial | RMSE (N) | mean (N) | " + " | ".join(PHASES) + " |",
+        kf, u = res.force_unit
+        md += ["## Held-out trials", "", f"| trial | RMSE ({u}) | mean ({u}) | " + " | ".join(PHASES) + " |",
                "|---|---|---|" + "---|" * len(PHASES)]
         for h in holdout:
-            ph = " | ".join(f"{h['phases'][p]['rmse_N']:.4f}" if h["phases"][p] else "-" for p in PHASES)
-            md.append(f"| {h['trial']} | {h['rmse_N']:.4f} | {h['mean_N']:+.4f} | {ph} |")
+            ph = " | ".join(f"{h['phases'][p]['rmse_N'] / kf:.4g}" if h["phases"][p] else "-" for p in PHASES)
+            md.append(f"| {h['trial']} | {h['rmse_N'] / kf:.4g} | {h['mean_N'] / kf:+.4g} | {ph} |")
         md.append("")
     if before is not None:
         png = plot_residual_steps([(before.model.name, before), (res.model.name, res)],
                                   out / "before_after.png")
         md += ["## Before and after adding", "",
-               f"RMSE {before.overall.rmse_N:.4f} N -> {res.overall.rmse_N:.4f} N", "",
+               f"RMSE {before.f(before.overall.rmse_N)} -> {res.f(res.overall.rmse_N)}", "",
                f"![before and after]({png.name})", ""]
     if explain_text:
         md += ["## What is missing", "", "```", explain_text, "```", ""]
@@ -158,8 +166,9 @@ def write_report(res: FitResult, out_dir: str | Path, *, compare: list[FitResult
     md += ["## Error by phase", "", f"![error by phase]({phase_png.name})", ""]
     if fe_png:
         md += ["## f-e plot", "", "One ellipse per trial: centre at the force after 30 s of relaxation "
-               "and the mean estimation error; radii: relaxation in the first 10 s and the error's "
-               "standard deviation.", "", f"![f-e plot]({fe_png.name})", ""]
+               "(mid-hold for other holds) and the mean estimation error; radii: relaxation in the first "
+               "10 s (the first sixth of the hold) and the error's standard deviation.", "",
+               f"![f-e plot]({fe_png.name})", ""]
     md += ["## Fits", ""] + [f"![{p.stem}]({p.name})" for p in figs]
     (out / "report.md").write_text("\n".join(md) + "\n")
     return out / "report.md"

@@ -82,6 +82,19 @@ class ParamScaling:
         self.dims = [parse_unit(p.unit) for p in self.model.params]
         names = self.model.param_names
         self._n_index = names.index("n") if "n" in names else None
+        # A polynomial's monomials x/L, (x/L)^2, (x/L)^3 are nearly collinear on [0, 1]: fitted as
+        # they are, their coefficients trade off and the last digits are left to rounding. The fit
+        # works on coefficients of an orthonormal basis of the same span instead.
+        poly = [f"k{i}_N_per_m{'' if i == 3 else 4 - i}" for i in (3, 2, 1)]  # degree 1, 2, 3
+        self._poly = [names.index(p) for p in poly] if all(p in names for p in poly) else None
+        params = self.model.params
+        free = self._poly and all(not np.isfinite(params[i].lo) and not np.isfinite(params[i].hi)
+                                  for i in self._poly)
+        if free:
+            gram = np.array([[1.0 / (i + j + 1) for j in (1, 2, 3)] for i in (1, 2, 3)])
+            self._chol = np.linalg.cholesky(gram)  # monomial m = L^-T c, c = L^T m
+        else:
+            self._poly = None
 
     def _n(self, vals: np.ndarray) -> float:
         return float(vals[self._n_index]) if self._n_index is not None else 0.0
@@ -89,19 +102,44 @@ class ParamScaling:
     def scale_vector(self, n: float) -> np.ndarray:
         return np.array([d.scale(self.scales, n) if d.known else 1.0 for d in self.dims])
 
+    def _monomial(self, z: np.ndarray) -> np.ndarray:
+        if self._poly is None:
+            return z
+        m = np.array(z, dtype=float)
+        m[self._poly] = np.linalg.solve(self._chol.T, z[self._poly])
+        return m
+
+    def _orthonormal(self, m: np.ndarray) -> np.ndarray:
+        if self._poly is None:
+            return m
+        z = np.array(m, dtype=float)
+        z[self._poly] = self._chol.T @ m[self._poly]
+        return z
+
     def to_si(self, z: np.ndarray) -> np.ndarray:
         n = self._n(z)  # a shape exponent is dimensionless: its z is its value
-        return z * self.scale_vector(n)
+        return self._monomial(z) * self.scale_vector(n)
 
     def to_z(self, si: np.ndarray) -> np.ndarray:
-        return si / self.scale_vector(self._n(si))
+        return self._orthonormal(si / self.scale_vector(self._n(si)))
+
+    def jacobian(self, z: np.ndarray) -> np.ndarray:
+        """d(SI values)/dz, for standard errors."""
+        h = 1e-6 * np.maximum(1.0, np.abs(z))
+        cols = []
+        for j in range(len(z)):
+            dz = np.zeros_like(z)
+            dz[j] = h[j]
+            cols.append((self.to_si(z + dz) - self.to_si(z - dz)) / (2 * h[j]))
+        return np.array(cols).T
 
     def start_and_bounds(self, initial: dict[str, float] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """z of the starting point and the bounds: relative parameters as written, SI ones converted."""
         params = self.model.params
         n0 = next((p.init for p in params if p.name == "n"), 0.0)
         sv = self.scale_vector(n0)
-        init = np.array([p.init if p.relative else p.init / s for p, s in zip(params, sv, strict=True)])
+        init = self._orthonormal(np.array([p.init if p.relative else p.init / s
+                                           for p, s in zip(params, sv, strict=True)]))
         lo = np.array([p.lo if p.relative else p.lo / s for p, s in zip(params, sv, strict=True)])
         hi = np.array([p.hi if p.relative else p.hi / s for p, s in zip(params, sv, strict=True)])
         if initial:
