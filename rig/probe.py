@@ -1,0 +1,500 @@
+"""`rig probe`: do the slider and the load cell a config names answer, and how fast?
+
+Nothing moves. The drive is read (position, status and alarm) and its communication
+timeout written and read back, as every trial does on connect; the load cell is listened
+to (or asked, when polled). Then, for a few seconds, the loop's bus traffic is replayed
+at the loop's rate (a position read every tick, status every `loop.status_every`th, the
+load cell's request when polled) and each transaction is timed against the period.
+Every problem names the config field to look at.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import statistics
+import time
+from dataclasses import asdict, dataclass, field
+
+from drivers.alarms import alarm_meaning
+from drivers.spy import MemoryTap, Tee
+from drivers.wireframes import FROM_DEVICE, TO_DEVICE
+from rig.config import RigConfig
+from rig.errors import DeviceError, RigError
+
+# When a read times out, it is asked again with this timeout to tell a slow drive from a silent one.
+DIAGNOSTIC_TIMEOUT_S = 0.5
+EXIT_OK, EXIT_PROBLEMS, EXIT_SILENT = 0, 1, 3
+
+
+@dataclass
+class Problem:
+    device: str  # slider, loadcell or timing
+    message: str
+    fields: list[str]  # the config fields to look at
+    hint: str = ""  # what else to do when no field fixes it (a drive alarm, a cable)
+
+
+@dataclass
+class Timing:
+    what: str
+    times_ms: list[float] = field(default_factory=list)
+    failed: int = 0
+
+    def summary(self) -> dict:
+        t = self.times_ms
+        return {"what": self.what, "count": len(t) + self.failed, "failed": self.failed,
+                "median_ms": round(statistics.median(t), 3) if t else None,
+                "worst_ms": round(max(t), 3) if t else None}
+
+
+@dataclass
+class ProbeReport:
+    target: str
+    period_ms: float
+    seconds: float
+    slider: dict = field(default_factory=dict)
+    loadcell: dict = field(default_factory=dict)
+    timing: list[Timing] = field(default_factory=list)
+    worst_tick_ms: float | None = None
+    problems: list[Problem] = field(default_factory=list)
+    slider_answers: bool = False
+    loadcell_answers: bool = False
+
+    def problem(self, device: str, message: str, fields: list[str], hint: str = "") -> None:
+        self.problems.append(Problem(device, message, fields, hint))
+
+    def exit_status(self) -> int:
+        if not (self.slider_answers and self.loadcell_answers):
+            return EXIT_SILENT
+        return EXIT_PROBLEMS if self.problems else EXIT_OK
+
+    def as_dict(self) -> dict:
+        return {"target": self.target, "period_ms": self.period_ms, "seconds": self.seconds,
+                "slider_answers": self.slider_answers, "loadcell_answers": self.loadcell_answers,
+                "slider": self.slider, "loadcell": self.loadcell,
+                "timing": [t.summary() for t in self.timing], "worst_tick_ms": self.worst_tick_ms,
+                "problems": [asdict(p) for p in self.problems], "exit_status": self.exit_status()}
+
+    def format(self) -> str:
+        s, c = self.slider, self.loadcell
+        out = [f"probing   {self.target}", f"slider    {s.get('link', '?')}"]
+        out.append(f"  answers       {'yes' if self.slider_answers else 'NO'}" + (
+            f": unit {s['device_id']}" if self.slider_answers else f" ({s.get('why', 'no answer')})"))
+        if "status" in s:
+            out.append(f"  status        {s['status']}")
+        if "position_mm" in s:
+            out.append(f"  position      {s['position_mm']:.3f} mm ({s['position_steps']} steps at "
+                       f"{s['steps_per_mm']:g} steps/mm)")
+        if "comm_timeout" in s:
+            out.append(f"  comm timeout  {s['comm_timeout']}")
+        out.append(f"load cell {c.get('link', '?')}")
+        out.append(f"  answers       {'yes' if self.loadcell_answers else 'NO'}"
+                   + (f": {c['summary']}" if c.get("summary") else ""))
+        for i, (raw, parsed) in enumerate(c.get("examples", [])):
+            label = "lines" if i == 0 else ""
+            out.append(f"  {label:<13} {raw:<22} -> {parsed}")
+        if self.timing:
+            out.append(f"bus timing over {self.seconds:g} s at the loop's {1000 / self.period_ms:g} Hz "
+                       f"(period {self.period_ms:g} ms)")
+            for t in self.timing:
+                d = t.summary()
+                if d["median_ms"] is None:
+                    out.append(f"  {t.what:<16} {d['count']:4d} x  all failed")
+                    continue
+                out.append(f"  {t.what:<16} {d['count']:4d} x  median {d['median_ms']:6.2f} ms  "
+                           f"worst {d['worst_ms']:6.2f} ms  {d['failed']} failed")
+            if self.worst_tick_ms is not None:
+                out.append(f"  worst tick       {self.worst_tick_ms:.2f} ms of bus time "
+                           f"({100 * self.worst_tick_ms / self.period_ms:.0f} % of the period)")
+        if self.problems:
+            out.append(f"problems ({len(self.problems)})")
+            for p in self.problems:
+                out.append(f"  - {p.device}: {p.message}")
+                if p.fields:
+                    out.append(f"    config: {', '.join(p.fields)}")
+                if p.hint:
+                    out.append(f"    {p.hint}")
+        verdict = {EXIT_OK: "OK: both devices answer, no problems",
+                   EXIT_PROBLEMS: "both devices answer, with the problems above",
+                   EXIT_SILENT: "FAILED: " + " and ".join(
+                       n for n, ok in (("the slider", self.slider_answers),
+                                       ("the load cell", self.loadcell_answers)) if not ok)
+                   + " did not answer"}[self.exit_status()]
+        out.append(verdict)
+        return "\n".join(out)
+
+
+def probe(config: RigConfig, *, seconds: float = 2.0, spy_path: str | None = None) -> ProbeReport:
+    """Probe the rig `config` names; the built-in simulated rig is started on the wire."""
+    from rig.devices import open_spy, wire_config
+
+    sb, lb = config.slider.backend, config.loadcell.backend
+    if (sb == "sim") != (lb == "sim"):
+        raise RigError(f"slider backend '{sb}' and load-cell backend '{lb}': the simulated rig "
+                       "provides both devices, so use 'sim' for both or for neither")
+    sim = None
+    cfg = config
+    target = f"{config.name} ({config.source_path})"
+    if sb == "sim":
+        from sim_device.process import SimProcess
+
+        if config.sim.wire == "none":
+            config = copy.deepcopy(config)
+            config.sim.wire = "rtu"  # a probe is of the wire
+        sim = SimProcess(config.text())
+        cfg = wire_config(config, sim.endpoints)
+        target = f"the simulated rig on the wire (a `rig sim` process, Modbus {config.sim.wire.upper()})"
+    report = ProbeReport(target, 1000.0 / cfg.loop.rate_Hz, seconds)
+    spy = None
+    try:
+        spy = open_spy(spy_path, cfg) if spy_path else None
+        _Probe(cfg, report, spy).run()
+    finally:
+        if spy is not None:
+            spy.close()
+        if sim is not None:
+            sim.close()
+    return report
+
+
+class _Probe:
+    def __init__(self, cfg: RigConfig, report: ProbeReport, spy) -> None:
+        self.cfg = cfg
+        self.r = report
+        self.spy = spy
+        self.cell_tap = MemoryTap()
+        self.slider = None
+        self.cell = None
+
+    def run(self) -> None:
+        try:
+            self._open_slider()
+            self._open_loadcell()
+            if self.slider is not None or self.cell is not None:
+                self._traffic()
+            if self.cell is not None:
+                self._judge_loadcell()
+        finally:
+            for dev in (self.slider, self.cell):
+                if dev is not None:
+                    with contextlib.suppress(Exception):
+                        dev.close()
+
+    # ------------------------------------------------------------ slider
+    def _slider_fields(self) -> list[str]:
+        s = self.cfg.slider
+        if s.backend == "modbus-tcp":
+            return ["slider.host", "slider.tcp_port", "slider.device_id"]
+        return ["slider.port", "slider.baudrate", "slider.parity", "slider.stopbits", "slider.device_id"]
+
+    def _make(self, timeout_s: float | None = None):
+        from rig.devices import make_slider
+
+        return make_slider(self.cfg, tap=self.spy, timeout_s=timeout_s, max_consecutive_errors=10**9)
+
+    def _open_slider(self) -> None:
+        from drivers.modbus_slider import ModbusLink
+
+        s, r = self.cfg.slider, self.r
+        link = ModbusLink("tcp" if s.backend == "modbus-tcp" else "rtu", port=s.port, baudrate=s.baudrate,
+                          parity=s.parity, stopbits=s.stopbits, host=s.host, tcp_port=s.tcp_port,
+                          device_id=s.device_id)
+        r.slider.update(link=f"{link.describe()}, profile {s.profile}", device_id=s.device_id)
+        try:
+            slider = self._make()
+        except DeviceError as exc:
+            r.slider["why"] = "cannot open the port"
+            r.problem("slider", str(exc), self._slider_fields()[:2])
+            return
+        first = None
+        for _ in range(3):
+            with contextlib.suppress(DeviceError):
+                first = slider.position()
+            if first is not None:
+                break
+        if first is None:
+            why = slider.last_error
+            slider.close()
+            slider = self._slow_or_silent(why)
+            if slider is None:
+                return
+            first = slider.position()
+        self.slider = slider
+        r.slider_answers = True
+        steps = round(first.value * s.steps_per_mm)
+        r.slider.update(position_mm=first.value, position_steps=steps, steps_per_mm=s.steps_per_mm)
+        self._status()
+        self._comm_timeout()
+
+    def _slow_or_silent(self, why: str):
+        """Ask again with a long timeout: a slow drive gets its reply time named, a silent one its link."""
+        r, s = self.r, self.cfg.slider
+        try:
+            slider = self._make(DIAGNOSTIC_TIMEOUT_S)
+        except DeviceError as exc:
+            r.slider["why"] = "cannot reopen the port"
+            r.problem("slider", str(exc), self._slider_fields()[:1])
+            return None
+        for _ in range(2):
+            t0 = time.perf_counter()
+            try:
+                reading = slider.position()
+            except DeviceError:
+                continue
+            took_ms = (time.perf_counter() - t0) * 1000
+            r.slider["why"] = f"answers only after {took_ms:.1f} ms"
+            r.problem("slider", f"the drive answers, but after {took_ms:.1f} ms: later than "
+                                f"slider.timeout_s ({s.timeout_s * 1000:g} ms), so every read times out "
+                                f"(the reply itself: {reading.value:.3f} mm)",
+                      ["slider.timeout_s", "slider.baudrate", "loop.rate_Hz"],
+                      "a USB-serial adapter's latency timer adds up to 16 ms: see `rig ports`")
+            # the rest of the probe measures at the slow timeout, so the timing shows how slow
+            return slider
+        slider.close()
+        r.slider["why"] = f"no answer within {DIAGNOSTIC_TIMEOUT_S * 1000:g} ms; last: {why}"
+        r.problem("slider", f"no answer from unit {s.device_id} ({why}), not even within "
+                            f"{DIAGNOSTIC_TIMEOUT_S * 1000:g} ms",
+                  self._slider_fields(), "check the cable (A/B may be swapped), the drive's power, its "
+                                         "baud-rate and ID switches, and the RS-485 termination")
+        return None
+
+    def _status(self) -> None:
+        r, s = self.r, self.cfg.slider
+        reading = self.slider.status()
+        if not reading.fresh:
+            r.slider["status"] = f"not read ({self.slider.last_error})"
+            r.problem("slider", f"the status read failed: {self.slider.last_error}",
+                      ["slider.profile", "slider.registers.output_status", "slider.registers.alarm"])
+            return
+        st = reading.value
+        words = [("ready" if st.ready else "NOT READY"), ("moving" if st.moving else "standing still"),
+                 ("in position" if st.in_position else "not in position")]
+        if st.alarm:
+            meaning = alarm_meaning(s.profile, st.alarm_code)
+            words.append(f"ALARM 0x{st.alarm_code:02X}: {meaning}")
+            fields = ["slider.comm_timeout_s"] if st.alarm_code == 0x85 else []
+            r.problem("slider", f"the drive reports alarm 0x{st.alarm_code:02X} ({meaning}); it will not move",
+                      fields, "clear its cause, then `rig reset-alarm`; no trial starts until it is gone")
+        else:
+            words.append("no alarm")
+            if not st.ready:
+                r.problem("slider", "the drive is not READY (no alarm): is the motor excited, is STOP or "
+                                    "FREE set by another master?",
+                          ["slider.registers.bit_ready"], "check the drive's inputs and its display")
+        r.slider["status"] = ", ".join(words)
+        r.slider["alarm_code"] = st.alarm_code
+
+    def _comm_timeout(self) -> None:
+        r, s = self.r, self.cfg.slider
+        fields = ["slider.registers.comm_timeout_ms", "slider.allow_no_comm_timeout"]
+        if s.comm_timeout_s <= 0:
+            r.slider["comm_timeout"] = "off (slider.comm_timeout_s is 0)"
+            if not s.allow_no_comm_timeout:
+                r.problem("slider", "slider.comm_timeout_s is 0: if the controller dies mid-move, nothing "
+                                    "stops the drive, and `rig run` refuses to start",
+                          ["slider.comm_timeout_s", "slider.allow_no_comm_timeout"])
+            return
+        try:
+            written = self.slider.set_comm_timeout(s.comm_timeout_s)
+        except DeviceError as exc:
+            r.slider["comm_timeout"] = "NOT taken by the drive"
+            r.problem("slider", f"the communication timeout was not taken: {exc}",
+                      ["slider.registers.comm_timeout_ms"])
+            return
+        if written:
+            r.slider["comm_timeout"] = (f"{s.comm_timeout_s:g} s written and read back (register "
+                                        f"0x{self.slider.regs.comm_timeout_ms:04X})")
+        elif s.allow_no_comm_timeout:
+            r.slider["comm_timeout"] = (f"not set: profile '{s.profile}' has no register for it (allowed by "
+                                        "slider.allow_no_comm_timeout)")
+        else:
+            r.slider["comm_timeout"] = f"cannot be set: profile '{s.profile}' has no register for it"
+            r.problem("slider", f"profile '{s.profile}' does not know the drive's communication-timeout "
+                                "register: `rig run` refuses to start until it is set (or explicitly waived)",
+                      fields, "the parameter's address is in the drive manual (AZ: HM-60262E)")
+
+    # ------------------------------------------------------------ load cell
+    def _open_loadcell(self) -> None:
+        from rig.devices import open_loadcell
+
+        lc, r = self.cfg.loadcell, self.r
+        r.loadcell["link"] = f"{lc.port} {lc.baudrate} baud, {lc.mode}" + (
+            f" (request {lc.request!r})" if lc.mode == "poll" else "")
+        try:
+            self.cell = open_loadcell(self.cfg, None, tap=Tee(self.cell_tap, self.spy))
+        except DeviceError as exc:
+            r.loadcell["summary"] = "cannot open the port"
+            r.problem("loadcell", str(exc), ["loadcell.port"])
+            return
+        if lc.mode == "poll":
+            # a polled cell says nothing until asked: lines now mean it streams
+            time.sleep(0.3)
+            unasked = [x for x in self.cell_tap.records("cell") if x.direction == FROM_DEVICE]
+            if len(unasked) >= 3:
+                r.problem("loadcell", f"{len(unasked)} lines came in 0.3 s before any request: the cell "
+                                      "streams on its own", ["loadcell.mode"], "set loadcell.mode: stream")
+            self.cell_tap.chunks.clear()
+
+    def _judge_loadcell(self) -> None:
+        from drivers.serial_loadcell import LineRejected, parse_line
+
+        r, lc, cell = self.r, self.cfg.loadcell, self.cell
+        recs = self.cell_tap.records("cell")
+        rx = [x for x in recs if x.direction == FROM_DEVICE and x.data.strip()]
+        tx = [x for x in recs if x.direction == TO_DEVICE]
+        duration = self.r.seconds
+        examples = []
+        for x in rx[:3]:
+            raw = repr(x.data.decode("ascii", "backslashreplace"))
+            line = x.data.rstrip(b"\r\n")
+            try:
+                parsed = f"{parse_line(line, cell.fmt):.4f} N"
+            except LineRejected as exc:
+                parsed = f"rejected: {exc}"
+            examples.append((raw, parsed))
+        r.loadcell["examples"] = examples
+        ok, bad = cell.stats.lines_ok, cell.stats.lines_bad + cell.stats.out_of_range
+        r.loadcell.update(lines_ok=ok, lines_bad=bad, requests=len(tx))
+        if not rx:
+            if lc.mode == "stream":
+                self._silent_stream()
+            else:
+                r.loadcell["summary"] = f"no answer to {len(tx)} requests {lc.request!r}"
+                r.problem("loadcell", f"no answer to {len(tx)} requests {lc.request!r} in {duration:g} s",
+                          ["loadcell.request", "loadcell.port", "loadcell.baudrate", "loadcell.mode"])
+            return
+        r.loadcell_answers = ok > 0
+        rate = len(rx) / duration
+        text = f"{len(rx)} lines in {duration:g} s ({rate:.0f} lines/s), {ok} parsed, {bad} bad"
+        if lc.mode == "poll":
+            rtts = _round_trips_ms(recs)
+            if rtts:
+                text += (f"; reply to a request: median {statistics.median(rtts):.2f} ms, "
+                         f"worst {max(rtts):.2f} ms")
+                r.loadcell.update(reply_median_ms=statistics.median(rtts), reply_worst_ms=max(rtts))
+                if statistics.median(rtts) > r.period_ms:
+                    r.problem("loadcell", f"a polled reading takes {statistics.median(rtts):.1f} ms "
+                                          f"(median), longer than the {r.period_ms:g} ms loop period: every "
+                                          "tick uses the reading of the tick before",
+                              ["loadcell.baudrate", "loop.rate_Hz", "loadcell.mode"])
+            missing = len(tx) - len(rx)
+            if missing > max(2, 0.02 * len(tx)):
+                r.problem("loadcell", f"{missing} of {len(tx)} requests got no reply",
+                          ["loadcell.request", "loadcell.baudrate"])
+        elif rate < 0.9 * 1000.0 / r.period_ms:
+            r.problem("loadcell", f"{rate:.0f} lines/s is slower than the {1000 / r.period_ms:g} Hz loop: "
+                                  "some ticks reuse the last reading",
+                      ["loop.rate_Hz", "loadcell.mode"], "or raise the cell's own output rate")
+        r.loadcell["summary"] = text
+        r.loadcell["lines_per_s"] = round(rate, 1)
+        if bad:
+            why = cell.last_rejected or "?"
+            if ok == 0:
+                r.problem("loadcell", f"lines arrive but not one parses ({bad} bad; last: {why})",
+                          ["loadcell.pattern", "loadcell.unit", "loadcell.baudrate"],
+                          "garbage characters usually mean a wrong baud rate")
+            else:
+                r.problem("loadcell", f"{bad} of {ok + bad} lines did not parse (last: {why})",
+                          ["loadcell.pattern", "loadcell.unit", "loadcell.max_abs_N", "loadcell.baudrate"],
+                          "a few garbled lines are skipped and counted; many mean noise on the line")
+
+    def _silent_stream(self) -> None:
+        """A streaming cell that says nothing: does it answer when asked?"""
+        r, lc, cell = self.r, self.cfg.loadcell, self.cell
+        cell.mode = "poll"
+        deadline = time.monotonic() + 0.5
+        while time.monotonic() < deadline:
+            cell.latest()
+            time.sleep(0.01)
+        answered = [x for x in self.cell_tap.records("cell") if x.direction == FROM_DEVICE and x.data.strip()]
+        if answered:
+            r.loadcell_answers = True
+            r.loadcell["summary"] = f"silent until asked; answers {lc.request!r}"
+            r.problem("loadcell", f"no line in {r.seconds:g} s of listening, but it answers the request "
+                                  f"{lc.request!r}: it is a polled cell", ["loadcell.mode"],
+                      "set loadcell.mode: poll")
+            return
+        r.loadcell["summary"] = f"no line in {r.seconds:g} s, nor when asked with {lc.request!r}"
+        r.problem("loadcell", f"no line from the load cell in {r.seconds:g} s of listening, nor an answer to "
+                              f"{lc.request!r}",
+                  ["loadcell.port", "loadcell.baudrate", "loadcell.mode", "loadcell.request"],
+                  "is the cell powered, its output switched on, the cable the right one?")
+
+    # ------------------------------------------------------------ the loop's traffic, timed
+    def _traffic(self) -> None:
+        r, cfg = self.r, self.cfg
+        period_s = r.period_ms / 1000.0
+        pos, stat = Timing("position read"), Timing("status read")
+        worst_tick = 0.0
+        n_ticks = max(1, round(r.seconds / period_s))
+        t_next = time.perf_counter()
+        for k in range(n_ticks):
+            tick_ms = 0.0
+            if self.slider is not None:
+                tick_ms += _timed(pos, self.slider.position)
+                if k % cfg.loop.status_every == 0:
+                    tick_ms += _timed(stat, self.slider.status)
+                worst_tick = max(worst_tick, tick_ms)
+            if self.cell is not None:
+                self.cell.latest()  # a polled cell is asked here, once a tick, as in a trial
+            t_next += period_s
+            delay = t_next - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            else:
+                t_next = time.perf_counter()
+        if self.slider is None:
+            return
+        r.timing = [pos, stat]
+        r.worst_tick_ms = round(worst_tick, 3)
+        self._judge_timing(pos, stat)
+
+    def _judge_timing(self, pos: Timing, stat: Timing) -> None:
+        r, s = self.r, self.cfg.slider
+        failed = pos.failed + stat.failed
+        total = failed + len(pos.times_ms) + len(stat.times_ms)
+        if failed:
+            r.problem("slider", f"{failed} of {total} transactions got no valid answer within "
+                                f"{self.slider.link.timeout_s * 1000:g} ms (last: {self.slider.last_error}); "
+                                f"{s.max_consecutive_errors} in a row stop a trial",
+                      ["slider.timeout_s", "slider.retries", "slider.baudrate"],
+                      "lost or corrupted replies: check the cable, its shield and the RS-485 termination")
+        if not pos.times_ms:
+            return
+        median = statistics.median(pos.times_ms)
+        if median > 0.5 * r.period_ms:
+            r.problem("timing", f"a position read takes {median:.1f} ms (median), more than half the "
+                                f"{r.period_ms:g} ms loop period",
+                      ["loop.rate_Hz", "slider.baudrate"],
+                      "a USB-serial adapter's latency timer adds up to 16 ms: see `rig ports`")
+        elif r.worst_tick_ms is not None and r.worst_tick_ms > r.period_ms:
+            r.problem("timing", f"the worst tick spent {r.worst_tick_ms:.1f} ms on the bus, more than the "
+                                f"{r.period_ms:g} ms period: that tick is late",
+                      ["loop.rate_Hz", "loop.status_every", "slider.baudrate"])
+
+
+def _timed(timing: Timing, call) -> float:
+    t0 = time.perf_counter()
+    try:
+        reading = call()
+    except DeviceError:
+        reading = None
+    ms = (time.perf_counter() - t0) * 1000.0
+    if reading is None or not reading.fresh:
+        timing.failed += 1
+    else:
+        timing.times_ms.append(ms)
+    return ms
+
+
+def _round_trips_ms(recs) -> list[float]:
+    """Each request to the first line after it."""
+    out, asked = [], None
+    for x in recs:
+        if x.direction == TO_DEVICE:
+            asked = x.t_s
+        elif asked is not None and x.data.strip():
+            out.append((x.t_s - asked) * 1000.0)
+            asked = None
+    return out
