@@ -166,6 +166,8 @@ class _Probe:
         self.cell_tap = MemoryTap()
         self.slider = None
         self.cell = None
+        self.failed_before = 0  # failed transactions of a link closed before the timing
+        self.asked_before = 0
 
     def run(self) -> None:
         try:
@@ -194,6 +196,8 @@ class _Probe:
         return make_slider(self.cfg, tap=self.spy, timeout_s=timeout_s, max_consecutive_errors=10**9)
 
     def _open_slider(self) -> None:
+        """First contact with a long timeout, so a slow drive is told from a silent one and its
+        status is read right; then the configured timeout, for the timing a trial will see."""
         from drivers.modbus_slider import ModbusLink
 
         s, r = self.cfg.slider, self.r
@@ -202,62 +206,49 @@ class _Probe:
                           device_id=s.device_id)
         r.slider.update(link=f"{link.describe()}, profile {s.profile}", device_id=s.device_id)
         try:
-            slider = self._make()
+            slider = self._make(DIAGNOSTIC_TIMEOUT_S)
         except DeviceError as exc:
             r.slider["why"] = "cannot open the port"
             r.problem("slider", str(exc), self._slider_fields()[:2])
             return
-        first = None
-        for _ in range(3):
-            with contextlib.suppress(DeviceError):
-                first = slider.position()
-            if first is not None:
-                break
-        if first is None:
-            why = slider.last_error
-            slider.close()
-            slider = self._slow_or_silent(why)
-            if slider is None:
-                return
-            first = slider.position()
-        self.slider = slider
-        r.slider_answers = True
-        steps = round(first.value * s.steps_per_mm)
-        r.slider.update(position_mm=first.value, position_steps=steps, steps_per_mm=s.steps_per_mm)
-        self._status()
-        self._comm_timeout()
-
-    def _slow_or_silent(self, why: str):
-        """Ask again with a long timeout: a slow drive gets its reply time named, a silent one its link."""
-        r, s = self.r, self.cfg.slider
-        try:
-            slider = self._make(DIAGNOSTIC_TIMEOUT_S)
-        except DeviceError as exc:
-            r.slider["why"] = "cannot reopen the port"
-            r.problem("slider", str(exc), self._slider_fields()[:1])
-            return None
-        for _ in range(2):
+        first, took_ms = None, 0.0
+        for _ in range(4):  # a lost or corrupted reply or two is not silence
             t0 = time.perf_counter()
-            try:
+            with contextlib.suppress(DeviceError):
                 reading = slider.position()
-            except DeviceError:
-                continue
-            took_ms = (time.perf_counter() - t0) * 1000
+                if reading.fresh:
+                    first, took_ms = reading, (time.perf_counter() - t0) * 1000
+                    break
+        if first is None:
+            r.slider["why"] = f"no answer within {DIAGNOSTIC_TIMEOUT_S * 1000:g} ms"
+            r.problem("slider", f"no answer from unit {s.device_id} ({slider.last_error}), not even within "
+                                f"{DIAGNOSTIC_TIMEOUT_S * 1000:g} ms",
+                      self._slider_fields(), "check the cable (A/B may be swapped), the drive's power, its "
+                                             "baud-rate and ID switches, and the RS-485 termination")
+            slider.close()
+            return
+        # a drive that answers only after its timeout does not answer a trial
+        r.slider_answers = took_ms <= s.timeout_s * 1000
+        if not r.slider_answers:
             r.slider["why"] = f"answers only after {took_ms:.1f} ms"
-            r.problem("slider", f"the drive answers, but after {took_ms:.1f} ms: later than "
-                                f"slider.timeout_s ({s.timeout_s * 1000:g} ms), so every read times out "
-                                f"(the reply itself: {reading.value:.3f} mm)",
+            r.problem("slider", f"the drive answers, but after {took_ms:.1f} ms: later than slider.timeout_s "
+                                f"({s.timeout_s * 1000:g} ms), so every read times out, and on RTU a late "
+                                "reply can be taken for the next request's",
                       ["slider.timeout_s", "slider.baudrate", "loop.rate_Hz"],
                       "a USB-serial adapter's latency timer adds up to 16 ms: see `rig ports`")
-            # the rest of the probe measures at the slow timeout, so the timing shows how slow
-            return slider
+        steps = round(first.value * s.steps_per_mm)
+        r.slider.update(position_mm=first.value, position_steps=steps, steps_per_mm=s.steps_per_mm,
+                        first_reply_ms=round(took_ms, 3))
+        self.slider = slider
+        self._status()
+        self._comm_timeout()
+        self.failed_before, self.asked_before = slider.stats.errors, slider.stats.transactions
         slider.close()
-        r.slider["why"] = f"no answer within {DIAGNOSTIC_TIMEOUT_S * 1000:g} ms; last: {why}"
-        r.problem("slider", f"no answer from unit {s.device_id} ({why}), not even within "
-                            f"{DIAGNOSTIC_TIMEOUT_S * 1000:g} ms",
-                  self._slider_fields(), "check the cable (A/B may be swapped), the drive's power, its "
-                                         "baud-rate and ID switches, and the RS-485 termination")
-        return None
+        self.slider = None
+        try:
+            self.slider = self._make()
+        except DeviceError as exc:
+            r.problem("slider", f"cannot reopen the port: {exc}", self._slider_fields()[:1])
 
     def _status(self) -> None:
         r, s = self.r, self.cfg.slider
@@ -426,7 +417,7 @@ class _Probe:
         r, cfg = self.r, self.cfg
         period_s = r.period_ms / 1000.0
         pos, stat = Timing("position read"), Timing("status read")
-        worst_tick = 0.0
+        ticks_ms: list[float] = []
         n_ticks = max(1, round(r.seconds / period_s))
         t_next = time.perf_counter()
         for k in range(n_ticks):
@@ -435,7 +426,7 @@ class _Probe:
                 tick_ms += _timed(pos, self.slider.position)
                 if k % cfg.loop.status_every == 0:
                     tick_ms += _timed(stat, self.slider.status)
-                worst_tick = max(worst_tick, tick_ms)
+                ticks_ms.append(tick_ms)
             if self.cell is not None:
                 self.cell.latest()  # a polled cell is asked here, once a tick, as in a trial
             t_next += period_s
@@ -447,13 +438,14 @@ class _Probe:
         if self.slider is None:
             return
         r.timing = [pos, stat]
-        r.worst_tick_ms = round(worst_tick, 3)
-        self._judge_timing(pos, stat)
+        r.worst_tick_ms = round(max(ticks_ms), 3)
+        self._judge_timing(pos, ticks_ms)
 
-    def _judge_timing(self, pos: Timing, stat: Timing) -> None:
+    def _judge_timing(self, pos: Timing, ticks_ms: list[float]) -> None:
         r, s = self.r, self.cfg.slider
-        failed = pos.failed + stat.failed
-        total = failed + len(pos.times_ms) + len(stat.times_ms)
+        # every transaction of the probe counts, the first contact's too
+        failed = self.failed_before + self.slider.stats.errors
+        total = self.asked_before + self.slider.stats.transactions
         if failed:
             r.problem("slider", f"{failed} of {total} transactions got no valid answer within "
                                 f"{self.slider.link.timeout_s * 1000:g} ms (last: {self.slider.last_error}); "
@@ -468,9 +460,12 @@ class _Probe:
                                 f"{r.period_ms:g} ms loop period",
                       ["loop.rate_Hz", "slider.baudrate"],
                       "a USB-serial adapter's latency timer adds up to 16 ms: see `rig ports`")
-        elif r.worst_tick_ms is not None and r.worst_tick_ms > r.period_ms:
-            r.problem("timing", f"the worst tick spent {r.worst_tick_ms:.1f} ms on the bus, more than the "
-                                f"{r.period_ms:g} ms period: that tick is late",
+            return
+        # one slow tick is the machine, not the link: the loop rides it out (late_tolerance_ms)
+        over = sum(t > r.period_ms for t in ticks_ms)
+        if over > max(1, 0.02 * len(ticks_ms)):
+            r.problem("timing", f"{over} of {len(ticks_ms)} ticks spent longer than the {r.period_ms:g} ms "
+                                f"period on the bus (worst {r.worst_tick_ms:.1f} ms): those ticks are late",
                       ["loop.rate_Hz", "loop.status_every", "slider.baudrate"])
 
 
