@@ -167,6 +167,7 @@ class _Probe:
         self.slider = None
         self.cell = None
         self.failed_before = 0  # failed transactions of a link closed before the timing
+        self.window = (0.0, 0.0)  # monotonic start and end of the timed traffic
         self.asked_before = 0
 
     def run(self) -> None:
@@ -334,7 +335,8 @@ class _Probe:
         recs = self.cell_tap.records("cell")
         rx = [x for x in recs if x.direction == FROM_DEVICE and x.data.strip()]
         tx = [x for x in recs if x.direction == TO_DEVICE]
-        duration = self.r.seconds
+        t0, t1 = self.window
+        duration = max(t1 - t0, 1e-3)
         examples = []
         for x in rx[:3]:
             raw = repr(x.data.decode("ascii", "backslashreplace"))
@@ -352,12 +354,12 @@ class _Probe:
                 self._silent_stream()
             else:
                 r.loadcell["summary"] = f"no answer to {len(tx)} requests {lc.request!r}"
-                r.problem("loadcell", f"no answer to {len(tx)} requests {lc.request!r} in {duration:g} s",
+                r.problem("loadcell", f"no answer to {len(tx)} requests {lc.request!r} in {duration:.1f} s",
                           ["loadcell.request", "loadcell.port", "loadcell.baudrate", "loadcell.mode"])
             return
         r.loadcell_answers = ok > 0
-        rate = len(rx) / duration
-        text = f"{len(rx)} lines in {duration:g} s ({rate:.0f} lines/s), {ok} parsed, {bad} bad"
+        rate = sum(t0 <= x.t_s <= t1 for x in rx) / duration
+        text = f"{len(rx)} lines ({rate:.0f} lines/s while timed), {ok} parsed, {bad} bad"
         if lc.mode == "poll":
             rtts = _round_trips_ms(recs)
             if rtts:
@@ -420,6 +422,7 @@ class _Probe:
         ticks_ms: list[float] = []
         n_ticks = max(1, round(r.seconds / period_s))
         t_next = time.perf_counter()
+        self.window = (time.monotonic(), time.monotonic() + r.seconds)
         for k in range(n_ticks):
             tick_ms = 0.0
             if self.slider is not None:
@@ -435,6 +438,7 @@ class _Probe:
                 time.sleep(delay)
             else:
                 t_next = time.perf_counter()
+        self.window = (self.window[0], time.monotonic())
         if self.slider is None:
             return
         r.timing = [pos, stat]
@@ -446,7 +450,8 @@ class _Probe:
         # every transaction of the probe counts, the first contact's too
         failed = self.failed_before + self.slider.stats.errors
         total = self.asked_before + self.slider.stats.transactions
-        if failed:
+        # a trial rides through a single lost reply; a busy machine loses one now and then
+        if failed > 0.01 * total:
             r.problem("slider", f"{failed} of {total} transactions got no valid answer within "
                                 f"{self.slider.link.timeout_s * 1000:g} ms (last: {self.slider.last_error}); "
                                 f"{s.max_consecutive_errors} in a row stop a trial",
