@@ -168,6 +168,7 @@ class _Probe:
         self.cell = None
         self.failed_before = 0  # failed transactions of a link closed before the timing
         self.window = (0.0, 0.0)  # monotonic start and end of the timed traffic
+        self.error_before = ""
         self.asked_before = 0
 
     def run(self) -> None:
@@ -244,6 +245,7 @@ class _Probe:
         self._status()
         self._comm_timeout()
         self.failed_before, self.asked_before = slider.stats.errors, slider.stats.transactions
+        self.error_before = slider.last_error
         slider.close()
         self.slider = None
         try:
@@ -266,7 +268,7 @@ class _Probe:
             meaning = alarm_meaning(s.profile, st.alarm_code)
             words.append(f"ALARM 0x{st.alarm_code:02X}: {meaning}")
             fields = ["slider.comm_timeout_s"] if st.alarm_code == 0x85 else []
-            r.problem("slider", f"the drive reports alarm 0x{st.alarm_code:02X} ({meaning}); it will not move",
+            r.problem("slider", f"the drive reports alarm 0x{st.alarm_code:02X}: {meaning}; it will not move",
                       fields, "clear its cause, then `rig reset-alarm`; no trial starts until it is gone")
         else:
             words.append("no alarm")
@@ -453,7 +455,8 @@ class _Probe:
         # a trial rides through a single lost reply; a busy machine loses one now and then
         if failed > 0.01 * total:
             r.problem("slider", f"{failed} of {total} transactions got no valid answer within "
-                                f"{self.slider.link.timeout_s * 1000:g} ms (last: {self.slider.last_error}); "
+                                f"{self.slider.link.timeout_s * 1000:g} ms (last: "
+                                f"{self.slider.last_error or self.error_before}); "
                                 f"{s.max_consecutive_errors} in a row stop a trial",
                       ["slider.timeout_s", "slider.retries", "slider.baudrate"],
                       "lost or corrupted replies: check the cable, its shield and the RS-485 termination")
