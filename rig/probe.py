@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import os
 import statistics
 import time
 from dataclasses import asdict, dataclass, field
@@ -211,7 +212,8 @@ class _Probe:
             slider = self._make(DIAGNOSTIC_TIMEOUT_S)
         except DeviceError as exc:
             r.slider["why"] = "cannot open the port"
-            r.problem("slider", str(exc), self._slider_fields()[:2])
+            r.problem("slider", str(exc) + _missing(s.port if link.transport == "rtu" else ""),
+                      self._slider_fields()[:2])
             return
         first, took_ms = None, 0.0
         for _ in range(4):  # a lost or corrupted reply or two is not silence
@@ -319,7 +321,7 @@ class _Probe:
             self.cell = open_loadcell(self.cfg, None, tap=Tee(self.cell_tap, self.spy))
         except DeviceError as exc:
             r.loadcell["summary"] = "cannot open the port"
-            r.problem("loadcell", str(exc), ["loadcell.port"])
+            r.problem("loadcell", str(exc) + _missing(lc.port), ["loadcell.port"])
             return
         if lc.mode == "poll":
             # a polled cell says nothing until asked: lines now mean it streams
@@ -475,6 +477,12 @@ class _Probe:
             r.problem("timing", f"{over} of {len(ticks_ms)} ticks spent longer than the {r.period_ms:g} ms "
                                 f"period on the bus (worst {r.worst_tick_ms:.1f} ms): those ticks are late",
                       ["loop.rate_Hz", "loop.status_every", "slider.baudrate"])
+
+
+def _missing(port: str) -> str:
+    if port.startswith("/dev/") and not os.path.exists(port):
+        return f" ({port} does not exist: `rig ports` lists the serial ports)"
+    return ""
 
 
 def _timed(timing: Timing, call) -> float:

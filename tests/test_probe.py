@@ -252,3 +252,16 @@ def test_bad_arguments_give_one_line(args, fragment):
     proc = rig(*args)
     assert proc.returncode == 2
     assert fragment in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_ports_that_do_not_exist():
+    cfg = RigConfig()
+    cfg.slider.backend, cfg.slider.port = "modbus-rtu", "/dev/ttyUSB-not-here"
+    cfg.loadcell.backend, cfg.loadcell.port = "serial", "/dev/ttyUSB-not-here-either"
+    report = probe(cfg, seconds=0.2)
+    text = report.format()
+    assert report.exit_status() == EXIT_SILENT
+    assert "/dev/ttyUSB-not-here does not exist: `rig ports` lists the serial ports" in text
+    assert "/dev/ttyUSB-not-here-either does not exist" in text
+    assert {"slider.port", "loadcell.port"} <= fields_of(report)
+    assert "FAILED: the slider and the load cell did not answer" in text
