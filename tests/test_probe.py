@@ -265,3 +265,22 @@ def test_ports_that_do_not_exist():
     assert "/dev/ttyUSB-not-here-either does not exist" in text
     assert {"slider.port", "loadcell.port"} <= fields_of(report)
     assert "FAILED: the slider and the load cell did not answer" in text
+
+
+def test_cli_json_report(sim, tmp_path, capsys):
+    from rig.cli import main
+
+    cfg = {"slider": {"backend": "modbus-tcp", "host": "127.0.0.1", "profile": "oriental_az_sim",
+                      "tcp_port": int(sim.endpoints.modbus_tcp.split(":")[1])},
+           "loadcell": {"backend": "serial", "port": sim.endpoints.loadcell}}
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    sim.params.faults.alarm_code = 0x10
+    assert main(["probe", "--config", str(path), "--seconds", "0.5", "--json"]) == EXIT_PROBLEMS
+    import json
+
+    report = json.loads(capsys.readouterr().out)
+    assert report["exit_status"] == EXIT_PROBLEMS and report["slider_answers"] and report["loadcell_answers"]
+    assert report["slider"]["alarm_code"] == 0x10
+    assert report["problems"][0]["message"].startswith("the drive reports alarm 0x10: excessive position")
+    assert {t["what"] for t in report["timing"]} == {"position read", "status read"}
