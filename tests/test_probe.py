@@ -11,7 +11,8 @@ import pytest
 import yaml
 
 from rig.config import RigConfig
-from rig.probe import EXIT_OK, EXIT_PROBLEMS, EXIT_SILENT, probe
+from rig.probe import probe
+from rig.probe_report import EXIT_OK, EXIT_PROBLEMS, EXIT_SILENT
 from sim_device.params import SimParams
 from sim_device.server import WireSim
 from tests.conftest import ROOT
