@@ -152,7 +152,7 @@ def test_daemon_spy(tmp_path):
                 try:
                     request(sock, {"cmd": "ping"}, 1.0)
                     break
-                except RigError:
+                except (RigError, OSError):  # not listening yet
                     time.sleep(0.05)
             reply = request(sock, {"cmd": "start", "protocol_text": SHORT, "protocol_path": "s.yaml"}, 10.0)
             assert reply["ok"], reply
