@@ -132,6 +132,14 @@ class _Probe:
                                              "baud-rate and ID switches, and the RS-485 termination")
             slider.close()
             return
+        # a slow drive is slow every time; a machine busy with other work, now and then
+        for _ in range(2):
+            if took_ms <= s.timeout_s * 1000:
+                break
+            t0 = time.perf_counter()
+            with contextlib.suppress(DeviceError):
+                if slider.position().fresh:
+                    took_ms = min(took_ms, (time.perf_counter() - t0) * 1000)
         # a drive that answers only after its timeout does not answer a trial
         r.slider_answers = took_ms <= s.timeout_s * 1000
         if not r.slider_answers:
