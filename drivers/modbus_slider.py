@@ -57,16 +57,24 @@ class ModbusLink:
         return f"Modbus RTU {self.port} {self.baudrate} 8{self.parity}{self.stopbits} unit {self.device_id}"
 
 
-def open_client(link: ModbusLink) -> ModbusSerialClient | ModbusTcpClient:
+def open_client(link: ModbusLink, tap=None) -> ModbusSerialClient | ModbusTcpClient:
+    """A connected client; with a `tap` (drivers.spy), every frame each way goes to it too."""
+    serial_cls, tcp_cls = ModbusSerialClient, ModbusTcpClient
+    if tap is not None:
+        from drivers.spy import SpiedSerialClient, SpiedTcpClient
+
+        serial_cls, tcp_cls = SpiedSerialClient, SpiedTcpClient
     if link.transport == "tcp":
-        client = ModbusTcpClient(link.host, port=link.tcp_port, timeout=link.timeout_s,
-                                 retries=link.retries, reconnect_delay=0)
+        client = tcp_cls(link.host, port=link.tcp_port, timeout=link.timeout_s,
+                         retries=link.retries, reconnect_delay=0)
     elif link.transport == "rtu":
-        client = ModbusSerialClient(link.port, framer=FramerType.RTU, baudrate=link.baudrate,
-                                    bytesize=8, parity=link.parity, stopbits=link.stopbits,
-                                    timeout=link.timeout_s, retries=link.retries, reconnect_delay=0)
+        client = serial_cls(link.port, framer=FramerType.RTU, baudrate=link.baudrate,
+                            bytesize=8, parity=link.parity, stopbits=link.stopbits,
+                            timeout=link.timeout_s, retries=link.retries, reconnect_delay=0)
     else:
         raise DeviceError(f"unknown Modbus transport '{link.transport}' (rtu or tcp)")
+    if tap is not None:
+        client.tap = tap
     try:
         ok = client.connect()
     except Exception as exc:  # noqa: BLE001 - pyserial/socket errors vary by platform

@@ -29,6 +29,13 @@ def _positive_or_zero(text: str) -> float:
     return value
 
 
+def _seconds(text: str) -> float:
+    value = _positive_or_zero(text)
+    if not 0.2 <= value <= 60:
+        raise argparse.ArgumentTypeError(f"must be between 0.2 and 60 s, got {text}")
+    return value
+
+
 # ------------------------------------------------------------------ commands
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -40,7 +47,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     proto = load_protocol(args.protocol, config)  # refused here, before anything moves
     opts = RunOptions(specimen=args.specimen, operator=args.operator, notes=args.notes,
                       out_dir=args.out, speed=args.speed, progress=not args.quiet, live_port=args.live,
-                      model_path=args.model)
+                      model_path=args.model, spy_path=args.spy)
     result = run_trial(proto, config, opts)
     print(f"trial {result.outcome}: {result.samples} samples in {result.duration_s:.1f} s "
           f"({result.late_ticks} late, {result.missed_ticks} missed ticks)")
@@ -193,7 +200,7 @@ def cmd_daemon(args: argparse.Namespace) -> int:
     from rig.daemon import run_daemon
 
     config = load_config(args.config)
-    return run_daemon(config, Path(args.socket) if args.socket else None)
+    return run_daemon(config, Path(args.socket) if args.socket else None, spy_path=args.spy)
 
 
 def cmd_start(args: argparse.Namespace) -> int:
@@ -439,6 +446,50 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------ setting up a real rig
+
+def cmd_ports(args: argparse.Namespace) -> int:
+    from rig.ports import format_ports, list_ports
+
+    ports = list_ports()
+    if args.json:
+        print(json.dumps([p.as_dict() for p in ports], indent=2))
+    else:
+        print(format_ports(ports))
+    return 0
+
+
+def cmd_probe(args: argparse.Namespace) -> int:
+    from rig.config import load_config
+    from rig.probe import probe
+
+    report = probe(load_config(args.config), seconds=args.seconds, spy_path=args.spy)
+    print(json.dumps(report.as_dict(), indent=2) if args.json else report.format())
+    return report.exit_status()
+
+
+def cmd_spy(args: argparse.Namespace) -> int:
+    from rig.spyview import format_spy, read_spy
+
+    print(format_spy(read_spy(args.file), show_hex=args.hex, channel=args.channel))
+    return 0
+
+
+def cmd_config_init(args: argparse.Namespace) -> int:
+    from rig.config import load_config
+    from rig.configinit import write_config
+    from rig.probe import probe
+
+    path = write_config(args.out, slider_port=args.slider, loadcell_port=args.loadcell,
+                        baudrate=args.baudrate, parity=args.parity, device_id=args.device_id,
+                        loadcell_baudrate=args.loadcell_baudrate, loadcell_mode=args.loadcell_mode,
+                        force=args.force)
+    print(f"wrote {path}; probing it (rig probe --config {path})\n")
+    report = probe(load_config(path), seconds=args.seconds)
+    print(report.format())
+    return report.exit_status()
+
+
 # ------------------------------------------------------------------ parser
 
 def build_parser() -> argparse.ArgumentParser:
@@ -468,6 +519,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--live", type=int, nargs="?", const=8765, metavar="PORT",
                    help="publish the trial live for Foxglove (WebSocket on 127.0.0.1:PORT, default 8765; "
                         "needs the extra rig[live])")
+    r.add_argument("--spy", metavar="FILE", help="write every Modbus frame and load-cell line to FILE "
+                                                  "(read it with `rig spy FILE`)")
     r.set_defaults(func=cmd_run)
 
     r = sub.add_parser("replay", help="summarise a log; export CSV; plot",
@@ -520,6 +573,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
     r.add_argument("--socket", help="control socket path (default: daemon.socket, $RIG_SOCKET, "
                                     "/run/rig/rigd.sock as root, else $XDG_RUNTIME_DIR/rig/rigd.sock)")
+    r.add_argument("--spy", metavar="FILE", help="write every Modbus frame and load-cell line to FILE "
+                                                  "while the daemon runs (read it with `rig spy FILE`)")
     r.set_defaults(func=cmd_daemon)
 
     def client(name: str, help_text: str, func) -> argparse.ArgumentParser:
@@ -623,6 +678,58 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also find the highest loop rate without late ticks (5 s runs)")
     r.add_argument("--json", action="store_true")
     r.set_defaults(func=cmd_bench)
+
+    r = sub.add_parser("ports", help="list the serial ports, with USB identity and latency timer",
+                       description="The serial ports of this machine (pyserial's list_ports) with their "
+                                   "description, USB vendor:product and serial number, and for USB-serial "
+                                   "adapters on Linux the latency timer, flagged above 1 ms.")
+    r.add_argument("--json", action="store_true")
+    r.set_defaults(func=cmd_ports)
+
+    r = sub.add_parser("probe", help="check that the slider and load cell answer, without moving",
+                       description="Open the slider and load cell the config names, move nothing, and "
+                                   "report: the drive's status, alarm and position, whether its "
+                                   "communication timeout could be set; the load cell's lines as received "
+                                   "and parsed; the time each bus transaction takes against the loop "
+                                   "period. Every problem names the config field to change. Exit status: "
+                                   "0 all well, 1 problems found, 3 a device does not answer.")
+    r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig on the wire")
+    r.add_argument("--seconds", type=_seconds, default=2.0,
+                   help="how long to time bus transactions and count lines (default 2)")
+    r.add_argument("--spy", metavar="FILE", help="also write every frame and line to FILE")
+    r.add_argument("--json", action="store_true")
+    r.set_defaults(func=cmd_probe)
+
+    r = sub.add_parser("spy", help="decode a wire-spy file (--spy of run, probe, daemon)",
+                       description="Print a spy file decoded: each Modbus frame's function code, "
+                                   "addresses and values, CRC good or bad, round-trip time; each "
+                                   "load-cell line as sent and received; then a summary.")
+    r.add_argument("file", help="spy file written with --spy")
+    r.add_argument("--hex", action="store_true", help="also print each frame's bytes")
+    r.add_argument("--channel", choices=["rtu", "tcp", "cell"], help="only this channel")
+    r.set_defaults(func=cmd_spy)
+
+    r = sub.add_parser("config", help="write a rig config for a real rig",
+                       description="Configs for a real rig.")
+    csub = r.add_subparsers(dest="config_command", metavar="ACTION")
+    csub.required = True
+    c = csub.add_parser("init", help="write a commented config for a real rig and probe it",
+                        description="Write a config naming the slider's and the load cell's ports (only "
+                                    "what differs from the defaults, each field commented), then run "
+                                    "`rig probe` on it.")
+    c.add_argument("--slider", required=True, metavar="PORT",
+                   help="the drive's serial port (e.g. /dev/ttyUSB0), or HOST:PORT for Modbus TCP")
+    c.add_argument("--loadcell", required=True, metavar="PORT", help="the load cell's serial port")
+    c.add_argument("--out", default="config/lab-rig.yaml", help="file to write (default config/lab-rig.yaml)")
+    c.add_argument("--baudrate", type=int, default=115200, help="drive baud rate (default 115200)")
+    c.add_argument("--parity", choices=["N", "E", "O"], default="E",
+                   help="drive parity (default E: Oriental AZ drives ship 8E1)")
+    c.add_argument("--device-id", type=int, default=1, help="drive unit id (default 1)")
+    c.add_argument("--loadcell-baudrate", type=int, default=115200)
+    c.add_argument("--loadcell-mode", choices=["stream", "poll"], default="stream")
+    c.add_argument("--seconds", type=_seconds, default=2.0, help="probe duration (default 2)")
+    c.add_argument("--force", action="store_true", help="overwrite the file if it exists")
+    c.set_defaults(func=cmd_config_init)
     return p
 
 

@@ -88,8 +88,10 @@ class RequestError(Exception):
 
 
 class Daemon:
-    def __init__(self, config: RigConfig, socket_path: Path | None = None, *, log=sys.stderr) -> None:
+    def __init__(self, config: RigConfig, socket_path: Path | None = None, *, log=sys.stderr,
+                 spy_path: str | None = None) -> None:
         self.config = config
+        self.spy_path = spy_path  # every frame and line on the wire, for as long as the daemon runs
         self.socket_path = Path(socket_path or default_socket_path(config))
         self.out_dir = Path(config.recorder.out_dir).resolve()
         self.log = log
@@ -125,7 +127,8 @@ class Daemon:
                 self.say(f"could not recover {path}: {exc}")
         self._listen()
         try:
-            self.devices = open_devices(self.config, RealClock(self.config.loop.spin_ms / 1000.0), speed=1.0)
+            self.devices = open_devices(self.config, RealClock(self.config.loop.spin_ms / 1000.0), speed=1.0,
+                                        spy_path=self.spy_path)
         except BaseException:
             self._close_listener()
             raise
@@ -493,8 +496,8 @@ class Daemon:
         return False  # a watch ends its connection
 
 
-def run_daemon(config: RigConfig, socket_path: Path | None = None) -> int:
-    d = Daemon(config, socket_path)
+def run_daemon(config: RigConfig, socket_path: Path | None = None, spy_path: str | None = None) -> int:
+    d = Daemon(config, socket_path, spy_path=spy_path)
     d.start()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: d.request_shutdown())

@@ -28,6 +28,7 @@ class Devices:
     # nothing (then `warnings` says so, on every start).
     backstop: str = ""
     warnings: list[str] = field(default_factory=list)
+    spy: object | None = None  # the WireSpy writing every frame and line (--spy)
 
     def close(self) -> None:
         for dev in (self.slider, self.loadcell):
@@ -37,6 +38,8 @@ class Devices:
                     dev.close()
         if self.sim is not None:
             self.sim.close()
+        if self.spy is not None:
+            self.spy.close()
 
 
 def uses_wire(config: RigConfig, speed: float) -> bool:
@@ -45,12 +48,19 @@ def uses_wire(config: RigConfig, speed: float) -> bool:
     return speed == 1.0 and config.sim.wire != "none"
 
 
-def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0) -> Devices:
-    """Devices for a run at `speed` (1 = real time; the simulated rig goes on the wire then)."""
+def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0,
+                 spy_path: str | None = None) -> Devices:
+    """Devices for a run at `speed` (1 = real time; the simulated rig goes on the wire then).
+
+    `spy_path`: write every Modbus frame and load-cell line to this file (`rig spy` reads it).
+    """
     sb, lb = config.slider.backend, config.loadcell.backend
     if (sb == "sim") != (lb == "sim") and lb != "none":
         raise RigError(f"slider backend '{sb}' and load-cell backend '{lb}': the simulated rig "
                        "provides both devices, so use 'sim' for both or for neither")
+    if spy_path and not uses_wire(config, speed):
+        raise RigError("--spy needs devices on a wire: a real rig, or the simulated rig at --speed 1 "
+                       "with sim.wire rtu or tcp")
     if sb == "sim" and not uses_wire(config, speed):
         from sim_device.inprocess import InProcessLoadCell, InProcessSlider
         from sim_device.physics import SimRig
@@ -69,22 +79,43 @@ def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0) -> Devi
 
         sim_proc = SimProcess(config.text())
         cfg = wire_config(config, sim_proc.endpoints)
+    spy = None
     try:
-        slider, backstop, warnings = open_slider(cfg, clock)
+        if spy_path:
+            spy = open_spy(spy_path, cfg)
+        slider, backstop, warnings = open_slider(cfg, clock, tap=spy)
         try:
-            loadcell = open_loadcell(cfg, clock) if lb != "none" else None
+            loadcell = open_loadcell(cfg, clock, tap=spy) if lb != "none" else None
         except BaseException:
             slider.close()
             raise
     except BaseException:
         if sim_proc is not None:
             sim_proc.close()
+        if spy is not None:
+            spy.close()
         raise
     desc = f"{slider.link.describe()}; " + (f"load cell {cfg.loadcell.port}" if loadcell is not None
                                             else "no load cell")
     if sim_proc is not None:
         desc = f"simulated rig on the wire: {desc}"
-    return Devices(slider, loadcell, sim=sim_proc, description=desc, backstop=backstop, warnings=warnings)
+    return Devices(slider, loadcell, sim=sim_proc, description=desc, backstop=backstop, warnings=warnings,
+                   spy=spy)
+
+
+def open_spy(path: str, config: RigConfig):
+    """A WireSpy on `path`, its header naming what each channel is connected to."""
+    from drivers.spy import WireSpy
+
+    spy = WireSpy(path)
+    s, lc = config.slider, config.loadcell
+    if s.backend == "modbus-tcp":
+        spy.describe("tcp", f"Modbus TCP {s.host}:{s.tcp_port} unit {s.device_id}; profile {s.profile}")
+    else:
+        spy.describe("rtu", f"Modbus RTU {s.port} {s.baudrate} 8{s.parity}{s.stopbits} unit {s.device_id}; "
+                            f"profile {s.profile}")
+    spy.describe("cell", f"load cell {lc.port} {lc.baudrate} baud, {lc.mode}")
+    return spy
 
 
 def wire_config(config: RigConfig, endpoints: dict) -> RigConfig:
@@ -108,13 +139,11 @@ def wire_config(config: RigConfig, endpoints: dict) -> RigConfig:
     return cfg
 
 
-def open_slider(config: RigConfig, clock: Clock | None = None):
-    """The slider driver, connected: STOP released and verified, the comm timeout set.
-
-    Returns (slider, backstop description, warnings). Refuses a drive whose communication
-    timeout cannot be set unless `slider.allow_no_comm_timeout` says the rig runs without it.
-    """
-    from drivers.modbus_slider import ModbusLink, ModbusSlider
+def make_slider(config: RigConfig, clock: Clock | None = None, *, tap=None, timeout_s: float | None = None,
+                max_consecutive_errors: int | None = None):
+    """The slider driver with its link open, nothing written yet (`DeviceError` if the port
+    cannot be opened). `timeout_s` overrides the config's per-transaction timeout."""
+    from drivers.modbus_slider import ModbusLink, ModbusSlider, open_client
     from drivers.registers import PROFILES
 
     s = config.slider
@@ -126,12 +155,23 @@ def open_slider(config: RigConfig, clock: Clock | None = None):
         raise RigError(f"slider.registers: {exc}") from None
     link = ModbusLink("tcp" if s.backend == "modbus-tcp" else "rtu", port=s.port, baudrate=s.baudrate,
                       parity=s.parity, stopbits=s.stopbits, host=s.host, tcp_port=s.tcp_port,
-                      device_id=s.device_id, timeout_s=s.timeout_s, retries=s.retries)
+                      device_id=s.device_id, timeout_s=timeout_s or s.timeout_s, retries=s.retries)
     if link.transport == "rtu" and not s.port:
         raise RigError("slider.port is empty: name the serial device of the drive")
-    slider = ModbusSlider(link, regs, s.steps_per_mm, current_percent=s.current_percent,
-                          max_consecutive_errors=s.max_consecutive_errors,
-                          **({"clock": clock.now} if clock is not None else {}))
+    return ModbusSlider(link, regs, s.steps_per_mm, current_percent=s.current_percent,
+                        max_consecutive_errors=max_consecutive_errors or s.max_consecutive_errors,
+                        client=open_client(link, tap) if tap is not None else None,
+                        **({"clock": clock.now} if clock is not None else {}))
+
+
+def open_slider(config: RigConfig, clock: Clock | None = None, *, tap=None):
+    """The slider driver, connected: STOP released and verified, the comm timeout set.
+
+    Returns (slider, backstop description, warnings). Refuses a drive whose communication
+    timeout cannot be set unless `slider.allow_no_comm_timeout` says the rig runs without it.
+    """
+    s = config.slider
+    slider = make_slider(config, clock, tap=tap)
     warnings: list[str] = []
     try:
         slider.read_position_mm()
@@ -155,7 +195,8 @@ def open_slider(config: RigConfig, clock: Clock | None = None):
     return slider, backstop, warnings
 
 
-def open_loadcell(config: RigConfig, clock: Clock):
+def open_loadcell(config: RigConfig, clock: Clock, *, tap=None):
+    """The load-cell driver, reading; with a `tap`, every line each way goes to it too."""
     from drivers.serial_loadcell import DEFAULT_PATTERN, LineFormat, SerialLoadCell
 
     lc = config.loadcell
@@ -168,5 +209,10 @@ def open_loadcell(config: RigConfig, clock: Clock):
         fmt.compile()
     except (ValueError, re.error) as exc:
         raise RigError(f"loadcell.pattern: {exc}") from None
-    return SerialLoadCell(lc.port, baudrate=lc.baudrate, mode=lc.mode, request=lc.request.encode(),
-                          fmt=fmt, clock=clock)
+    kwargs = {"baudrate": lc.baudrate, "mode": lc.mode, "request": lc.request.encode(), "fmt": fmt,
+              "clock": clock}
+    if tap is not None:
+        from drivers.spy import SpiedSerialLoadCell
+
+        return SpiedSerialLoadCell(lc.port, tap=tap, **kwargs)
+    return SerialLoadCell(lc.port, **kwargs)

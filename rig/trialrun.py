@@ -32,6 +32,7 @@ class RunOptions:
     on_start: Callable[[Trial, Devices], None] | None = None  # after the devices open
     live_port: int | None = None  # publish live on this port (Foxglove WebSocket), None = off
     model_path: str | None = None  # a saved model to run in the loop (default: the config's `model:`)
+    spy_path: str | None = None  # write every frame and line on the wire here (`rig spy` reads it)
 
 
 def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None) -> TrialResult:
@@ -44,7 +45,7 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None
     clock = RealClock(config.loop.spin_ms / 1000.0) if opts.speed == 1.0 else VirtualClock(opts.speed)
     if opts.speed != 1.0 and config.slider.backend != "sim":
         raise RigError("--speed other than 1 needs the simulated rig (slider.backend: sim)")
-    devices = open_devices(config, clock, speed=opts.speed)
+    devices = open_devices(config, clock, speed=opts.speed, spy_path=opts.spy_path)
     for w in devices.warnings:
         (warn or _stderr)(w)
     log_path = opts.log_path or default_log_path(opts.out_dir or config.recorder.out_dir, proto,
