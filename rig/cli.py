@@ -354,7 +354,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     if ex is not None:
         out["suggestions"] = [s.as_dict() for s in ex.suggestions]
         out["indistinguishable"] = ex.indistinguishable
-        out["diagnosis"] = ex.summary
+        out["diagnosis"] = ex.verdict()
         out["effective_samples"] = ex.n_eff
     steps = auto(res, inputs.registry) if args.auto else None
     if steps is not None:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from rig.analysis.data import load_trial
-from rig.analysis.explain import auto, explain
+from rig.analysis.explain import auto, explain, format_explain
 from rig.analysis.fit import fit
 from rig.cli import main
 from rig.config import RigConfig
@@ -25,7 +25,7 @@ SPECIMENS = {
 }
 
 CASES = {
-    # name: (specimen, {effect: params}, seed)
+    # name: (specimen, {effect: params}, seed of the paper-protocol runs)
     "relaxation2": ("A", {"relaxation2": {"k_N_per_m": 60.0, "tau_s": 40.0}}, 11),
     "drift": ("B", {"drift": {"rate_N_per_s": 0.004}}, 12),
     "offset": ("C", {"offset": {"force_N": 0.3}}, 13),
@@ -36,11 +36,27 @@ CASES = {
     "relaxation2_small": ("C", {"relaxation2": {"k_N_per_m": 35.0, "tau_s": 25.0}}, 18),
     "delay_long": ("C", {"delay": {"delay_s": 0.12}}, 19),
 }
+SEEDS = (1, 2, 3, 4, 5)  # every case at several seeds: a case won by a hair flips with the seed
+# Short trials keep five seeds of every case affordable: two speeds, a 30 s hold (60 s where
+# the hidden relaxation is slow: a 40 s time constant needs a hold as long to show)
+SPEEDS = ("1.5", "3")
+HOLD_S = {"relaxation2": 60.0, "relaxation2_small": 60.0}
+# How many of the SEEDS runs must name the hidden effect; below SEEDS only where the README
+# says the effect at this size is not reliably found (measured, not tuned)
+MIN_FOUND: dict[str, int] = {"contact_offset": 4, "relaxation2_small": 3}
 
 
-def simulate(tmp, specimen: str, effects: dict, seed: int) -> list:
+def _protocol(speed: str, hold_s: float) -> str:
+    return (f"name: ramp {speed} mm/s, hold {hold_s:g} s\nsteps:\n"
+            f"  - ramp: {{to_mm: 30, speed_mm_s: {speed}}}\n  - hold: {{duration_s: {hold_s}}}\n"
+            "  - return: {to_mm: 0, speed_mm_s: 5}\n")
+
+
+def simulate(tmp, specimen: str, effects: dict, seed: int, speeds=("0.75", "1.5", "3"),
+             hold_s: float | None = None) -> list:
+    """Trials on the simulated rig: the paper's protocols, or ramps at `speeds` with a `hold_s` hold."""
     paths = []
-    for i, v in enumerate(("0.75", "1.5", "3")):
+    for i, v in enumerate(speeds):
         cfg = RigConfig()
         for k, val in SPECIMENS[specimen].items():
             setattr(cfg.sim.tissue, k, val)
@@ -48,7 +64,8 @@ def simulate(tmp, specimen: str, effects: dict, seed: int) -> list:
             cls = type(getattr(cfg.sim.effects, name) or _default(name))
             setattr(cfg.sim.effects, name, cls(**params))
         cfg.sim.seed = seed * 10 + i
-        paths.append(run_sim(PROTOCOLS / f"paper-{v}mm_s.yaml", cfg, tmp, name=f"{v}.mcap").log_path)
+        proto = PROTOCOLS / f"paper-{v}mm_s.yaml" if hold_s is None else _protocol(v, hold_s)
+        paths.append(run_sim(proto, cfg, tmp, name=f"{v}.mcap").log_path)
     return paths
 
 
@@ -60,19 +77,48 @@ def _default(name):
             "compliance": P.ComplianceParams, "friction": P.FrictionParams}[name]()
 
 
+def _check_verdict(ex, hidden: str) -> str:
+    """What the user reads: the "=>" line and the JSON `diagnosis` name the hidden effect first,
+    with its evidence; empty when they do, else what was read instead."""
+    v = json.loads(json.dumps(ex.verdict()))  # as `--json` prints it
+    line = format_explain(ex).splitlines()[-1]
+    expected = f"=> most likely missing: {hidden} (dBIC "
+    if v["best"] != hidden or not line.startswith(expected) or v["text"] != ex.summary:
+        return f"best {v['best']}: {line}"
+    assert set(v) >= {"best", "lookalikes", "unexplained", "text"}
+    assert isinstance(v["lookalikes"], list)
+    assert v["unexplained"] is False or isinstance(v["unexplained"], str)
+    assert ex.suggestions[0].effect == hidden  # the ranking agrees with the verdict
+    assert "RMSE" in line and "error down" in line
+    for pair in v["lookalikes"]:  # a look-alike comes after the answer, with its protocol
+        assert hidden in pair["effects"] and pair["separate_with"]
+        assert "; look-alike: " in line and "to separate them" in line
+    if v["unexplained"]:
+        assert "still unexplained" in line
+    else:  # adding it brings the error to within 1.2x the sensor noise
+        assert ex.suggestions[0].rmse_N <= 1.2 * ex.base.noise_N
+    return ""
+
+
 @pytest.mark.parametrize("case", sorted(CASES))
-def test_hidden_effect_is_the_top_suggestion(case, tmp_path):
-    specimen, effects, seed = CASES[case]
+def test_hidden_effect_is_named_by_the_verdict(case, tmp_path):
+    specimen, effects, _ = CASES[case]
     (hidden,) = effects
-    trials = [load_trial(p) for p in simulate(tmp_path, specimen, effects, seed)]
-    base = fit(build_model("proposed"), trials)
-    ex = explain(base, dict(CATALOGUE))
-    assert ex.suggestions, ex.summary
-    assert ex.suggestions[0].effect == hidden, [(s.effect, round(s.delta_bic, 1)) for s in ex.ranked[:4]]
-    assert not base.adequate
-    # adding it brings the error to within 1.2x the sensor noise
-    assert ex.suggestions[0].rmse_N <= 1.2 * base.noise_N
-    assert ex.suggestions[0].why  # says where the evidence is
+    misses = []
+    for seed in SEEDS:
+        tmp = tmp_path / str(seed)
+        tmp.mkdir()
+        paths = simulate(tmp, specimen, effects, seed, SPEEDS, HOLD_S.get(case, 30.0))
+        trials = [load_trial(p) for p in paths]
+        base = fit(build_model("proposed"), trials)
+        assert not base.adequate
+        ex = explain(base, dict(CATALOGUE))
+        miss = _check_verdict(ex, hidden)
+        if miss:
+            misses.append(f"seed {seed}: {miss}; ranked "
+                          f"{[(s.effect, round(s.delta_bic, 1)) for s in ex.ranked[:3]]}")
+    found = len(SEEDS) - len(misses)
+    assert found >= MIN_FOUND.get(case, len(SEEDS)), f"{case}: found {found}/{len(SEEDS)}\n" + "\n".join(misses)
 
 
 def test_no_hidden_effect_control_stays_clean(tmp_path):
@@ -83,6 +129,7 @@ def test_no_hidden_effect_control_stays_clean(tmp_path):
     assert ex.suggestions == []
     assert all(s.rmse_drop <= 0.05 for s in ex.ranked)
     assert "adequate" in ex.summary
+    assert ex.verdict()["best"] is None and ex.verdict()["unexplained"] is False
 
 
 def test_auto_finds_two_hidden_effects(tmp_path):
@@ -130,9 +177,14 @@ def test_plugin_effect_not_in_the_catalogue(tmp_path, capsys):
     assert without["adequate"] is False
     assert all(s["rmse_drop"] < 0.3 for s in without["suggestions"])  # nothing in the catalogue fits it
     assert max(v["rmse_N"] for v in without["phases"].values()) > 1.2 * without["fit"]["noise_N"]
+    # whatever ranks first, the verdict says a structured residual is left
+    assert isinstance(without["diagnosis"]["unexplained"], str) and without["diagnosis"]["unexplained"]
     assert main(["analyze", *csvs, "--explain", "--plugin", str(plugin), "--json"]) == 0
     with_plugin = json.loads(capsys.readouterr().out)
     assert with_plugin["suggestions"][0]["effect"] == "pump"
+    assert with_plugin["diagnosis"]["best"] == "pump"
+    assert with_plugin["diagnosis"]["text"].startswith("most likely missing: pump (dBIC ")
+    assert with_plugin["diagnosis"]["unexplained"] is False
     assert with_plugin["suggestions"][0]["rmse_N"] <= 1.2 * with_plugin["fit"]["noise_N"]
 
 
@@ -140,13 +192,18 @@ def test_explain_and_auto_on_the_command_line(tmp_path, capsys):
     logs = simulate(tmp_path, "B", {"drift": {"rate_N_per_s": 0.004}}, 24)
     rep = tmp_path / "rep"
     assert main(["analyze", *map(str, logs), "--explain", "--auto", "--report", str(rep)]) == 0
-    text = capsys.readouterr().out
-    assert "most likely missing: drift" in text
+    text = text_explain = capsys.readouterr().out
+    assert "=> most likely missing: drift (dBIC " in text
     assert "+drift" in text and "final model" in text
     assert (rep / "auto_steps.png").exists()
     assert main(["analyze", *map(str, logs), "--add", "drift"]) == 0
     text = capsys.readouterr().out
     assert "adding drift: before and after" in text and "error falls by" in text
+    assert main(["analyze", *map(str, logs), "--explain", "--json"]) == 0
+    verdict = json.loads(capsys.readouterr().out)["diagnosis"]
+    assert verdict["best"] == "drift" and verdict["unexplained"] is False
+    assert verdict["text"].startswith("most likely missing: drift (dBIC ")
+    assert "=> " + verdict["text"] in text_explain
 
 
 def test_look_alikes_on_one_ramp_are_reported_as_such(tmp_path):
@@ -161,3 +218,10 @@ def test_look_alikes_on_one_ramp_are_reported_as_such(tmp_path):
     assert set(pair["effects"]) == {"compliance", "poly_elastic"}
     assert "depth" in pair["separate_with"]
     assert "cannot be told apart" in ex.summary
+    v = ex.verdict()
+    assert v["best"] in (None, "compliance") and v["lookalikes"] == ex.indistinguishable
+    if v["best"] is None:  # no confident answer: the note is the verdict
+        assert ex.summary.startswith(("the model is adequate", "the model is NOT adequate"))
+    else:  # the answer first, the look-alike after it
+        assert ex.summary.startswith("most likely missing: compliance")
+        assert "; look-alike: poly_elastic" in ex.summary

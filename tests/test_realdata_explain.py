@@ -73,5 +73,6 @@ def test_hidden_offset_through_the_command_line(tmp_path, capsys):
     assert main(["analyze", str(csv), "--add", "relaxation2", "--explain", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["suggestions"][0]["effect"] == "offset", out["diagnosis"]
-    assert out["diagnosis"].startswith("most likely missing: offset")
+    assert out["diagnosis"]["best"] == "offset"
+    assert out["diagnosis"]["text"].startswith("most likely missing: offset")
     assert out["adequate"] is False and out["fit"]["rmse_over_noise"] > 1.2

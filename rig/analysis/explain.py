@@ -16,7 +16,7 @@ suggested unless delta_BIC is decisive (below -10) and the error falls by 5 % or
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -70,6 +70,14 @@ class Explanation:
     indistinguishable: list[dict]
     adequate: bool
     summary: str
+    best: str | None = None  # the best-supported addition, if any passes
+    lookalikes: list[dict] = field(default_factory=list)  # pairs these trials cannot separate
+    unexplained: bool | str = False  # what the best addition (or the base) still leaves
+
+    def verdict(self) -> dict:
+        """The verdict as fields (the `diagnosis` of `rig analyze --explain --json`)."""
+        return {"best": self.best, "lookalikes": self.lookalikes, "unexplained": self.unexplained,
+                "text": self.summary}
 
 
 def candidates(model: Model, registry: dict[str, Effect]) -> list[Effect]:
@@ -132,9 +140,14 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
         passing = [s for s in ranked_ok if s.delta_bic < DECISIVE_BIC and s.rmse_drop >= MIN_DROP]
     else:
         passing = [s for s in ranked_ok if s.delta_bic < 0 and s.rmse_drop >= MIN_DROP]
-    twins = _indistinguishable(passing) or _absorbed(base, ranked_ok)
-    summary = _summary(base, passing, twins)
-    return Explanation(base, n_eff, ranked, passing, twins, base.adequate, summary)
+    # with an answer, only a candidate that could stand in for it is a look-alike worth naming; a
+    # strongly supported effect that barely changes the error is news only when nothing passes
+    twins = _indistinguishable(passing) if passing else _absorbed(base, ranked_ok)
+    best = passing[0] if passing else None
+    unexplained = _unexplained(base, best)
+    summary = _summary(base, best, twins, unexplained)
+    return Explanation(base, n_eff, ranked, passing, twins, base.adequate, summary,
+                       best.effect if best else None, twins, unexplained)
 
 
 def _phase_drops(base: FitResult, res: FitResult) -> list[tuple[str, float, float]]:
@@ -226,24 +239,46 @@ def _absorbed(base: FitResult, ranked: list[Suggestion]) -> list[dict]:
     return []
 
 
-def _summary(base: FitResult, passing: list[Suggestion], twins: list[dict]) -> str:
-    if not passing:
-        if base.adequate and twins:
-            t = twins[0]
-            return (f"the model is adequate, but {t['effects'][0]} and {t['effects'][1]} cannot be told apart "
-                    f"on these trials ({t['why']}); to separate them: {t['separate_with']}")
-        if base.adequate:
-            return "the model is adequate: its residual is at the sensor-noise level; nothing to add"
+def _unexplained(base: FitResult, best: Suggestion | None) -> bool | str:
+    """False when the best addition (or, with none, the base model) leaves only noise; else
+    where the structured residual remains."""
+    res = best.fit if best else base
+    if res.adequate:
+        return False
+    worst = max(((ph, s.rmse_N) for ph, s in res.phases.items() if s), key=lambda x: x[1])
+    what = f"with {best.effect}" if best else f"{base.model.name}"
+    return (f"{what} the error is still {res.overall.rmse_N / max(res.noise_N, 1e-300):.1f}x the noise "
+            f"(worst in {worst[0]}: {res.f(worst[1])}; residual correlated over {res.white_L:.0f} samples, "
+            f"noise {res.noise_L:.0f})")
+
+
+def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexplained: bool | str) -> str:
+    """Best-supported effect first with its evidence, then any look-alike and the protocol that
+    would separate them, then what is left unexplained: the answer is never replaced by a note."""
+    parts = []
+    if best is not None:
+        parts.append(f"most likely missing: {best.effect} (dBIC {best.delta_bic:.1f}, RMSE "
+                     f"{base.f(base.overall.rmse_N)} -> {base.f(best.rmse_N)}, error down "
+                     f"{best.rmse_drop * 100:.0f} %)")
+    elif base.adequate:
+        parts.append("the model is adequate: its residual is at the sensor-noise level; nothing to add")
+    else:
         worst = max(((ph, s.rmse_N) for ph, s in base.phases.items() if s), key=lambda x: x[1])
-        return (f"the model is NOT adequate (RMSE {base.f(base.overall.rmse_N)} vs noise "
-                f"{base.f(base.noise_N)}; "
-                f"worst in {worst[0]}: {base.f(worst[1])}) and no effect in the catalogue explains it")
-    if twins:
-        t = twins[0]
-        return (f"{t['effects'][0]} and {t['effects'][1]} cannot be told apart on these trials; "
-                f"to separate them: {t['separate_with']}")
-    s = passing[0]
-    return f"most likely missing: {s.effect} (RMSE {base.f(base.overall.rmse_N)} -> {base.f(s.rmse_N)})"
+        parts.append(f"the model is NOT adequate (RMSE {base.f(base.overall.rmse_N)} vs noise "
+                     f"{base.f(base.noise_N)}; worst in {worst[0]}: {base.f(worst[1])}) and no effect in "
+                     "the catalogue explains it")
+    for t in twins:
+        a, b = t["effects"]
+        if best is not None and best.effect in (a, b):
+            other = b if a == best.effect else a
+            parts.append(f"look-alike: {other} (on these trials {best.effect} and {other} cannot be told "
+                         f"apart: {t['why']}); to separate them: {t['separate_with']}")
+        else:
+            parts.append(f"look-alikes: {a} and {b} cannot be told apart on these trials ({t['why']}); "
+                         f"to separate them: {t['separate_with']}")
+    if best is not None and unexplained:
+        parts.append(f"still unexplained: {unexplained}")
+    return "; ".join(parts)
 
 
 def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = 5) -> list[dict]:
