@@ -382,27 +382,30 @@ class Daemon:
 
     def _model(self, req: dict):
         """The model sent with the request ("model_text"), else the config's `model:`."""
-        from rig.models.online import check_online
-        from rig.models.saved import loads
-        from rig.trialrun import load_model_for
+        from rig.models.saved import loads, model_for_run, runnable
 
         text = req.get("model_text")
         if text is None:
-            return load_model_for(self.config, None)
+            return model_for_run(self.config)
         if not isinstance(text, str):
             raise RequestError('"model_text" must be the model file\'s contents')
-        saved = loads(text, str(req.get("model_path") or "<model>"))
-        check_online(saved.model)
-        return saved
+        return runnable(loads(text, str(req.get("model_path") or "<model>")))
+
+    @contextlib.contextmanager
+    def _idle_devices(self, busy: str):
+        """The devices while no trial owns them; `RequestError(busy)` if they stay taken for 1 s
+        (a status read or a stop from another client)."""
+        if not self.dev_lock.acquire(timeout=1.0):
+            raise RequestError(busy)
+        try:
+            yield self.devices
+        finally:
+            self.dev_lock.release()
 
     def _read_position(self) -> float:
         """A fresh position while no trial owns the devices (the caller holds state_lock)."""
-        if not self.dev_lock.acquire(timeout=1.0):
-            raise RequestError("the devices are busy (a status read or a stop); try again")
-        try:
-            reading = self.devices.slider.position()
-        finally:
-            self.dev_lock.release()
+        with self._idle_devices("the devices are busy (a status read or a stop); try again") as dev:
+            reading = dev.slider.position()
         if not reading.fresh:
             raise RequestError(f"cannot read the slider's position; not starting "
                                f"({getattr(self.devices.slider, 'last_error', '')})")
@@ -454,14 +457,11 @@ class Daemon:
         t = self.trial
         if self._busy():
             return self._stop_reply(t.request_stop(StopMode.ESTOP, user=user, received_s=received), "estop")
-        if not self.dev_lock.acquire(timeout=1.0):  # idle: the daemon thread may use the bus
-            raise RequestError("estop: could not reach the drive (the devices stayed busy for 1 s)")
-        try:
-            ok = self.devices.slider.stop()
-        except RigError as exc:
-            raise RequestError(f"estop: STOP not sent: {exc}") from None
-        finally:
-            self.dev_lock.release()
+        with self._idle_devices("estop: could not reach the drive (the devices stayed busy for 1 s)") as dev:
+            try:
+                ok = dev.slider.stop()
+            except RigError as exc:
+                raise RequestError(f"estop: STOP not sent: {exc}") from None
         if not ok:
             raise RequestError(f"estop: the drive did not acknowledge STOP "
                                f"({getattr(self.devices.slider, 'last_error', '')})")
@@ -470,14 +470,10 @@ class Daemon:
     def cmd_reset_alarm(self, req: dict, user: str, received: float) -> dict:
         if self._busy():
             raise RequestError("reset_alarm: a trial is running; stop it first")
-        if not self.dev_lock.acquire(timeout=1.0):
-            raise RequestError("reset_alarm: the devices stayed busy for 1 s")
-        try:
-            before = self.devices.slider.status().value.alarm_code
-            self.devices.slider.reset_alarm()
-            after = self.devices.slider.status()
-        finally:
-            self.dev_lock.release()
+        with self._idle_devices("reset_alarm: the devices stayed busy for 1 s") as dev:
+            before = dev.slider.status().value.alarm_code
+            dev.slider.reset_alarm()
+            after = dev.slider.status()
         self.say(f"{user} reset the drive alarm (0x{before:02X} -> 0x{after.value.alarm_code:02X})")
         if after.value.alarm_code:
             raise RequestError(f"reset_alarm: the drive still reports alarm 0x{after.value.alarm_code:02X} "

@@ -10,6 +10,7 @@ target fails the overshoot check. Pure logic: the loop feeds it fresh measuremen
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 from rig.config import LimitsConfig
 from rig.motion import move_time
@@ -26,11 +27,11 @@ class MoveWatch:
     tolerance_mm: float
     started: bool = False
 
-    @property
+    @cached_property  # checked every tick; the plan does not change
     def planned_s(self) -> float:
         return move_time(self.from_mm, self.to_mm, self.speed_mm_s, self.accel_mm_s2)
 
-    @property
+    @cached_property
     def deadline_s(self) -> float:
         lim = self.limits
         return self.t0_s + self.planned_s * lim.move_deadline_factor + lim.move_deadline_slack_s

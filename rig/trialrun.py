@@ -41,7 +41,9 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None
     The protocol's limits are checked again from where the slider actually is before
     anything moves (`LimitError`). `warn` gets each warning about the rig (stderr by default).
     """
-    model = load_model_for(config, opts.model_path)
+    from rig.models.saved import model_for_run
+
+    model = model_for_run(config, opts.model_path)
     clock = RealClock(config.loop.spin_ms / 1000.0) if opts.speed == 1.0 else VirtualClock(opts.speed)
     if opts.speed != 1.0 and config.slider.backend != "sim":
         raise RigError("--speed other than 1 needs the simulated rig (slider.backend: sim)")
@@ -105,21 +107,6 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None
         if live is not None:
             live.close()
         devices.close()
-
-
-def load_model_for(config: RigConfig, path: str | None):
-    """The saved model named on the command line, else in the config (relative to the config)."""
-    from rig.models.online import check_online
-    from rig.models.saved import load
-
-    if not path and config.model:
-        base = Path(config.source_path).parent if config.source_path.endswith((".yaml", ".yml")) else Path()
-        path = str(base / config.model)
-    if not path:
-        return None
-    saved = load(path)
-    check_online(saved.model)
-    return saved
 
 
 def _stderr(text: str) -> None:

@@ -113,6 +113,24 @@ def loads(text: str, source: str = "<model>") -> SavedModel:
                       fitted.get("rmse_N"), str(data.get("software_version", "?")), source)
 
 
+def runnable(saved: SavedModel) -> SavedModel:
+    """`saved`, if every effect has a one-step form for the loop; `RigError` naming those that do not."""
+    from rig.models.online import check_online
+
+    check_online(saved.model)
+    return saved
+
+
+def model_for_run(config, path: str | None = None) -> SavedModel | None:
+    """The model a trial runs: `path` (the command line), else the config's `model:` (relative to
+    the config file); None when neither names one."""
+    if not path and config.model:
+        source = Path(config.source_path)
+        base = source.parent if source.suffix in (".yaml", ".yml") else Path()
+        path = str(base / config.model)
+    return runnable(load(path)) if path else None
+
+
 def load(path: str | Path) -> SavedModel:
     path = Path(path)
     try:
