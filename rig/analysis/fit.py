@@ -243,7 +243,8 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     stderr = _stderr(best, model.param_names, ps.jacobian(z), overall)
     n = overall.n
     bic = n * np.log(max(overall.rmse_N ** 2, 1e-300)) + len(model.params) * np.log(n)
-    warnings = _warnings(model, values, z, lo, hi)
+    warnings = (_warnings(model, values, ps.at_bound(z, lo, hi, AT_BOUND), ps.integrator(z))
+                + _undetermined(model, values, stderr))
     per_trial = []
     for t, r in zip(trials, residuals, strict=True):
         o, ph = error_table([t], [r])
@@ -278,15 +279,33 @@ def _stderr(sol, names: list[str], to_si, overall: ErrorStats) -> dict[str, floa
     return {n: (float(e) if np.isfinite(e) else None) for n, e in zip(names, err, strict=True)}
 
 
-def _warnings(model: Model, values: dict[str, float], z, lo, hi) -> list[str]:
+def e_stage(model: Model, p) -> str:
+    return next(e.stage for e in model.effects if p in e.params)
+
+
+def _undetermined(model: Model, values: dict[str, float], stderr: dict[str, float | None]) -> list[str]:
+    """Parameters the trials do not pin down: a standard error larger than the value itself."""
     out = []
-    for p, zi, low, h in zip(model.params, z, lo, hi, strict=True):
+    for p in model.params:
+        err, v = stderr.get(p.name), values[p.name]
+        if err is not None and err > abs(v):
+            owner = next(e.name for e in model.effects if p in e.params)
+            out.append(f"{owner}.{p.name} = {v:.4g} +/- {err:.3g} {p.unit}: not determined by these "
+                       "trials (its standard error exceeds its value)")
+    return out
+
+
+def _warnings(model: Model, values: dict[str, float], at_bound: np.ndarray, integrator: bool) -> list[str]:
+    out = []
+    for p, bound in zip(model.params, at_bound, strict=True):
         v = values[p.name]
         owner = next(e.name for e in model.effects if p in e.params)
         if p.warn_negative and v < 0:
             out.append(f"{owner}.{p.name} is negative ({v:.4g} {p.unit}): physically meaningless")
-        if (np.isfinite(low) and zi - low <= AT_BOUND * max(1.0, abs(low))) or \
-                (np.isfinite(h) and h - zi <= AT_BOUND * max(1.0, abs(h))):
+        if bound and e_stage(model, p) == "lag" and v > 0 and integrator:
+            out.append(f"{owner}.{p.name} = {v:.4g} {p.unit}: the force does not relax on this record; "
+                       f"the lag acts as an integrator (its rate 1/{p.name} sits at its bound, zero)")
+        elif bound:
             out.append(f"{owner}.{p.name} = {v:.4g} {p.unit} sits at its bound: the data push it "
                        "out of the physical range")
     return out

@@ -5,6 +5,12 @@ with force F, length L and time T; its fit variable is its value divided by F^a 
 with the record's own F, L and T. Catalogue parameters give their starting values and
 bounds in those units (`relative=True`), so a cell in nN over seconds and a stomach in N
 over minutes start from the same place; a plugin's parameters are in SI and are converted.
+
+A model with a lag (f + tau df/dt = g) is fitted in its rate form, df/dt = g/tau - f/tau:
+the fit variables are the rate 1/tau and the drive's amplitudes divided by tau. A creep
+that never settles wants tau far beyond the record with the drive growing in proportion;
+in (tau, amplitudes) that optimum lies at infinity along a flat valley, in the rate form
+it is an ordinary point near zero rate, and the fit converges to it.
 """
 
 from __future__ import annotations
@@ -95,6 +101,58 @@ class ParamScaling:
             self._chol = np.linalg.cholesky(gram)  # monomial m = L^-T c, c = L^T m
         else:
             self._poly = None
+        self._lag, self._drive = self._rate_form()
+
+    def _rate_form(self) -> tuple[int | None, list[int]]:
+        """Index of the lag's time constant and of the drive amplitudes it divides, when the
+        rate form applies (a lag with one time parameter; drive bounds only at 0 or infinity)."""
+        model = self.model
+        lags = [e for e in model.effects if e.stage == "lag"]
+        if len(lags) != 1 or len(lags[0].params) != 1 or parse_unit(lags[0].params[0].unit).c != 1:
+            return None, []
+        names = model.param_names
+        drive = sorted({names.index(p.name) for e in model.effects if e.stage == "drive"
+                        for p in e.params if parse_unit(p.unit).a != 0})
+        shared = {p.name for e in model.effects if e.stage != "drive" for p in e.params}
+        params = model.params
+        if any(params[i].name in shared or (np.isfinite(params[i].lo) and params[i].lo != 0)
+               or (np.isfinite(params[i].hi) and params[i].hi != 0) for i in drive):
+            return None, []
+        return names.index(lags[0].params[0].name), drive
+
+    def _to_rate(self, rel: np.ndarray) -> np.ndarray:
+        if self._lag is None:
+            return rel
+        out = np.array(rel, dtype=float)
+        r = 1.0 / out[self._lag]
+        out[self._drive] *= r
+        out[self._lag] = r
+        return out
+
+    def _from_rate(self, z: np.ndarray) -> np.ndarray:
+        if self._lag is None:
+            return z
+        out = np.array(z, dtype=float)
+        r = out[self._lag]
+        out[self._drive] /= r
+        out[self._lag] = 1.0 / r
+        return out
+
+    def at_bound(self, z: np.ndarray, lo: np.ndarray, hi: np.ndarray, tol: float) -> np.ndarray:
+        """Which fit variables sit within `tol` (order-one units) of a bound; the rate, whose
+        lower bound is near zero, relative to the bound itself."""
+        ref_lo = np.maximum(1.0, np.abs(lo))
+        ref_hi = np.maximum(1.0, np.abs(hi))
+        if self._lag is not None:
+            ref_lo[self._lag] = abs(lo[self._lag])
+            ref_hi[self._lag] = abs(hi[self._lag])
+        with np.errstate(invalid="ignore"):
+            return ((np.isfinite(lo) & (z - lo <= tol * ref_lo))
+                    | (np.isfinite(hi) & (hi - z <= tol * ref_hi)))
+
+    def integrator(self, z: np.ndarray) -> bool:
+        """The lag's rate is at its lower bound: the fit turned the lag into an integrator."""
+        return self._lag is not None and float(z[self._lag]) < 0.5  # the upper bound is 1e4
 
     def _n(self, vals: np.ndarray) -> float:
         return float(vals[self._n_index]) if self._n_index is not None else 0.0
@@ -118,10 +176,10 @@ class ParamScaling:
 
     def to_si(self, z: np.ndarray) -> np.ndarray:
         n = self._n(z)  # a shape exponent is dimensionless: its z is its value
-        return self._monomial(z) * self.scale_vector(n)
+        return self._from_rate(self._monomial(z)) * self.scale_vector(n)
 
     def to_z(self, si: np.ndarray) -> np.ndarray:
-        return self._orthonormal(si / self.scale_vector(self._n(si)))
+        return self._orthonormal(self._to_rate(si / self.scale_vector(self._n(si))))
 
     def jacobian(self, z: np.ndarray) -> np.ndarray:
         """d(SI values)/dz, for standard errors."""
@@ -138,10 +196,13 @@ class ParamScaling:
         params = self.model.params
         n0 = next((p.init for p in params if p.name == "n"), 0.0)
         sv = self.scale_vector(n0)
-        init = self._orthonormal(np.array([p.init if p.relative else p.init / s
-                                           for p, s in zip(params, sv, strict=True)]))
+        init = self._orthonormal(self._to_rate(np.array([p.init if p.relative else p.init / s
+                                                         for p, s in zip(params, sv, strict=True)])))
         lo = np.array([p.lo if p.relative else p.lo / s for p, s in zip(params, sv, strict=True)])
         hi = np.array([p.hi if p.relative else p.hi / s for p, s in zip(params, sv, strict=True)])
+        if self._lag is not None:  # the rate's bounds are the time constant's, inverted
+            i = self._lag
+            lo[i], hi[i] = (1.0 / hi[i] if hi[i] > 0 else 0.0), (1.0 / lo[i] if lo[i] > 0 else np.inf)
         if initial:
             si = np.array([initial.get(p.name, np.nan) for p in params])
             z_prev = self.to_z(np.where(np.isnan(si), init * sv, si))

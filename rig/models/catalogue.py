@@ -104,7 +104,9 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in [
     E("nonlinear_damping", "drive", (P("tau2_N_s_per_m2", "N s/m^2", 0.1, warn_negative=True),),
       _nonlinear_damping, "tau2 x dx/dt (paper)",
       "ramp residual proportional to depth x speed; a drop at the ramp end"),
-    E("relaxation", "lag", (P("tau1_s", "s", 0.5, 1e-4, 1e4),),
+    # fitted as its rate 1/tau1 (rig.analysis.scaling) down to 1e-8 (a lag 1e8 loading times
+    # long, an integrator over any record): a creep that never settles is followed that way
+    E("relaxation", "lag", (P("tau1_s", "s", 0.5, 1e-4, 1e8),),
       _relaxation, "f + tau1 df/dt = drive (paper)",
       "hold residual decaying: the force relaxes but the model holds"),
     E("relaxation2", "branch", (P("k_m_N_per_m", "N/m", 0.5, 0.0),

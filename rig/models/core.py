@@ -165,5 +165,7 @@ class Model:
 
 def first_order_lag(u: np.ndarray, dt: float, tau: float) -> np.ndarray:
     """y + tau dy/dt = u, exact for u held over each sample (a linear filter)."""
-    a = float(np.exp(-dt / max(tau, 1e-9)))
-    return lfilter([1.0 - a], [1.0, -a], u)
+    e = -dt / (tau if abs(tau) > 1e-9 else 1e-9)  # a negative tau grows: meaningless, but defined
+    # 1 - a from expm1: for a lag far longer than the record (a creep that never settles) 1 - a
+    # is tiny and would otherwise keep only the digits that survive the subtraction
+    return lfilter([-float(np.expm1(e))], [1.0, -float(np.exp(e))], u)
