@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -734,6 +735,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # The fits' matrices are tall and a few columns wide: a second BLAS thread gains nothing on
+    # them, and on a busy machine a product waits tens of ms for a descheduled thread. Set
+    # before numpy is first imported (every subcommand imports it lazily); a user's own
+    # setting wins.
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -164,14 +164,10 @@ def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0
         if best is None or sol.cost < best.cost:
             best = sol
     if polish and tol <= 1e-8:
-        # a last pass with central differences: the forward-difference Jacobian's own error
-        # (sqrt of machine precision) would otherwise decide the last digits, and a record in
-        # other units (the same problem up to rounding) must land on the same parameters
-        again = _solve(model, ps, trials, scales, _inside(best.x, lo, hi), lo, hi, tol * 1e-3, max_nfev,
-                       jac="3-point")
-        nfev += again.nfev
-        if again.cost <= best.cost:
-            best = again
+        # Gauss-Newton steps with a central-difference Jacobian: the solver's forward-difference
+        # Jacobian (its own error ~ sqrt of machine precision) would otherwise decide the last
+        # digits, and a record in other units (the same problem up to rounding) must land on the
+        # same parameters
         best = _newton_polish(_residual_fn(model, ps, trials, scales), best, lo, hi)
     return _result(model, ps, trials, scales, best, lo, hi, nfev, t0)
 
