@@ -75,6 +75,7 @@ class Design:
     ranked: list[Candidate]  # every candidate that passed the rig's checks, best first
     refused: list[str] = field(default_factory=list)  # candidates beyond the rig's limits, and why
     yaml: str = ""
+    duration_s: float = 0.0
 
     def as_dict(self) -> dict:
         b = self.best
@@ -82,7 +83,7 @@ class Design:
                 "difference_N": b.difference_N, "difference_over_noise": b.difference_N / self.noise_N,
                 "separation_N": b.separation_N,
                 "separation_over_noise": (b.separation_N or 0.0) / self.noise_N, "wrong_model": b.wrong,
-                "predicted_peak_N": b.peak_N, "noise_N": self.noise_N,
+                "predicted_peak_N": b.peak_N, "noise_N": self.noise_N, "duration_s": self.duration_s,
                 "candidates": [{"protocol": c.name, "difference_N": c.difference_N,
                                 "separation_N": c.separation_N} for c in self.ranked],
                 "refused": self.refused}
@@ -136,8 +137,9 @@ def candidate_steps(s: Shape, max_speed_m_s: float, max_depth_m: float) -> list[
     deep = min(1.5 * D, max_depth_m)
     out: list[Candidate] = []
 
-    def add(name: str, why: str, *steps: tuple[str, dict]) -> None:
-        out.append(Candidate(name, why, [*steps, ("return", {"to": 0.0, "speed": R})]))
+    def add(name: str, why: str, *steps: tuple[str, dict], rest: float = 0.0) -> None:
+        after = [("hold", {"s": rest})] if rest else []
+        out.append(Candidate(name, why, [*steps, ("return", {"to": 0.0, "speed": R}), *after]))
 
     def ramp(to: float, v: float) -> tuple[str, dict]:
         return ("ramp", {"to": to, "speed": min(v, max_speed_m_s)})
@@ -154,6 +156,8 @@ def candidate_steps(s: Shape, max_speed_m_s: float, max_depth_m: float) -> list[
         add(f"ramp to {_mm(d)} mm at {_mm(min(2 * V, max_speed_m_s))} mm/s", "another depth and speed",
             ramp(d, 2 * V), hold(H))
     add("long hold", "a hold three times as long", ramp(D, V), hold(3 * H))
+    add("rest before and after", "the force out of contact before the ramp and after the return (a sensor's "
+        "drift or offset shows there)", hold(H), ramp(D, V), hold(H), rest=H)
     add("staircase", "a hold at a second depth", ramp(D / 2, V), hold(H / 2), ramp(D, V), hold(H / 2))
     add(f"staircase to {_mm(deep)} mm at two speeds", "holds at two depths, reached at two speeds",
         ramp(D / 2, V / 2), hold(H / 2), ramp(deep, 2 * V), hold(H / 2))
@@ -266,7 +270,9 @@ def design(ex: Explanation, config: RigConfig | None = None) -> Design | None:
     cands.sort(key=lambda c: -(c.separation_N if c.separation_N is not None else -1.0))
     d = Design((pair[0], pair[1]), (a, b), noise, cands[0], cands, refused)
     d.yaml = design_yaml(d, limits.max_force_N)
-    check_limits(parse_protocol(d.yaml, "<design>"), config)
+    proto = parse_protocol(d.yaml, "<design>")
+    check_limits(proto, config)  # as `rig run` will
+    d.duration_s = plan(proto, config).duration_s
     return d
 
 
@@ -326,9 +332,11 @@ def write_design(d: Design, path: str | Path) -> Path:
 
 def format_design(d: Design, path: str | Path) -> str:
     b = d.best
-    lines = [f"design: to tell {d.effects[0]} from {d.effects[1]}, run '{b.name}' ({path})",
-             f"  the two fitted models differ by {b.difference_N:.3g} N RMS on it ({b.difference_N / d.noise_N:.1f}x "
-             f"the noise); refitted with it, {b.wrong} still misses it by {b.separation_N:.3g} N RMS "
+    lines = [f"design: to tell {d.effects[0]} from {d.effects[1]}, run '{b.name}' ({path}, about "
+             f"{d.duration_s:.0f} s, peak force about {b.peak_N:.3g} N)",
+             f"  the two fitted models differ by {b.difference_N:.3g} N RMS on it "
+             f"({b.difference_N / d.noise_N:.1f}x the noise); refitted with it, {b.wrong} still misses it "
+             f"by {b.separation_N:.3g} N RMS "
              f"({b.separation_N / d.noise_N:.1f}x the noise)",
              f"  {'candidate':<44}{'differ N':>10}{'refit miss N':>14}"]
     for c in d.ranked[:8]:
