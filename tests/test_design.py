@@ -13,7 +13,7 @@ from rig.analysis.data import load_trial
 from rig.analysis.explain import explain
 from rig.analysis.fit import fit
 from rig.cli import main
-from rig.config import RigConfig
+from rig.config import RigConfig, load_config
 from rig.models import CATALOGUE, build_model
 from rig.protocol import load_protocol
 from tests.test_explain import simulate
@@ -73,17 +73,23 @@ def test_design_separates_a_tie_on_the_simulator(seed, tmp_path, capsys):
     assert "look-alike" not in joint["text"] and "cannot be told apart" not in joint["text"]
 
 
-def test_design_in_text_and_repeating_the_protocol_does_not_settle_it(tmp_path, capsys):
+def test_design_in_text_within_a_smaller_rig_and_repeating_the_protocol_does_not_settle_it(tmp_path, capsys):
     log = str(_one_ramp(tmp_path, HIDDEN, 4))
     target = tmp_path / "separate.yaml"
-    assert main(["analyze", log, "--explain", "--design", str(target)]) == 0
+    rig = tmp_path / "rig.yaml"  # less travel and a lower force limit than the built-in rig
+    rig.write_text("limits: {max_force_N: 12, travel_mm: [-5, 36]}\n")
+    assert main(["analyze", log, "--explain", "--design", str(target), "--config", str(rig)]) == 0
     out = capsys.readouterr().out
     verdict = next(line for line in out.splitlines() if line.startswith("=> "))
     assert "compliance and poly_elastic cannot be told apart" in verdict
     design = out[out.index("\ndesign: "):]
     assert "design: to tell compliance from poly_elastic, run '" in design and str(target) in design
     assert "the model without compliance still misses it by" in design
-    assert target.exists()
+    proto = load_protocol(target, load_config(rig))  # within this rig's limits
+    assert max(s.to_mm for s in proto.steps if s.kind == "ramp") <= 36
+    assert proto.limits.max_force_N <= 12
+    peak = float(design.split("peak force about ", 1)[1].split(" N", 1)[0])
+    assert peak * 1.25 <= 12
     # the same protocol again, on the same specimen: more data, same tie
     (tmp_path / "again").mkdir()
     again = _one_ramp(tmp_path / "again", HIDDEN, 40)

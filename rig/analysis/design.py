@@ -176,8 +176,13 @@ def candidate_steps(s: Shape, max_speed_m_s: float, max_depth_m: float) -> list[
     return out
 
 
+def _num(v: float) -> str:
+    """Three significant digits, never in exponent form (YAML would read 1e-05 as text)."""
+    return np.format_float_positional(float(f"{v:.3g}"), trim="-")
+
+
 def _mm(x_m: float) -> str:
-    return f"{x_m * 1000:.3g}"
+    return _num(x_m * 1000)
 
 
 def protocol_text(c: Candidate, name: str, limits_N: float | None, comment: list[str]) -> str:
@@ -187,11 +192,11 @@ def protocol_text(c: Candidate, name: str, limits_N: float | None, comment: list
         if kind == "ramp":
             lines.append(f"  - ramp:   {{to_mm: {_mm(p['to'])}, speed_mm_s: {_mm(p['speed'])}}}")
         elif kind == "hold":
-            lines.append(f"  - hold:   {{duration_s: {p['s']:.3g}}}")
+            lines.append(f"  - hold:   {{duration_s: {_num(p['s'])}}}")
         else:
             lines.append(f"  - return: {{to_mm: {_mm(p['to'])}, speed_mm_s: {_mm(p['speed'])}}}")
     if limits_N is not None:
-        lines.append(f"limits: {{max_force_N: {limits_N:.3g}}}")
+        lines.append(f"limits: {{max_force_N: {_num(limits_N)}}}")
     return "\n".join(lines) + "\n"
 
 
