@@ -28,10 +28,10 @@ def _one_ramp(tmp, effects: dict, seed: int):
     return simulate(tmp, "A", effects, seed, speeds=("3",), hold_s=10.0)[0]
 
 
-def _run(protocol, tmp, seed: int, capsys) -> str:
-    """`rig run` on the built-in simulated rig with the same hidden frame; the log's path."""
+def _run(protocol, tmp, seed: int, capsys, hidden: str = "compliance: {k_frame_N_per_m: 2000}") -> str:
+    """`rig run` on the built-in simulated rig with the same hidden effect; the log's path."""
     cfg = tmp / "hidden.yaml"
-    cfg.write_text(f"sim: {{seed: {seed}, effects: {{compliance: {{k_frame_N_per_m: 2000}}}}}}\n")
+    cfg.write_text(f"sim: {{seed: {seed}, effects: {{{hidden}}}}}\n")
     assert main(["run", str(protocol), "--config", str(cfg), "--speed", "0", "--quiet", "--out", str(tmp)]) == 0
     out = capsys.readouterr().out
     assert "trial completed" in out
@@ -96,6 +96,28 @@ def test_design_in_text_within_a_smaller_rig_and_repeating_the_protocol_does_not
     trials = [load_trial(log), load_trial(again)]
     ex = explain(fit(build_model("proposed"), trials), dict(CATALOGUE))
     assert [set(p["effects"]) for p in ex.lookalikes] == [PAIR], ex.summary
+
+
+def test_design_settles_an_answer_and_its_look_alike(tmp_path, capsys):
+    """Another kind of tie: a drift is the answer but an offset explains the short trial as
+    well (neither model contains the other); the design rests out of contact before and
+    after the trial, where a drift shows and an offset does not change."""
+    hidden = {"drift": {"rate_N_per_s": 0.004}}
+    log = str(_one_ramp(tmp_path, hidden, 5))
+    target = tmp_path / "separate.yaml"
+    assert main(["analyze", log, "--explain", "--design", str(target), "--json"]) == 0
+    first = json.loads(capsys.readouterr().out)
+    assert first["diagnosis"]["best"] == "drift"
+    assert [set(p["effects"]) for p in first["diagnosis"]["lookalikes"]] == [{"drift", "offset"}]
+    d = first["design"]
+    assert d["protocol"] == "rest before and after" and d["separation_over_noise"] > 0.3
+    steps = load_protocol(target, RigConfig()).steps
+    assert [s.kind for s in steps] == ["hold", "ramp", "hold", "return", "hold"]
+    new = _run(target, tmp_path, 57, capsys, "drift: {rate_N_per_s: 0.004}")
+    assert main(["analyze", log, new, "--explain", "--json"]) == 0
+    joint = json.loads(capsys.readouterr().out)["diagnosis"]
+    assert joint["best"] == "drift" and joint["lookalikes"] == [], joint["text"]
+    assert joint["text"].startswith("most likely missing: drift (dBIC ") and "look-alike" not in joint["text"]
 
 
 def test_without_a_tie_there_is_nothing_to_settle(tmp_path, capsys):
