@@ -2,14 +2,15 @@
 
 When `--explain` finds two effects that explain the trials equally well, each stands for a
 fitted model (the base with one effect, or with the other; or the base whose own term takes
-the other's shape). The protocol that separates them is the one on which those models
-disagree most, relative to the noise. Candidates vary what the trials given did not: the
-speed, the depth, the hold, a staircase, a load-unload cycle, and an oscillation at depth
-(ramps back and forth: the rig's protocols have no sine, a triangle wave gives the same
-excitation order). Each is predicted by both fitted models; the leaders are then checked
-the hard way: the wrong model is refitted to the trials given plus the candidate as the
-other model predicts it, and what it still misses on the candidate is the separation
-(a model that reshapes to absorb the difference does not separate anything).
+the other's shape). The protocol that separates them is one on which those models disagree
+by more than the noise. Candidates vary what the trials given did not: the speed, the
+depth, the hold, a staircase, load-unload cycles, an oscillation at depth (ramps back and
+forth: the rig's protocols have no sine, a triangle wave gives the same excitation order),
+a rest out of contact before and after. Each is predicted by both fitted models; the
+leaders are then checked the hard way: the wrong model is refitted to the trials given plus
+the candidate as the other model predicts it, and what it still misses on the candidate is
+the separation that decides (a model that reshapes to absorb the difference does not
+separate anything, however far apart the two predictions were).
 
 Every candidate is a protocol in the rig's own format, checked against the rig's limits as
 `rig run` checks it, and kept only if both models predict a peak force within the force
