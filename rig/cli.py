@@ -337,6 +337,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     from rig.analysis.report import write_report
     from rig.models.catalogue import build_model
 
+    design_config = _design_args(args)  # refused before the long work, not after it
     inputs = load_inputs(args.inputs, args.holdout or [], args.plugin or [], args.block)
     model = build_model(args.model, args.add or [], inputs.registry)
     res = fit(model, inputs.trials)
@@ -357,6 +358,17 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         out["indistinguishable"] = ex.indistinguishable
         out["diagnosis"] = ex.verdict()
         out["effective_samples"] = ex.n_eff
+    design_text = ""
+    if args.design:
+        from rig.analysis.design import NOTHING_TO_SETTLE, design, format_design, write_design
+
+        d = design(ex, design_config)
+        if d is None:
+            out["design"] = {"file": None, "text": NOTHING_TO_SETTLE}
+            design_text = f"design: {NOTHING_TO_SETTLE}"
+        else:
+            out["design"] = {"file": str(write_design(d, args.design)), **d.as_dict()}
+            design_text = format_design(d, args.design)
     steps = auto(res, inputs.registry) if args.auto else None
     if steps is not None:
         out["auto"] = [{"step": s["step"], "added": s["added"], "removed": s.get("removed"),
@@ -387,6 +399,8 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         print("\n" + format_holdout(held, res.force_unit))
     if ex is not None:
         print("\n" + format_explain(ex))
+    if design_text:
+        print("\n" + design_text)
     if steps is not None:
         print("\nstepwise: add the best effect while the error falls (criterion: BIC on effective samples)")
         print(format_auto(steps))
@@ -395,6 +409,22 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     if args.save:
         print(f"\nmodel saved: {out['saved']} (run it in the loop: rig run PROTOCOL --model {out['saved']})")
     return 0
+
+
+def _design_args(args: argparse.Namespace):
+    """The rig config a designed protocol is checked against, after checking the arguments."""
+    if args.config and not args.design:
+        raise RigError("--config is the rig whose limits a --design protocol must respect; it needs --design")
+    if not args.design:
+        return None
+    if not args.explain:
+        raise RigError("--design needs --explain: the tie it settles comes from the diagnosis")
+    target = Path(args.design)
+    if target.is_dir() or not target.parent.is_dir():
+        raise RigError(f"--design {args.design}: not a file in an existing directory")
+    from rig.config import load_config
+
+    return load_config(args.config)
 
 
 def format_before_after(before, after) -> str:
@@ -646,6 +676,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rank the effects the model lacks by how much each would reduce the error")
     r.add_argument("--auto", action="store_true",
                    help="add effects one by one while the error falls; print the steps")
+    r.add_argument("--design", metavar="FILE",
+                   help="with --explain: when two effects cannot be told apart, write the protocol (YAML) "
+                        "that would separate them")
+    r.add_argument("--config", help="with --design: the rig whose limits the protocol must respect "
+                                    "(default: the built-in simulated rig)")
     r.add_argument("--report", metavar="DIR", help="write figures and report.md here")
     r.add_argument("--save", metavar="MODEL.json",
                    help="save the fitted model (effects, parameters, what it was fitted on) to run it "

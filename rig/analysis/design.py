@@ -1,0 +1,351 @@
+"""Settle a tie: the protocol that would tell two look-alike effects apart.
+
+When `--explain` finds two effects that explain the trials equally well, each stands for a
+fitted model (the base with one effect, or with the other; or the base whose own term takes
+the other's shape). The protocol that separates them is one on which those models disagree
+by more than the noise. Candidates vary what the trials given did not: the speed, the
+depth, the hold, a staircase, load-unload cycles, an oscillation at depth (ramps back and
+forth: the rig's protocols have no sine, a triangle wave gives the same excitation order),
+a rest out of contact before and after. Each is predicted by both fitted models; the
+leaders are then checked the hard way: the wrong model is refitted to the trials given plus
+the candidate as the other model predicts it, and what it still misses on the candidate is
+the separation that decides (a model that reshapes to absorb the difference does not
+separate anything, however far apart the two predictions were).
+
+Every candidate is a protocol in the rig's own format, checked against the rig's limits as
+`rig run` checks it, and kept only if both models predict a peak force within the force
+limit with a margin. Depths are measured from the zero the analysis took as contact.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rig.analysis.data import PHASES, TrialData, decimate
+from rig.analysis.explain import Explanation
+from rig.analysis.fit import FitResult, fit
+from rig.config import RigConfig
+from rig.errors import LimitError, RigError
+from rig.models.core import Model, Motion
+from rig.motion import sample_move
+from rig.protocol import check_limits, parse_protocol, plan
+
+FORCE_MARGIN = 1.25  # a candidate's predicted peak force, times this, must stay within the limit
+MAX_DURATION = 2.0  # a candidate may take at most this many times the longest trial given
+CHECKED = 12  # leaders by predicted difference that are refitted the hard way
+SCREEN_SAMPLES = 1500  # per trial, for the refits (the effects live on time scales of many samples)
+REFIT_NFEV = 40
+NOTHING_TO_SETTLE = "nothing to settle: the diagnosis has no look-alikes (no protocol written)"
+
+
+@dataclass(frozen=True)
+class Shape:
+    """What the trials given did: their deepest point, ramp speed, hold, return speed (SI)."""
+
+    depth_m: float
+    speed_m_s: float
+    hold_s: float
+    return_m_s: float
+    duration_s: float
+
+
+@dataclass
+class Candidate:
+    name: str
+    why: str
+    steps: list[tuple[str, dict]]
+    trial: TrialData | None = None
+    predictions: tuple[np.ndarray, np.ndarray] | None = None
+    difference_N: float = 0.0  # RMS difference of the two models' predictions
+    peak_N: float = 0.0
+    separation_N: float | None = None  # what the wrong model still misses after the joint refit
+    wrong: str = ""  # which alternative missed (the one refitted to the other's prediction)
+
+
+@dataclass
+class Design:
+    effects: tuple[str, str]
+    alternatives: tuple[FitResult, FitResult]
+    noise_N: float
+    best: Candidate
+    ranked: list[Candidate]  # every candidate that passed the rig's checks, best first
+    refused: list[str] = field(default_factory=list)  # candidates beyond the rig's limits, and why
+    yaml: str = ""
+    duration_s: float = 0.0
+
+    def as_dict(self) -> dict:
+        b = self.best
+        return {"effects": list(self.effects), "protocol": b.name, "why": b.why,
+                "difference_N": b.difference_N, "difference_over_noise": b.difference_N / self.noise_N,
+                "separation_N": b.separation_N,
+                "separation_over_noise": (b.separation_N or 0.0) / self.noise_N, "wrong_model": b.wrong,
+                "predicted_peak_N": b.peak_N, "noise_N": self.noise_N, "duration_s": self.duration_s,
+                "candidates": [{"protocol": c.name, "difference_N": c.difference_N,
+                                "separation_N": c.separation_N} for c in self.ranked],
+                "refused": self.refused}
+
+
+# ------------------------------------------------------------------ the alternatives
+
+def alternatives(ex: Explanation, pair: list[str]) -> tuple[FitResult, FitResult]:
+    """The fitted model each effect of a look-alike pair stands for."""
+    out = []
+    for name in pair:
+        if ex.base.model.has(name):
+            out.append(ex.base)  # the base's own term takes the other's shape
+            continue
+        sug = next((s for s in ex.ranked if s.effect == name), None)
+        if sug is None:
+            raise RigError(f"look-alike {name} has no fit to design from")
+        out.append(sug.fit)
+    return out[0], out[1]
+
+
+def _nested(a: Model, b: Model) -> bool:
+    return set(b.effect_names) <= set(a.effect_names)
+
+
+# ------------------------------------------------------------------ what the trials did
+
+def shape_of(trials: list[TrialData]) -> Shape:
+    depth = max(float(np.max(t.motion.x_m)) for t in trials)
+    speeds, holds, returns = [], [], []
+    for t in trials:
+        v = t.motion.v_m_s
+        ramp, ret = t.phase == "ramp", t.phase == "return"
+        if np.any(ramp):
+            speeds.append(float(np.median(np.abs(v[ramp]))))
+        if np.any(ret):
+            returns.append(float(np.median(np.abs(v[ret]))))
+        hold = np.isin(t.phase, ["hold_early", "hold_late"])
+        holds.append(float(np.sum(hold)) * t.motion.dt_s)
+    if not speeds:
+        raise RigError("no ramp in the trials: nothing to design a protocol from")
+    speed = max(speeds)
+    return Shape(depth, speed, max(holds), max(returns) if returns else 2.0 * speed,
+                 max(float(t.motion.t_s[-1] - t.motion.t_s[0]) for t in trials))
+
+
+def candidate_steps(s: Shape, max_speed_m_s: float, max_depth_m: float) -> list[Candidate]:
+    """Protocols that vary what the trials given did not (depths, speeds in m, m/s)."""
+    D, V, R = s.depth_m, s.speed_m_s, min(s.return_m_s, max_speed_m_s)
+    H = s.hold_s if s.hold_s > 0 else D / V  # without a hold, one as long as the ramp
+    deep = min(1.5 * D, max_depth_m)
+    out: list[Candidate] = []
+
+    def add(name: str, why: str, *steps: tuple[str, dict], rest: float = 0.0) -> None:
+        after = [("hold", {"s": rest})] if rest else []
+        out.append(Candidate(name, why, [*steps, ("return", {"to": 0.0, "speed": R}), *after]))
+
+    def ramp(to: float, v: float) -> tuple[str, dict]:
+        return ("ramp", {"to": to, "speed": min(v, max_speed_m_s)})
+
+    def hold(t: float) -> tuple[str, dict]:
+        return ("hold", {"s": t})
+
+    for f in (0.25, 0.5, 2.0, 4.0):
+        if V * f <= max_speed_m_s:
+            add(f"ramp at {_mm(V * f)} mm/s", "another speed: damping scales with the speed, elasticity "
+                "with the depth", ramp(D, V * f), hold(H))
+    for d in (D / 2, 2 * D / 3, deep):
+        add(f"ramp to {_mm(d)} mm", "another depth", ramp(d, V), hold(H))
+        add(f"ramp to {_mm(d)} mm at {_mm(min(2 * V, max_speed_m_s))} mm/s", "another depth and speed",
+            ramp(d, 2 * V), hold(H))
+    add("long hold", "a hold three times as long", ramp(D, V), hold(3 * H))
+    add("rest before and after", "the force out of contact before the ramp and after the return (a sensor's "
+        "drift or offset shows there)", hold(H), ramp(D, V), hold(H), rest=H)
+    add("staircase", "a hold at a second depth", ramp(D / 2, V), hold(H / 2), ramp(D, V), hold(H / 2))
+    add(f"staircase to {_mm(deep)} mm at two speeds", "holds at two depths, reached at two speeds",
+        ramp(D / 2, V / 2), hold(H / 2), ramp(deep, 2 * V), hold(H / 2))
+    add("load-unload cycles", "two load-unload cycles without a hold",
+        ramp(D, V), ramp(D / 3, V), ramp(D, V), hold(H / 2))
+    for amp, f in ((0.1, 2.0), (0.2, 1.0)):
+        mid = D * (1 - amp)
+        wiggle = [ramp(mid - amp * D if i % 2 == 0 else mid + amp * D, f * V) for i in range(6)]
+        add(f"oscillation +/-{_mm(amp * D)} mm at {_mm(min(f * V, max_speed_m_s))} mm/s",
+            "a triangle wave at depth (excitation order 2, like a sine)",
+            ramp(mid, V), *wiggle, ramp(mid, f * V), hold(H / 2))
+    wiggle = [ramp(deep - 0.2 * D if i % 2 == 0 else deep, 2 * V) for i in range(4)]
+    add(f"slow to {_mm(D / 2)} mm, fast to {_mm(deep)} mm, oscillation",
+        "two speeds, two depths and a triangle wave in one trial",
+        ramp(D / 2, V / 2), hold(H / 3), ramp(deep, 2 * V), *wiggle, hold(H / 3))
+    return out
+
+
+def _num(v: float) -> str:
+    """Three significant digits, never in exponent form (YAML would read 1e-05 as text)."""
+    return np.format_float_positional(float(f"{v:.3g}"), trim="-")
+
+
+def _mm(x_m: float) -> str:
+    return _num(x_m * 1000)
+
+
+def protocol_text(c: Candidate, name: str, limits_N: float | None, comment: list[str]) -> str:
+    lines = [f"# {line}" for line in comment]
+    lines += [f"name: {json.dumps(name)}", f"description: >-\n  {c.why}", "steps:"]
+    for kind, p in c.steps:
+        if kind == "ramp":
+            lines.append(f"  - ramp:   {{to_mm: {_mm(p['to'])}, speed_mm_s: {_mm(p['speed'])}}}")
+        elif kind == "hold":
+            lines.append(f"  - hold:   {{duration_s: {_num(p['s'])}}}")
+        else:
+            lines.append(f"  - return: {{to_mm: {_mm(p['to'])}, speed_mm_s: {_mm(p['speed'])}}}")
+    if limits_N is not None:
+        lines.append(f"limits: {{max_force_N: {_num(limits_N)}}}")
+    return "\n".join(lines) + "\n"
+
+
+def _trial(c: Candidate, config: RigConfig) -> TrialData:
+    """The candidate's commanded motion at the loop rate, as the models see a trial."""
+    rate, accel = config.loop.rate_Hz, config.slider.accel_mm_s2
+    pos, segs, kinds = 0.0, [np.zeros(round(config.loop.tare_s * rate) + 1)], ["rest"]
+    for kind, p in c.steps:
+        if kind == "hold":
+            segs.append(np.full(max(round(p["s"] * rate), 1), pos))
+        else:
+            target = p["to"] * 1000
+            segs.append(sample_move(pos, target, p["speed"] * 1000, accel, rate))
+            kind = "ramp" if target > pos else "return"
+            pos = target
+        kinds.append(kind)
+    x_m = np.concatenate(segs) / 1000.0
+    step = np.concatenate([np.full(len(s), k, dtype=object) for s, k in zip(segs, kinds, strict=True)])
+    dt = 1.0 / rate
+    t = np.arange(len(x_m)) * dt
+    phase = np.full(len(t), "", dtype=object)
+    phase[step == "ramp"] = "ramp"
+    phase[step == "return"] = "return"
+    hold = step == "hold"
+    if np.any(hold):  # the first sixth of each hold is its early part, as for a recorded trial
+        idx = np.flatnonzero(hold)
+        for seg in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
+            early = t[seg] - t[seg[0]] < (t[seg[-1]] - t[seg[0]]) / 6.0
+            phase[seg[early]] = PHASES[1]
+            phase[seg[~early]] = PHASES[2]
+    m = Motion(t, x_m, np.gradient(x_m, dt), dt)
+    return TrialData(f"design: {c.name}", m, np.zeros(len(t)), phase, None, "design")
+
+
+# ------------------------------------------------------------------ the design
+
+def design(ex: Explanation, config: RigConfig | None = None) -> Design | None:
+    """The protocol that best separates the first look-alike pair, or None without one."""
+    if not ex.lookalikes:
+        return None
+    config = config or RigConfig()
+    pair = ex.lookalikes[0]["effects"]
+    a, b = alternatives(ex, pair)
+    noise = ex.base.noise_N
+    trials = ex.base.trials
+    shape = shape_of(trials)
+    limits = config.limits
+    cands, refused = [], []
+    start = config.sim.slider.start_mm if config.slider.backend == "sim" else 0.0
+    room_m = 0.95 * (limits.travel_mm[1] - start) / 1000.0  # the deepest a candidate may go
+    for c in candidate_steps(shape, limits.max_speed_mm_s / 1000.0, room_m):
+        c.trial = _trial(c, config)
+        duration = float(c.trial.motion.t_s[-1])
+        if duration > MAX_DURATION * shape.duration_s:
+            refused.append(f"{c.name}: {duration:.0f} s, over {MAX_DURATION:g}x the trials given")
+            continue
+        pa, pb = a.model.predict(a.values, c.trial.motion), b.model.predict(b.values, c.trial.motion)
+        c.predictions = (pa, pb)
+        c.peak_N = float(max(np.max(pa), np.max(pb)))
+        try:
+            check_limits(parse_protocol(protocol_text(c, c.name, None, []), c.name), config)
+        except LimitError as exc:
+            refused.append(str(exc))
+            continue
+        if c.peak_N * FORCE_MARGIN > limits.max_force_N:
+            refused.append(f"{c.name}: predicted peak {c.peak_N:.3g} N, within {FORCE_MARGIN:g}x of the "
+                           f"force limit {limits.max_force_N:g} N")
+            continue
+        c.difference_N = float(np.sqrt(np.mean((pa - pb) ** 2)))
+        cands.append(c)
+    if not cands:
+        raise RigError("no candidate protocol fits within the rig's limits: " + "; ".join(refused[:3]))
+    cands.sort(key=lambda c: -c.difference_N)
+    for c in cands[:CHECKED]:
+        _separation(c, a, b, trials)
+    cands.sort(key=lambda c: -(c.separation_N if c.separation_N is not None else -1.0))
+    d = Design((pair[0], pair[1]), (a, b), noise, cands[0], cands, refused)
+    d.yaml = design_yaml(d, limits.max_force_N)
+    proto = parse_protocol(d.yaml, "<design>")
+    check_limits(proto, config)  # as `rig run` will
+    d.duration_s = plan(proto, config).duration_s
+    return d
+
+
+def _separation(c: Candidate, a: FitResult, b: FitResult, trials: list[TrialData]) -> None:
+    """Refit the wrong model to the trials given plus the candidate as the other predicts it;
+    what it still misses on the candidate. With nested models (one is the other plus an effect)
+    only the larger can be the truth the smaller cannot follow; otherwise either may be, and
+    the weaker direction counts."""
+    pa, pb = c.predictions
+    directions = [(a, b, pa)] if _nested(a.model, b.model) else \
+        [(b, a, pb)] if _nested(b.model, a.model) else [(a, b, pa), (b, a, pb)]
+    worst = None
+    for truth, wrong, data in directions:
+        stride = max(1, min(t.n for t in trials) // SCREEN_SAMPLES)
+        new = c.trial
+        made = TrialData(new.name, new.motion, data, new.phase, None, "design")
+        k = max(1, new.n // SCREEN_SAMPLES)
+        res = fit(wrong.model, [decimate(t, stride) for t in trials] + [decimate(made, k)], starts=1,
+                  initial=wrong.values, tol=1e-8, max_nfev=REFIT_NFEV, polish=False)
+        miss = float(np.sqrt(np.mean(res.residuals[-1] ** 2)))
+        if worst is None or miss < worst[0]:
+            worst = (miss, _effect_of(wrong, truth))
+    c.separation_N, c.wrong = worst
+
+
+def _effect_of(wrong: FitResult, truth: FitResult) -> str:
+    """Name the wrong alternative by what it lacks or has instead."""
+    extra = [e for e in wrong.model.effect_names if e not in truth.model.effect_names]
+    lacks = [e for e in truth.model.effect_names if e not in wrong.model.effect_names]
+    if extra:
+        return f"the model with {extra[0]}"
+    return f"the model without {lacks[0]}" if lacks else wrong.model.name
+
+
+def design_yaml(d: Design, force_limit_N: float) -> str:
+    b = d.best
+    x, y = d.effects
+    limit = min(force_limit_N, max(math.ceil(2 * b.peak_N), 1))
+    comment = [f"Designed by rig analyze --design to tell {x} from {y} (look-alikes on the trials given).",
+               f"Predicted with both fitted models: they differ by {b.difference_N:.3g} N RMS on this trial "
+               f"({b.difference_N / d.noise_N:.1f}x the noise, {d.noise_N:.3g} N);",
+               f"refitted to the trials given plus this one, {b.wrong} still misses it by "
+               f"{b.separation_N:.3g} N RMS ({b.separation_N / d.noise_N:.1f}x the noise).",
+               f"Predicted peak force {b.peak_N:.3g} N. Depths are from the zero the analysis took as contact.",
+               "Run it on the same specimen, then analyze it together with the trials given."]
+    return protocol_text(b, f"separate {x} from {y}: {b.name}", limit, comment)
+
+
+def write_design(d: Design, path: str | Path) -> Path:
+    p = Path(path)
+    try:
+        p.write_text(d.yaml)
+    except OSError as exc:
+        raise RigError(f"{p}: cannot write the protocol ({exc.strerror})") from None
+    return p
+
+
+def format_design(d: Design, path: str | Path) -> str:
+    b = d.best
+    lines = [f"design: to tell {d.effects[0]} from {d.effects[1]}, run '{b.name}' ({path}, about "
+             f"{d.duration_s:.0f} s, peak force about {b.peak_N:.3g} N)",
+             f"  the two fitted models differ by {b.difference_N:.3g} N RMS on it "
+             f"({b.difference_N / d.noise_N:.1f}x the noise); refitted with it, {b.wrong} still misses it "
+             f"by {b.separation_N:.3g} N RMS "
+             f"({b.separation_N / d.noise_N:.1f}x the noise)",
+             f"  {'candidate':<44}{'differ N':>10}{'refit miss N':>14}"]
+    for c in d.ranked[:8]:
+        sep = f"{c.separation_N:>14.3g}" if c.separation_N is not None else f"{'-':>14}"
+        lines.append(f"  {c.name[:43]:<44}{c.difference_N:>10.3g}{sep}")
+    return "\n".join(lines)
