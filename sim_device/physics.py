@@ -237,7 +237,7 @@ def fractional_modes(fr, dt: float, per_decade: int = 12) -> tuple[np.ndarray, n
     """
     a = fr.alpha
     lo, hi = math.log10(1e-5 * fr.tau_s), math.log10(10.0 * fr.tau_s / dt)
-    n = max(2, int(math.ceil((hi - lo) * per_decade)))
+    n = max(2, math.ceil((hi - lo) * per_decade))
     edges = np.logspace(lo, hi, n + 1)
     r = np.sqrt(edges[:-1] * edges[1:])
     s, c = math.sin(math.pi * a), math.cos(math.pi * a)

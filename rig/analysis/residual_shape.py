@@ -125,4 +125,5 @@ def _with_time(trials, residuals) -> str:
         if np.sum(trend ** 2) < 0.5 * np.sum(r ** 2) or np.sum((r - trend) ** 2) > 0.5 * np.sum(r ** 2):
             return ""
         slopes.append(a)
-    return "drifting with time over the whole record" if slopes and all(s * slopes[0] > 0 for s in slopes) else ""
+    same_sign = slopes and all(s * slopes[0] > 0 for s in slopes)
+    return "drifting with time over the whole record" if same_sign else ""

@@ -4,8 +4,9 @@ in series with a springpot) as a fixed sum of exponentials on log-spaced time co
 Its relaxation modulus k E_a(-(t/tau)^a) (E_a the Mittag-Leffler function) is completely
 monotone: a mixture of exponentials exp(-r t / tau) whose weight over r has a closed-form
 distribution function, so each of a few modes per decade carries the exact weight of its cell
-of rates, placed at the cell's median rate (the inverse of that function, also closed-form). A mode is a Maxwell element, i.e. a first-order lag of the indentation rate, so the
-branch is a handful of linear filters: no ODE solver and no history sum.
+of rates, placed at the cell's median rate (the inverse of that function, also closed-form).
+A mode is a Maxwell element, i.e. a first-order lag of the indentation rate, so the branch is
+a handful of linear filters: no ODE solver and no history sum.
 """
 
 from __future__ import annotations
