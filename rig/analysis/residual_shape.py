@@ -48,11 +48,14 @@ def _confined(trials, residuals, noise_N: float, fmt) -> str:
     share, samples = excess[ph] / total, len(by_phase[ph]) / n_all
     rmse = float(np.sqrt(np.mean(by_phase[ph] ** 2)))
     mean = float(np.mean(by_phase[ph]))
-    sign = "the measured force above the model" if mean > 0 else "the measured force below the model"
+    structured = np.sqrt(excess[ph] / len(by_phase[ph]))
+    # a one-sided error says which way the model is off; an oscillation does not
+    sign = ("" if abs(mean) < 0.5 * structured else
+            "; the measured force above the model" if mean > 0 else "; the measured force below the model")
     if share >= CONFINED_SHARE and samples <= CONFINED_SAMPLES:
         return (f"confined to the {ph} phase ({share * 100:.0f} % of the structured error in "
-                f"{samples * 100:.0f} % of the samples; RMSE {fmt(rmse)} there, {sign})")
-    return f"largest in the {ph} phase ({share * 100:.0f} % of the structured error; {sign} there)"
+                f"{samples * 100:.0f} % of the samples; RMSE {fmt(rmse)} there{sign})")
+    return f"largest in the {ph} phase ({share * 100:.0f} % of the structured error{sign})"
 
 
 def _periodic(trials, residuals) -> str:
@@ -70,7 +73,7 @@ def _periodic(trials, residuals) -> str:
                 and f[k] * len(r) * t.motion.dt_s >= 3:  # at least three periods in the record
             found.append(f[k])
     if found and len(found) * 2 > len(trials):
-        return f"periodic at {float(np.median(found)):.3g} Hz"
+        return f"periodic at {float(np.median(found)):.2g} Hz"
     return ""
 
 

@@ -41,7 +41,11 @@ def modes(duration_s: float, dt_s: float, tau_s: float, alpha: float,
     edges = np.logspace(lo, hi, n + 1)
     cdf = mittag_leffler_cdf(edges * tau_s, alpha)
     cdf[0], cdf[-1] = 0.0, 1.0
-    rates = np.clip(_median_rate(0.5 * (cdf[:-1] + cdf[1:]), alpha) / tau_s, edges[:-1], edges[1:])
+    # each mode at its cell's median rate; the end cells reach to 0 and to infinity
+    lo_edge, hi_edge = edges[:-1].copy(), edges[1:].copy()
+    lo_edge[0], hi_edge[-1] = 0.0, np.inf
+    rates = np.clip(_median_rate(0.5 * (cdf[:-1] + cdf[1:]), alpha) / tau_s, lo_edge, hi_edge)
+    rates = np.maximum(rates, 1e-6 * edges[0])  # a mode slower than that is a spring over the record
     return rates, np.diff(cdf)
 
 
