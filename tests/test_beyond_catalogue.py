@@ -29,7 +29,7 @@ SPEEDS = ("1.5", "3")
 HIDDEN = {
     # catalogue effect: (simulator effect, its parameters)
     "speed_relaxation": ("speed_relaxation", SpeedRelaxationParams(ref_speed_mm_s=1.5, exponent=0.5)),
-    "fractional_relaxation": ("fractional", FractionalParams(k_N_per_m=200.0, tau_s=0.5, alpha=0.25)),
+    "fractional_relaxation": ("fractional", FractionalParams(k_N_per_m=300.0, tau_s=0.5, alpha=0.25)),
 }
 
 

@@ -269,7 +269,7 @@ def _unexplained(base: FitResult, best: Suggestion | None) -> bool | str:
         return False
     worst = max(((ph, s.rmse_N) for ph, s in res.phases.items() if s), key=lambda x: x[1])
     what = f"with {best.effect}" if best else f"{base.model.name}"
-    text = (f"{what} the error is still {res.overall.rmse_N / max(res.noise_N, 1e-300):.2g}x the noise "
+    text = (f"{what} the error is still {res.overall.rmse_N / max(res.noise_N, 1e-300):.2f}x the noise "
             f"(worst in {worst[0]}: {res.f(worst[1])}; residual correlated over {res.white_L:.0f} samples, "
             f"noise {res.noise_L:.0f})")
     shape = describe(res.trials, res.residuals, res.noise_N, res.f)
