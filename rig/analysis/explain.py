@@ -56,6 +56,7 @@ class Suggestion:
     why: str
     fit: FitResult
     meaningless: str = ""  # why the best fit with it is physically meaningless, if it is
+    full_rate: bool = True  # scored on every sample (else on the screen's decimated copy)
 
     def as_dict(self) -> dict:
         return {"effect": self.effect, "rmse_N": self.rmse_N, "rmse_drop": self.rmse_drop,
@@ -119,10 +120,10 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
         rss = float(np.sum(np.concatenate(res.residuals) ** 2))
         screened.append((rss / max(rss0_c, 1e-300), e, res))
     screened.sort(key=lambda x: x[0])
-    ranked = []
-    for i, (ratio, e, res_c) in enumerate(screened):
+
+    def score(e: Effect, res_c: FitResult, full: bool) -> Suggestion:
         model = base.model + e
-        if i < REFIT_LEADERS:
+        if full:
             # from the screen's answer a few steps settle it on every sample
             res = fit(model, trials, starts=1, initial=res_c.values, tol=1e-8, max_nfev=REFIT_NFEV,
                       polish=False)
@@ -130,17 +131,28 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
             before = base
         else:
             res, before = res_c, base_coarse
+            ratio = float(np.sum(np.concatenate(res.residuals) ** 2)) / max(rss0_c, 1e-300)
         dk = len(model.params) - len(base.model.params)
         dbic = n_eff * np.log(max(ratio, 1e-300)) + dk * np.log(n_eff)
         rmse = base.overall.rmse_N * float(np.sqrt(ratio))
         drop = 1.0 - float(np.sqrt(ratio))
-        ranked.append(Suggestion(e.name, rmse, drop, float(dbic), _why(e, before, res), res))
-    ranked.sort(key=lambda s: s.delta_bic)
-    for sug in ranked:
-        own = [w for w in sug.fit.warnings if w.startswith(f"{sug.effect}.") and "negative" in w]
+        sug = Suggestion(e.name, rmse, drop, float(dbic), _why(e, before, res), res, full_rate=full)
+        own = [w for w in res.warnings if w.startswith(f"{e.name}.") and "negative" in w]
         if own:
             sug.meaningless = own[0]
             sug.why += f"; but {own[0]}"
+        return sug
+
+    ranked = [score(e, res_c, i < REFIT_LEADERS) for i, (_, e, res_c) in enumerate(screened)]
+    by_name = {e.name: (e, res_c) for _, e, res_c in screened}
+    while True:
+        # the answer is scored on every sample: a candidate screened only on the decimated copy
+        # that would come first is refitted before it can (the copy's score is not the same)
+        ranked.sort(key=lambda s: s.delta_bic)
+        top = next((s for s in ranked if not s.meaningless), None)
+        if top is None or top.full_rate:
+            break
+        ranked[ranked.index(top)] = score(*by_name[top.effect], True)
     ranked_ok = [s for s in ranked if not s.meaningless]
     if base.adequate:
         passing = [s for s in ranked_ok if s.delta_bic < DECISIVE_BIC and s.rmse_drop >= MIN_DROP]
