@@ -321,8 +321,6 @@ def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexpl
         else:
             parts.append(f"look-alikes: {a} and {b} cannot be told apart on these trials ({t['why']}); "
                          f"to separate them: {t['separate_with']}")
-    if best is not None and unexplained:
-        parts.append(f"still unexplained: {unexplained}")
     return "; ".join(parts)
 
 
