@@ -22,7 +22,7 @@ import numpy as np
 
 from rig.analysis.data import PHASES, TrialData, decimate
 from rig.analysis.fit import FitResult, evaluate, fit
-from rig.analysis.residual_shape import describe
+from rig.analysis.residual_shape import describe, not_the_answer
 from rig.models.core import Effect, Model
 
 MIN_DROP = 0.05
@@ -163,12 +163,15 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
     twins = _indistinguishable(passing) if passing else _absorbed(base, ranked_ok)
     best = passing[0] if passing else None
     unexplained = _unexplained(base, best)
-    closest = None
+    closest, partial = None, ""
     if best is not None and unexplained:
-        # what the best addition leaves is still more than noise: no effect in the catalogue
-        # explains the residual, and the nearest one is named as such, never as the answer
-        closest, best = best, None
-    summary = _summary(base, best, twins, unexplained, closest)
+        partial = not_the_answer(base.overall.rmse_N, best.fit.overall.rmse_N, best.fit.noise_N,
+                                 best.fit.trials, best.fit.residuals)
+        if partial:
+            # no effect in the catalogue explains the residual: the nearest one is named as such,
+            # never as the answer
+            closest, best = best, None
+    summary = _summary(base, best, twins, unexplained, closest, partial)
     return Explanation(base, n_eff, ranked, passing, twins, base.adequate, summary,
                        best.effect if best else None, twins, unexplained,
                        closest.effect if closest else None)
@@ -289,11 +292,11 @@ def _unexplained(base: FitResult, best: Suggestion | None) -> bool | str:
 
 
 def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexplained: bool | str,
-             closest: Suggestion | None = None) -> str:
+             closest: Suggestion | None = None, partial: str = "") -> str:
     """Best-supported effect first with its evidence, then any look-alike and the protocol that
     would separate them, then what is left unexplained: the answer is never replaced by a note.
-    An addition that still leaves a structured residual is the closest the catalogue comes, not
-    the answer."""
+    An addition that still leaves a structured residual and explains only part of it (or leaves
+    the trials disagreeing) is the closest the catalogue comes, not the answer."""
     parts = []
     if best is not None:
         parts.append(f"most likely missing: {best.effect} (dBIC {best.delta_bic:.1f}, RMSE "
@@ -309,7 +312,7 @@ def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexpl
         if closest is not None:
             parts.append(f"closest: {closest.effect} (dBIC {closest.delta_bic:.1f}, RMSE "
                          f"{base.f(closest.rmse_N)}, error down {closest.rmse_drop * 100:.0f} %), which "
-                         "still leaves a structured residual")
+                         f"still leaves a structured residual: {partial}")
         if unexplained:
             parts.append(f"unexplained: {unexplained}")
     for t in twins:
@@ -321,6 +324,8 @@ def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexpl
         else:
             parts.append(f"look-alikes: {a} and {b} cannot be told apart on these trials ({t['why']}); "
                          f"to separate them: {t['separate_with']}")
+    if best is not None and unexplained:
+        parts.append(f"still unexplained: {unexplained}")
     return "; ".join(parts)
 
 

@@ -21,6 +21,22 @@ PERIODIC_SHARE = 0.25  # a spectral peak carrying this much of the residual's va
 PERIODIC_OVER_MEDIAN = 20.0  # ... and standing this far above the spectrum's median
 DEPTH_RANK = 0.5  # rank correlation of the residual's size with depth in contact
 TRIAL_SPREAD = 0.5  # trials whose mean residuals differ by this share of the structured RMSE
+PARTIAL_SHARE = 0.5  # an addition removing less of the error above the noise explains only part
+
+
+def not_the_answer(base_rmse_N: float, rmse_N: float, noise_N: float, trials: list[TrialData],
+                   residuals: list[np.ndarray]) -> str:
+    """Why an addition that still leaves a structured residual is not the answer ("" when it is):
+    it removes less than half of the error above the noise, or the trials it must serve with one
+    parameter set still disagree (opposite or unequal errors in the same phase), which the right
+    mechanism would not leave."""
+    excess0 = base_rmse_N ** 2 - noise_N ** 2
+    share = 1.0 - (rmse_N ** 2 - noise_N ** 2) / excess0 if excess0 > 0 else 0.0
+    if share < PARTIAL_SHARE:
+        return f"it accounts for only {max(share, 0.0) * 100:.0f} % of the error above the noise"
+    if _between_trials(trials, residuals, noise_N):
+        return "the trials still disagree: its one parameter set does not serve them all"
+    return ""
 
 
 def describe(trials: list[TrialData], residuals: list[np.ndarray], noise_N: float,
