@@ -15,7 +15,7 @@ import pytest
 from rig.analysis.data import load_trial
 from rig.analysis.explain import explain, format_explain
 from rig.analysis.fit import fit
-from rig.analysis.residual_shape import describe
+from rig.analysis.residual_shape import describe, not_the_answer
 from rig.config import RigConfig
 from rig.logs import read_log
 from rig.models import CATALOGUE, build_model
@@ -228,3 +228,12 @@ def test_residual_description_names_a_periodic_residual_and_its_phase(tmp_path):
     assert "periodic" not in text
     white = [rng.normal(0, 0.08, t.n) for t in trials]
     assert "confined" not in describe(trials, white, 0.08)
+    # an addition is the answer unless it explains only part or leaves the trials disagreeing
+    assert not_the_answer(0.3, 0.1, 0.08, trials, white) == ""
+    # 1 - (0.28^2 - 0.08^2) / (0.3^2 - 0.08^2) = 14 % of the error above the noise
+    assert "only 14 %" in not_the_answer(0.3, 0.28, 0.08, trials, white)
+    apart = [np.where(t.mask("hold_early"), 0.1 * (1 if i == 0 else -1), 0.0) + rng.normal(0, 0.08, t.n)
+             for i, t in enumerate(trials)]
+    assert "trials still disagree" in not_the_answer(0.3, 0.1, 0.08, trials, apart)
+    text = describe(trials, apart, 0.08)
+    assert "of opposite sign in the hold_early phase of trials at different speeds" in text
