@@ -161,6 +161,24 @@ def test_simulated_relaxation_is_faster_after_faster_loading(tmp_path):
     assert taus[True, "3"] < 0.8 * taus[False, "3"]  # twice the speed: tau1 halves
 
 
+def test_simulated_power_law_branch_matches_a_fine_step_integration(tmp_path):
+    """The simulator's fractional branch alone (the paper's terms off) against Grunwald-Letnikov."""
+    cfg = RigConfig()
+    cfg.sim.loadcell.noise_N = 0.0
+    for k in ("k1_N_per_m3", "k2_N_per_m2", "k3_N_per_m", "tau2_N_s_per_m2"):
+        setattr(cfg.sim.tissue, k, 0.0)
+    cfg.sim.effects.fractional = FractionalParams(k_N_per_m=200.0, tau_s=0.5, alpha=0.3)
+    s = read_log(run_sim(_protocol("3", 8.0, 12.0), cfg, tmp_path).log_path).samples
+    t, x_mm, f = s["t_s"], s["position_mm"], s["force_N"]
+    h = 0.002  # the reference on a 2 ms grid of the logged motion
+    tt = np.arange(t[0], t[-1], h)
+    ref = np.interp(t, tt, _grunwald_letnikov(np.interp(tt, t, x_mm) / 1e3, h, 200.0, 0.5, 0.3))
+    # loading and hold (on the way out the branch would pull, and the surface lets go)
+    pushed = (x_mm > 0.5) & (np.arange(len(t)) <= np.flatnonzero(x_mm >= np.max(x_mm) - 1e-6)[-1])
+    assert np.max(np.abs(f - ref)[pushed]) <= 0.01 * np.max(ref)
+    assert np.all(f[x_mm < np.max(x_mm) - 1e-6] >= 0.0)
+
+
 def test_simulated_specimen_softens_over_repeated_loadings(tmp_path):
     cfg = RigConfig()
     cfg.sim.loadcell.noise_N = 0.0

@@ -43,6 +43,9 @@ SEPARATE_BY = {
     frozenset({"drift", "relaxation2"}): "a longer hold, or a stretch without contact (drift shows there)",
     frozenset({"offset", "drift"}): "a longer pre-contact baseline and a rest after the return",
     frozenset({"offset", "contact_offset"}): "an approach step that finds the surface",
+    frozenset({"fractional_relaxation", "relaxation2"}): "a longer hold (a power law keeps relaxing over "
+                                                         "every decade of time; one exponential settles)",
+    frozenset({"speed_relaxation", "relaxation2"}): "a third speed (the relaxation time follows the speed)",
 }
 GENERIC_SEPARATION = "another speed, another depth, or a richer motion (a sine gives excitation order 2)"
 
