@@ -119,6 +119,38 @@ class FrictionParams:
 
 
 @dataclass
+class SpeedRelaxationParams:
+    """Relaxation faster after a faster loading, as the paper observed: the proposed model's tau1
+    becomes tau1 * (ref_speed / v)^exponent, v the fastest indentation speed of the current
+    contact (tau1 itself holds at the reference speed)."""
+
+    ref_speed_mm_s: float = field(default=1.5, **_pos(gt=0))
+    exponent: float = field(default=1.0, **_pos(ge=0, le=3))
+
+
+@dataclass
+class FractionalParams:
+    """A power-law (fractional) relaxation branch in parallel: a spring k in series with a
+    springpot, the fractional Maxwell element RHEOS fits to AFM data. Its relaxation modulus is
+    k E_alpha(-(t/tau)^alpha): a power law t^-alpha after tau, a Maxwell branch when alpha = 1."""
+
+    k_N_per_m: float = field(default=60.0, **_pos(ge=0))
+    tau_s: float = field(default=1.0, **_pos(gt=0))
+    alpha: float = field(default=0.4, **_pos(gt=0, le=0.95))
+
+
+@dataclass
+class PreconditioningParams:
+    """The specimen softens over its first loadings (Mullins-like): the elastic drive is scaled
+    by 1 - softening (1 - exp(-n / trials)), n the loadings it has had; `done` counts those
+    before this run (a series of runs on one specimen)."""
+
+    softening: float = field(default=0.2, **_pos(ge=0, le=0.9))
+    trials: float = field(default=1.5, **_pos(gt=0))
+    done: int = field(default=0, **_pos(ge=0))
+
+
+@dataclass
 class HiddenEffects:
     relaxation2: Relaxation2Params | None = None
     drift: DriftParams | None = None
@@ -127,6 +159,10 @@ class HiddenEffects:
     delay: DelayParams | None = None
     compliance: ComplianceParams | None = None
     friction: FrictionParams | None = None
+    # tissue physics the catalogue does not mirror term for term
+    speed_relaxation: SpeedRelaxationParams | None = None
+    fractional: FractionalParams | None = None
+    preconditioning: PreconditioningParams | None = None
 
     def active(self) -> list[str]:
         return [name for name in self.__dataclass_fields__ if getattr(self, name) is not None]

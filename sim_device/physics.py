@@ -3,7 +3,9 @@
 The tissue is the paper's proposed model, integrated in small fixed sub-steps
 (default 0.5 ms). Hidden effects are mechanisms added to that chain, never calls to
 the analysis code: a second Maxwell branch, a frame spring in series, guide
-friction, a cable preload, load-cell drift and a delay line in the sensor.
+friction, a cable preload, load-cell drift and a delay line in the sensor; and tissue
+physics the paper's model lacks: relaxation that speeds up with the loading speed, a
+power-law (fractional Maxwell) branch, and preconditioning over repeated loadings.
 
 Everything is lazily advanced: `advance(t_s)` integrates up to time `t_s`, so the
 same object serves the in-process devices (virtual or real clock) and the devices
@@ -107,6 +109,12 @@ class SimRig:
             if n_delay > 0 else None
         self._surface_mm = tp.surface_mm + (fx.contact_offset.x0_mm if fx.contact_offset else 0.0)
         self._probe_mm = self.slider.position_mm
+        self._peak_rate_m_s = 0.0  # fastest indentation speed of the current contact
+        self._loadings = fx.preconditioning.done if fx.preconditioning else 0
+        self._stiffness = 1.0
+        self._soften()
+        self._frac_modes = fractional_modes(fx.fractional, self.dt) if fx.fractional else None
+        self._frac_N = np.zeros(0 if self._frac_modes is None else len(self._frac_modes[0]))
 
     @property
     def t_s(self) -> float:
@@ -133,14 +141,25 @@ class SimRig:
         self._probe_mm = probe_mm
         x = max(probe_mm - self._surface_mm, 0.0) / 1000.0
         xdot = (x - self.indentation_m) / dt
+        if x == 0.0 and self.indentation_m > 0.0:  # a loading ends: the probe left the surface
+            self._loadings += 1
+            self._soften()
+            self._peak_rate_m_s = 0.0
         self.indentation_m = x
         if x > 0.0:
-            drive = ((tp.k1_N_per_m3 * x + tp.k2_N_per_m2) * x + tp.k3_N_per_m) * x \
+            drive = self._stiffness * ((tp.k1_N_per_m3 * x + tp.k2_N_per_m2) * x + tp.k3_N_per_m) * x \
                 + tp.tau2_N_s_per_m2 * x * xdot
         else:
             drive = 0.0
+        a1 = self._a1
+        if fx.speed_relaxation and x > 0.0:
+            sr = fx.speed_relaxation
+            self._peak_rate_m_s = max(self._peak_rate_m_s, xdot)
+            ref = sr.ref_speed_mm_s / 1000.0
+            tau = tp.tau1_s * (ref / max(self._peak_rate_m_s, 1e-3 * ref)) ** sr.exponent
+            a1 = math.exp(-dt / tau)
         # Exact discretisation of f + tau1 df/dt = drive over one sub-step (drive held).
-        f1 = drive + (self.f1_N - drive) * self._a1
+        f1 = drive + (self.f1_N - drive) * a1
         # The tissue cannot pull on the probe: when it would, the surface separates and the
         # branch recovers freely instead of storing tension.
         self.f1_N = max(f1, 0.0)
@@ -148,7 +167,14 @@ class SimRig:
             r2 = fx.relaxation2
             f2 = self.f2_N * self._a2 + r2.k_N_per_m * (xdot * dt)
             self.f2_N = max(f2, 0.0) if x > 0.0 else 0.0
-        self.tissue_force_N = self.f1_N + self.f2_N if x > 0.0 else 0.0
+        frac = 0.0
+        if self._frac_modes is not None:
+            decay, gain = self._frac_modes
+            # out of contact the branch recovers freely; in contact it may push or pull on the
+            # rest of the tissue, only the sum on the probe cannot pull
+            self._frac_N = self._frac_N * decay + gain * xdot if x > 0.0 else np.zeros_like(decay)
+            frac = float(self._frac_N.sum())
+        self.tissue_force_N = max(self.f1_N + self.f2_N + frac, 0.0) if x > 0.0 else 0.0
         # What the load cell behind the probe carries.
         sensed = self.tissue_force_N
         if fx.friction:
@@ -165,6 +191,11 @@ class SimRig:
             self._delay_line.append(sensed)
             sensed = self._delay_line[0]
         self.sensor_force_N = sensed
+
+    def _soften(self) -> None:
+        pc = self.params.effects.preconditioning
+        if pc:
+            self._stiffness = 1.0 - pc.softening * (1.0 - math.exp(-self._loadings / pc.trials))
 
     def read_force_N(self) -> float:
         """One load-cell conversion: the bridge force plus Gaussian noise, quantised."""
@@ -192,3 +223,29 @@ class SimRig:
         """The encoder's view of the slider: whole steps only."""
         spm = self.params.slider.steps_per_mm
         return round(self.slider.position_mm * spm) / spm
+
+
+def fractional_modes(fr, dt: float, per_decade: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """The fractional Maxwell branch as a ladder of Maxwell modes, per sub-step: each mode's decay
+    factor and its gain on the indentation rate.
+
+    Its relaxation modulus k E_a(-(t/tau)^a) is a continuous mixture of exponentials
+    exp(-r t / tau) whose weight over r has the closed-form distribution function
+        F(r) = (arctan((r^a + cos(pi a)) / sin(pi a)) - arctan(cot(pi a))) / (pi a),
+    so each mode carries the exact weight of its cell of rates; rates from 1e-5/s (slower ones
+    act as springs over any trial) to ten per sub-step (faster ones relax within a step).
+    """
+    a = fr.alpha
+    lo, hi = math.log10(1e-5 * fr.tau_s), math.log10(10.0 * fr.tau_s / dt)
+    n = max(2, math.ceil((hi - lo) * per_decade))
+    edges = np.logspace(lo, hi, n + 1)
+    r = np.sqrt(edges[:-1] * edges[1:])
+    s, c = math.sin(math.pi * a), math.cos(math.pi * a)
+    cdf = (np.arctan((edges ** a + c) / s) - math.atan2(c, s)) / (math.pi * a)
+    cdf[0], cdf[-1] = 0.0, 1.0  # the tails go to the end cells
+    weight = np.diff(cdf)
+    rate = r / fr.tau_s
+    decay = np.exp(-rate * dt)
+    # f_i + df_i/dt / rate_i = (k w_i / rate_i) dx/dt, exact for dx/dt held over the sub-step
+    gain = fr.k_N_per_m * weight * (-np.expm1(-rate * dt)) / rate
+    return decay, gain

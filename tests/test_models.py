@@ -22,7 +22,8 @@ from rig.models.core import first_order_lag
 from tests.conftest import PROTOCOLS, ROOT, run_sim
 
 CATALOGUE_NAMES = ["linear_elastic", "poly_elastic", "power_elastic", "viscous", "hc_damping",
-                   "nonlinear_damping", "relaxation", "relaxation2", "offset", "drift", "contact_offset",
+                   "nonlinear_damping", "relaxation", "relaxation2", "speed_relaxation",
+                   "fractional_relaxation", "offset", "drift", "contact_offset",
                    "delay", "compliance", "friction"]
 
 

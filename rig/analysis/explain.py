@@ -21,7 +21,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rig.analysis.data import PHASES, TrialData, decimate
-from rig.analysis.fit import FitResult, fit
+from rig.analysis.fit import FitResult, evaluate, fit
+from rig.analysis.residual_shape import describe, not_the_answer
 from rig.models.core import Effect, Model
 
 MIN_DROP = 0.05
@@ -42,6 +43,9 @@ SEPARATE_BY = {
     frozenset({"drift", "relaxation2"}): "a longer hold, or a stretch without contact (drift shows there)",
     frozenset({"offset", "drift"}): "a longer pre-contact baseline and a rest after the return",
     frozenset({"offset", "contact_offset"}): "an approach step that finds the surface",
+    frozenset({"fractional_relaxation", "relaxation2"}): "a longer hold (a power law keeps relaxing over "
+                                                         "every decade of time; one exponential settles)",
+    frozenset({"speed_relaxation", "relaxation2"}): "a third speed (the relaxation time follows the speed)",
 }
 GENERIC_SEPARATION = "another speed, another depth, or a richer motion (a sine gives excitation order 2)"
 
@@ -55,6 +59,7 @@ class Suggestion:
     why: str
     fit: FitResult
     meaningless: str = ""  # why the best fit with it is physically meaningless, if it is
+    full_rate: bool = True  # scored on every sample (else on the screen's decimated copy)
 
     def as_dict(self) -> dict:
         return {"effect": self.effect, "rmse_N": self.rmse_N, "rmse_drop": self.rmse_drop,
@@ -73,11 +78,14 @@ class Explanation:
     best: str | None = None  # the best-supported addition, if any passes
     lookalikes: list[dict] = field(default_factory=list)  # pairs these trials cannot separate
     unexplained: bool | str = False  # what the best addition (or the base) still leaves
+    # the best addition when it still leaves a structured residual: the nearest the catalogue
+    # comes, not the answer
+    closest: str | None = None
 
     def verdict(self) -> dict:
         """The verdict as fields (the `diagnosis` of `rig analyze --explain --json`)."""
         return {"best": self.best, "lookalikes": self.lookalikes, "unexplained": self.unexplained,
-                "text": self.summary}
+                "closest": self.closest, "text": self.summary}
 
 
 def candidates(model: Model, registry: dict[str, Effect]) -> list[Effect]:
@@ -85,8 +93,10 @@ def candidates(model: Model, registry: dict[str, Effect]) -> list[Effect]:
     for e in registry.values():
         if model.has(e.name):
             continue
-        if e.stage in ("lag", "delay") and any(x.stage == e.stage for x in model.effects):
+        if e.stage in ("rate", "lag", "delay") and any(x.stage == e.stage for x in model.effects):
             continue
+        if e.stage == "rate" and not any(x.stage == "lag" for x in model.effects):
+            continue  # a rate speeds up a lag: without one it has nothing to act on
         out.append(e)
     return out
 
@@ -113,10 +123,10 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
         rss = float(np.sum(np.concatenate(res.residuals) ** 2))
         screened.append((rss / max(rss0_c, 1e-300), e, res))
     screened.sort(key=lambda x: x[0])
-    ranked = []
-    for i, (ratio, e, res_c) in enumerate(screened):
+
+    def score(e: Effect, res_c: FitResult, full: bool) -> Suggestion:
         model = base.model + e
-        if i < REFIT_LEADERS:
+        if full:
             # from the screen's answer a few steps settle it on every sample
             res = fit(model, trials, starts=1, initial=res_c.values, tol=1e-8, max_nfev=REFIT_NFEV,
                       polish=False)
@@ -124,17 +134,28 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
             before = base
         else:
             res, before = res_c, base_coarse
+            ratio = float(np.sum(np.concatenate(res.residuals) ** 2)) / max(rss0_c, 1e-300)
         dk = len(model.params) - len(base.model.params)
         dbic = n_eff * np.log(max(ratio, 1e-300)) + dk * np.log(n_eff)
         rmse = base.overall.rmse_N * float(np.sqrt(ratio))
         drop = 1.0 - float(np.sqrt(ratio))
-        ranked.append(Suggestion(e.name, rmse, drop, float(dbic), _why(e, before, res), res))
-    ranked.sort(key=lambda s: s.delta_bic)
-    for sug in ranked:
-        own = [w for w in sug.fit.warnings if w.startswith(f"{sug.effect}.") and "negative" in w]
+        sug = Suggestion(e.name, rmse, drop, float(dbic), _why(e, before, res), res, full_rate=full)
+        own = [w for w in res.warnings if w.startswith(f"{e.name}.") and "negative" in w]
         if own:
             sug.meaningless = own[0]
             sug.why += f"; but {own[0]}"
+        return sug
+
+    ranked = [score(e, res_c, i < REFIT_LEADERS) for i, (_, e, res_c) in enumerate(screened)]
+    by_name = {e.name: (e, res_c) for _, e, res_c in screened}
+    while True:
+        # the answer is scored on every sample: a candidate screened only on the decimated copy
+        # that would come first is refitted before it can (the copy's score is not the same)
+        ranked.sort(key=lambda s: s.delta_bic)
+        top = next((s for s in ranked if not s.meaningless), None)
+        if top is None or top.full_rate:
+            break
+        ranked[ranked.index(top)] = score(*by_name[top.effect], True)
     ranked_ok = [s for s in ranked if not s.meaningless]
     if base.adequate:
         passing = [s for s in ranked_ok if s.delta_bic < DECISIVE_BIC and s.rmse_drop >= MIN_DROP]
@@ -145,9 +166,18 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
     twins = _indistinguishable(passing) if passing else _absorbed(base, ranked_ok)
     best = passing[0] if passing else None
     unexplained = _unexplained(base, best)
-    summary = _summary(base, best, twins, unexplained)
+    closest, partial = None, ""
+    if best is not None and unexplained:
+        partial = not_the_answer(base.overall.rmse_N, best.fit.overall.rmse_N, best.fit.noise_N,
+                                 best.fit.trials, best.fit.residuals)
+        if partial:
+            # no effect in the catalogue explains the residual: the nearest one is named as such,
+            # never as the answer
+            closest, best = best, None
+    summary = _summary(base, best, twins, unexplained, closest, partial)
     return Explanation(base, n_eff, ranked, passing, twins, base.adequate, summary,
-                       best.effect if best else None, twins, unexplained)
+                       best.effect if best else None, twins, unexplained,
+                       closest.effect if closest else None)
 
 
 def _phase_drops(base: FitResult, res: FitResult) -> list[tuple[str, float, float]]:
@@ -179,6 +209,14 @@ def _shape(e: Effect, base: FitResult, res: FitResult) -> str:
         return f"hold residual still decaying with tau about {v['tau_m_s']:.3g} s"
     if name == "relaxation":
         return f"hold residual decaying with tau about {v['tau1_s']:.3g} s: the force relaxes, the model holds"
+    if name == "speed_relaxation" and "tau1_s" in v:
+        taus = sorted({1.0 / (1.0 / v["tau1_s"] + 1000.0 * v["relax_rate_per_speed_1_per_mm"]
+                              * t.motion.loading_speed_m_s) for t in res.trials}, reverse=True)
+        return ("hold residual decays faster after faster loading: one tau1 cannot serve every speed "
+                f"(tau1 about {', '.join(f'{x:.3g}' for x in taus)} s from the slowest speed to the fastest)")
+    if name == "fractional_relaxation":
+        return (f"hold residual decaying over many time scales at once: a power law t^-{v['alpha_f']:.2g} "
+                f"after about {v['tau_f_s']:.3g} s")
     if name == "drift":
         return "error grows linearly with time, also before contact and after the return"
     if name == "offset":
@@ -208,7 +246,9 @@ def _indistinguishable(passing: list[Suggestion]) -> list[dict]:
     if not close_rmse or (b.delta_bic - a.delta_bic) > 0.1 * abs(a.delta_bic) + 10:
         return []
     # they must also predict the same thing: their fitted curves nearly coincide
-    diff = np.concatenate([p - q for p, q in zip(a.fit.predictions, b.fit.predictions, strict=True)])
+    # (on a's samples: one of them may have been screened on the decimated copy only)
+    pred_b = evaluate(b.fit.model, b.fit.values, a.fit.trials)
+    diff = np.concatenate([p - q for p, q in zip(a.fit.predictions, pred_b, strict=True)])
     if np.sqrt(np.mean(diff ** 2)) > 0.5 * a.fit.noise_N:
         return []
     key = frozenset({a.effect, b.effect})
@@ -247,14 +287,19 @@ def _unexplained(base: FitResult, best: Suggestion | None) -> bool | str:
         return False
     worst = max(((ph, s.rmse_N) for ph, s in res.phases.items() if s), key=lambda x: x[1])
     what = f"with {best.effect}" if best else f"{base.model.name}"
-    return (f"{what} the error is still {res.overall.rmse_N / max(res.noise_N, 1e-300):.1f}x the noise "
+    text = (f"{what} the error is still {res.overall.rmse_N / max(res.noise_N, 1e-300):.2f}x the noise "
             f"(worst in {worst[0]}: {res.f(worst[1])}; residual correlated over {res.white_L:.0f} samples, "
             f"noise {res.noise_L:.0f})")
+    shape = describe(res.trials, res.residuals, res.noise_N, res.f)
+    return f"{text}; the residual is {shape}" if shape else text
 
 
-def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexplained: bool | str) -> str:
+def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexplained: bool | str,
+             closest: Suggestion | None = None, partial: str = "") -> str:
     """Best-supported effect first with its evidence, then any look-alike and the protocol that
-    would separate them, then what is left unexplained: the answer is never replaced by a note."""
+    would separate them, then what is left unexplained: the answer is never replaced by a note.
+    An addition that still leaves a structured residual and explains only part of it (or leaves
+    the trials disagreeing) is the closest the catalogue comes, not the answer."""
     parts = []
     if best is not None:
         parts.append(f"most likely missing: {best.effect} (dBIC {best.delta_bic:.1f}, RMSE "
@@ -267,6 +312,12 @@ def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexpl
         parts.append(f"the model is NOT adequate (RMSE {base.f(base.overall.rmse_N)} vs noise "
                      f"{base.f(base.noise_N)}; worst in {worst[0]}: {base.f(worst[1])}) and no effect in "
                      "the catalogue explains it")
+        if closest is not None:
+            parts.append(f"closest: {closest.effect} (dBIC {closest.delta_bic:.1f}, RMSE "
+                         f"{base.f(closest.rmse_N)}, error down {closest.rmse_drop * 100:.0f} %), which "
+                         f"still leaves a structured residual: {partial}")
+        if unexplained:
+            parts.append(f"unexplained: {unexplained}")
     for t in twins:
         a, b = t["effects"]
         if best is not None and best.effect in (a, b):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from rig.models.core import Effect, Model, Motion, Param, first_order_lag
+from rig.models.fractional import fractional_maxwell
 
 INF = np.inf
 FRICTION_ROUNDING = 0.02
@@ -41,6 +42,15 @@ def _relaxation(drive, dt, tau1_s):
 def _relaxation2(x, v, dt, k_m_N_per_m, tau_m_s):
     # Maxwell element: f2 + tau df2/dt = k tau dx/dt, i.e. a lag of k tau v
     return first_order_lag(k_m_N_per_m * tau_m_s * v, dt, tau_m_s)
+
+
+def _speed_relaxation(m: Motion, relax_rate_per_speed_1_per_mm):
+    # the lag's extra rate (1/s) grows with the trial's own loading speed (mm/s)
+    return relax_rate_per_speed_1_per_mm * 1000.0 * m.loading_speed_m_s
+
+
+def _fractional_relaxation(x, v, dt, k_f_N_per_m, tau_f_s, alpha_f):
+    return fractional_maxwell(v, dt, k_f_N_per_m, tau_f_s, alpha_f)
 
 
 def _contact_offset(x, v, x0_mm):
@@ -113,6 +123,18 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in [
                                 P("tau_m_s", "s", 3.0, 1e-3, 1e5)),
       _relaxation2, "Maxwell branch: f2 + tau_m df2/dt = k_m tau_m dx/dt, in parallel",
       "hold residual still decaying with a second, slower time constant"),
+    # relaxation faster after faster loading (the paper's observation); seen only in a joint fit
+    # over trials at several speeds, where one tau1 cannot serve them all
+    E("speed_relaxation", "rate", (P("relax_rate_per_speed_1_per_mm", "1/mm", 0.5, 0.0, 1e4),),
+      _speed_relaxation, "the lag's rate 1/tau1 + c v, v the trial's loading speed",
+      "hold residual decaying with opposite signs at different speeds: one tau1 cannot serve "
+      "every speed"),
+    E("fractional_relaxation", "branch", (P("k_f_N_per_m", "N/m", 0.5, 0.0),
+                                          P("tau_f_s", "s", 0.05, 1e-4, 1e4),
+                                          P("alpha_f", "1", 0.4, 0.05, 0.95)),
+      _fractional_relaxation, "fractional Maxwell branch: modulus k_f E_a(-(t/tau_f)^a), a power "
+      "law t^-a after tau_f, in parallel",
+      "hold residual decaying over many time scales at once: fast at first, then a long power-law tail"),
     E("offset", "sensor", (P("offset_N", "N", 0.0),),
       _offset, "constant force offset (tare error)",
       "residual constant, also before contact and after retraction"),

@@ -6,8 +6,10 @@ effect plugs into one stage of it:
 
     geometry   indentation seen by the tissue      (contact_offset, compliance)
     drive      terms summed into the drive g        (elastic and damping terms)
+    rate       a trial's extra lag rate             (speed_relaxation: each of the lag's
+                                                     time constants tau becomes 1/(1/tau + rate))
     lag        f + tau df/dt = g                    (relaxation; else f = g)
-    branch     parallel branches added after it     (relaxation2)
+    branch     parallel branches added after it     (relaxation2, fractional_relaxation)
     clamp      the tissue cannot pull: f >= 0
     sensor     what the load cell adds              (offset, drift, friction)
     delay      the reading arrives late             (delay)
@@ -25,7 +27,7 @@ from functools import cached_property
 import numpy as np
 from scipy.signal import lfilter
 
-STAGES = ("geometry", "drive", "lag", "branch", "sensor", "delay")
+STAGES = ("geometry", "drive", "rate", "lag", "branch", "sensor", "delay")
 
 
 @dataclass(frozen=True)
@@ -62,6 +64,13 @@ class Motion:
         v = np.abs(self.v_m_s)
         return float(np.percentile(v, 99)) if len(v) else 0.0
 
+    @cached_property
+    def loading_speed_m_s(self) -> float:
+        """The speed of indentation (robust maximum of the velocity into the specimen); the
+        return, often faster, does not count."""
+        v = self.v_m_s[(self.x_m > 0) & (self.v_m_s > 0)]
+        return float(np.percentile(v, 95)) if len(v) else 0.0
+
 
 @dataclass(frozen=True)
 class Effect:
@@ -93,7 +102,7 @@ class Model:
         names = [e.name for e in self.effects]
         if len(set(names)) != len(names):
             raise ValueError(f"an effect appears twice in {names}")
-        for stage in ("lag", "delay"):
+        for stage in ("rate", "lag", "delay"):
             if sum(e.stage == stage for e in self.effects) > 1:
                 raise ValueError(f"a model holds at most one '{stage}' effect")
         seen: dict[str, Param] = {}
@@ -156,8 +165,16 @@ class Model:
             drive = drive + e.fn(xc, vc, **args(e))
         drive = np.where(contact, drive, 0.0)
         f = drive
+        rate = sum(e.fn(m, **args(e)) for e in by_stage["rate"])
         for e in by_stage["lag"]:
-            f = e.fn(drive, m.dt_s, **args(e))
+            a = args(e)
+            if rate:  # a faster lag: every time constant of it shortens alike
+                a = {p.name: 1.0 / (1.0 / a[p.name] + rate) if p.unit == "s" else a[p.name] for p in e.params}
+            f = e.fn(drive, m.dt_s, **a)
+        if by_stage["branch"]:
+            # each part of the tissue separates on its own: a lag driven below zero (a fast
+            # return) holds no tension to cancel a branch's push
+            f = np.maximum(f, 0.0)
         for e in by_stage["branch"]:
             f = f + e.fn(xc, vc, m.dt_s, **args(e))
         return np.maximum(f, 0.0)  # the tissue cannot pull on the probe
