@@ -22,6 +22,7 @@ import numpy as np
 
 from rig.analysis.data import PHASES, TrialData, decimate
 from rig.analysis.fit import FitResult, fit
+from rig.analysis.uncertainty import delta_bic
 from rig.models.core import Effect, Model
 
 MIN_DROP = 0.05
@@ -30,6 +31,7 @@ SCREEN_NFEV = 60  # iterations of a screen (each one a Jacobian)
 REFIT_NFEV = 20  # a leader's refit at full rate, from the screen's answer
 REFIT_LEADERS = 3
 DECISIVE_BIC = -10.0
+SUGGEST_BIC = 0.0  # the same, for a model that is not adequate
 ABSORBED_BIC = 3 * DECISIVE_BIC  # very strong support, negligible error change: a look-alike
 ABSORBED_MOVE = 0.5  # ... if one of the model's own effects reshapes (a parameter moves by half) to mimic it
 # Pairs that one family of trials often cannot separate, and the protocol that would.
@@ -94,9 +96,7 @@ def candidates(model: Model, registry: dict[str, Effect]) -> list[Effect]:
 def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData] | None = None) -> Explanation:
     trials = trials or base.trials
     r_all = np.concatenate(base.residuals)
-    L = base.white_L
-    n = len(r_all)
-    n_eff = max(n / L, 10.0)
+    n_eff = base.n_eff
     rss0 = float(np.sum(r_all ** 2))
     # Screen every candidate on a decimated copy (a few thousand samples per trial: the
     # effects live on time scales of many samples), then refit the leaders at full rate.
@@ -125,7 +125,7 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
         else:
             res, before = res_c, base_coarse
         dk = len(model.params) - len(base.model.params)
-        dbic = n_eff * np.log(max(ratio, 1e-300)) + dk * np.log(n_eff)
+        dbic = delta_bic(ratio, dk, n_eff)
         rmse = base.overall.rmse_N * float(np.sqrt(ratio))
         drop = 1.0 - float(np.sqrt(ratio))
         ranked.append(Suggestion(e.name, rmse, drop, float(dbic), _why(e, before, res), res))
@@ -136,10 +136,7 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
             sug.meaningless = own[0]
             sug.why += f"; but {own[0]}"
     ranked_ok = [s for s in ranked if not s.meaningless]
-    if base.adequate:
-        passing = [s for s in ranked_ok if s.delta_bic < DECISIVE_BIC and s.rmse_drop >= MIN_DROP]
-    else:
-        passing = [s for s in ranked_ok if s.delta_bic < 0 and s.rmse_drop >= MIN_DROP]
+    passing = [s for s in ranked_ok if passes(s.delta_bic, s.rmse_drop, base.adequate)]
     # with an answer, only a candidate that could stand in for it is a look-alike worth naming; a
     # strongly supported effect that barely changes the error is news only when nothing passes
     twins = _indistinguishable(passing) if passing else _absorbed(base, ranked_ok)
@@ -148,6 +145,13 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
     summary = _summary(base, best, twins, unexplained)
     return Explanation(base, n_eff, ranked, passing, twins, base.adequate, summary,
                        best.effect if best else None, twins, unexplained)
+
+
+def passes(delta_bic: float, rmse_drop: float, base_adequate: bool) -> bool:
+    """Whether a candidate is suggested: the thresholds the calibration benchmark sets."""
+    if rmse_drop < MIN_DROP:
+        return False
+    return delta_bic < (DECISIVE_BIC if base_adequate else SUGGEST_BIC)
 
 
 def _phase_drops(base: FitResult, res: FitResult) -> list[tuple[str, float, float]]:
@@ -304,12 +308,11 @@ def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = 5) -> li
             slimmer = Model([e for e in current.model.effects if e.name != name], name="")
             trial_fit = fit(slimmer, current.trials, starts=1, initial=current.values, tol=1e-8,
                             max_nfev=REFIT_NFEV, polish=False)
-            r_all = np.concatenate(current.residuals)
-            n_eff = max(len(r_all) / current.white_L, 10.0)
-            rss_now = float(np.sum(r_all ** 2))
+            rss_now = float(np.sum(np.concatenate(current.residuals) ** 2))
             rss_without = float(np.sum(np.concatenate(trial_fit.residuals) ** 2))
             dk = len(current.model.params) - len(slimmer.params)
-            dbic = n_eff * np.log(rss_without / rss_now) - dk * np.log(n_eff)
+            # the slimmer model against the current one, at the current one's N_eff
+            dbic = -delta_bic(rss_now / rss_without, dk, current.n_eff)
             if dbic < 0:  # simpler is better: the earlier effect was a stand-in
                 added.remove(name)
                 current = trial_fit
