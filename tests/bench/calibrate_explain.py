@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import tempfile
 import time
@@ -126,10 +125,6 @@ def size_job(job: tuple[str, float, str]) -> dict:
                      "noise_units": effect_size(effect, multiple, specimen)}}
 
 
-def _nice() -> None:
-    os.nice(10)
-
-
 def run(out: Path, seeds: int, controls: int, jobs: int, effects: list[str],
         multiples: tuple[float, ...]) -> None:
     done = set()
@@ -146,7 +141,7 @@ def run(out: Path, seeds: int, controls: int, jobs: int, effects: list[str],
     runs += [(e, m, SEED0 + s) for s in range(seeds) for e in effects for m in multiples]
     runs = [r for r in runs if r not in done]
     t0 = time.perf_counter()
-    with out.open("a") as fh, ProcessPoolExecutor(jobs, initializer=_nice) as pool:
+    with out.open("a") as fh, ProcessPoolExecutor(jobs) as pool:
         for rec in pool.map(size_job, sizes):
             fh.write(json.dumps(rec) + "\n")
             fh.flush()
