@@ -8,11 +8,12 @@ fits the proposed model and runs `explain`. Seeds start at 100, apart from the t
 
 An effect's size is given in units of the sensor noise: the RMS over the trials of the force
 it adds (the same trials simulated without noise, with and without it), over the noise's
-standard deviation. A run finds the effect when the verdict's `best` is it; on a control any
-`best` is a false suggestion. Every candidate's dBIC and error drop are stored, so the table
-can be recomputed for other thresholds without simulating again (`table --decisive-bic ...`).
+standard deviation. A run finds the effect when the verdict's `best` is it (`+wrong`: it
+named another); on a control any `best` is a false suggestion. Every candidate's dBIC and
+error drop are stored, so the table can be recomputed for other thresholds without
+simulating again (`table --min-drop ...`).
 
-    python tests/bench/calibrate_explain.py run --out calib.jsonl [--seeds 10] [--controls 60] [--jobs 2]
+    python tests/bench/calibrate_explain.py run --out calib.jsonl [--seeds 5] [--controls 50] [--jobs 2]
     python tests/bench/calibrate_explain.py table calib.jsonl [--decisive-bic -10] [--min-drop 0.05]
 """
 
@@ -179,9 +180,12 @@ def summarise(records: list[dict], decisive_bic: float = ex_mod.DECISIVE_BIC, mi
         rows = []
         for m in sorted({r["multiple"] for r in runs if r["effect"] == effect}):
             cell = [r for r in runs if r["effect"] == effect and r["multiple"] == m]
-            found = sum(best_of(r, decisive_bic, min_drop, suggest_bic) == effect for r in cell)
+            bests = [best_of(r, decisive_bic, min_drop, suggest_bic) for r in cell]
+            found = sum(b == effect for b in bests)
+            wrong = sum(b not in (None, effect) for b in bests)
             name, value = next(iter(cell[0]["params"].items()))
-            rows.append({"multiple": m, "param": name, "value": value, "found": found, "runs": len(cell),
+            rows.append({"multiple": m, "param": name, "value": value, "found": found, "wrong": wrong,
+                         "runs": len(cell),
                          "noise_units": float(np.mean(sizes[(effect, m)])) if (effect, m) in sizes else None})
         smallest = None
         for row in reversed(rows):  # from the largest size down, while the rate holds
@@ -199,12 +203,13 @@ def format_table(summary: dict) -> str:
     th = summary["thresholds"]
     lines = [f"thresholds: DECISIVE_BIC {th['decisive_bic']:g}, SUGGEST_BIC {th['suggest_bic']:g}, "
              f"MIN_DROP {th['min_drop']:g}",
-             "| effect | found at each size (parameter, size in noise units: found/runs) | "
+             "| effect | named first at each size: value (size in noise units) found/runs, +wrong | "
              "smallest size found >= 90 % |",
              "|---|---|---|"]
     for effect, t in summary["effects"].items():
-        cells = "; ".join(f"{r['value']:.3g} ({r['noise_units']:.2f}): {r['found']}/{r['runs']}"
-                          if r["noise_units"] is not None else f"{r['value']:.3g}: {r['found']}/{r['runs']}"
+        cells = "; ".join(f"{r['value']:.3g}"
+                          + (f" ({r['noise_units']:.2f})" if r["noise_units"] is not None else "")
+                          + f" {r['found']}/{r['runs']}" + (f" +{r['wrong']}" if r["wrong"] else "")
                           for r in t["rows"])
         s = t["smallest"]
         small = (f"{s['param']} = {s['value']:.3g} ({s['noise_units']:.2f} x noise)" if s and s["noise_units"]
@@ -222,8 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")
     r.add_argument("--out", type=Path, required=True)
-    r.add_argument("--seeds", type=int, default=10)
-    r.add_argument("--controls", type=int, default=60)
+    r.add_argument("--seeds", type=int, default=5)
+    r.add_argument("--controls", type=int, default=50)
     r.add_argument("--jobs", type=int, default=2)
     r.add_argument("--effects", nargs="*", default=list(EFFECTS))
     r.add_argument("--multiples", type=float, nargs="*", default=list(MULTIPLES))
