@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rig.analysis.data import PHASES, TrialData, decimate
-from rig.analysis.fit import FitResult, fit
+from rig.analysis.fit import FitResult, evaluate, fit
 from rig.analysis.uncertainty import delta_bic
 from rig.models.core import Effect, Model
 
@@ -144,7 +144,7 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
     passing = [s for s in ranked_ok if passes(s.delta_bic, s.rmse_drop, base.adequate)]
     # with an answer, only a candidate that could stand in for it is a look-alike worth naming; a
     # strongly supported effect that barely changes the error is news only when nothing passes
-    twins = _indistinguishable(passing) if passing else _absorbed(base, ranked_ok)
+    twins = _indistinguishable(passing, trials) if passing else _absorbed(base, ranked_ok)
     best = passing[0] if passing else None
     unexplained = _unexplained(base, best)
     summary = _summary(base, best, twins, unexplained)
@@ -208,7 +208,7 @@ def _shape(e: Effect, base: FitResult, res: FitResult) -> str:
     return ""
 
 
-def _indistinguishable(passing: list[Suggestion]) -> list[dict]:
+def _indistinguishable(passing: list[Suggestion], trials: list[TrialData]) -> list[dict]:
     """Top candidates that explain the same residual equally well."""
     if len(passing) < 2:
         return []
@@ -216,8 +216,10 @@ def _indistinguishable(passing: list[Suggestion]) -> list[dict]:
     close_rmse = abs(a.rmse_N - b.rmse_N) <= 0.05 * a.rmse_N
     if not close_rmse or (b.delta_bic - a.delta_bic) > 0.1 * abs(a.delta_bic) + 10:
         return []
-    # they must also predict the same thing: their fitted curves nearly coincide
-    diff = np.concatenate([p - q for p, q in zip(a.fit.predictions, b.fit.predictions, strict=True)])
+    # they must also predict the same thing: their fitted curves nearly coincide on every
+    # sample (a candidate outside the refitted leaders was fitted on the decimated copy)
+    diff = np.concatenate([p - q for p, q in zip(evaluate(a.fit.model, a.fit.values, trials),
+                                                 evaluate(b.fit.model, b.fit.values, trials), strict=True)])
     if np.sqrt(np.mean(diff ** 2)) > 0.5 * a.fit.noise_N:
         return []
     key = frozenset({a.effect, b.effect})
