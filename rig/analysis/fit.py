@@ -11,6 +11,10 @@ residual's short-lag differences (`rig.analysis.noise`), as a level and a correl
 time. `adequate` means the residual is consistent with that noise: overall RMSE within
 1.2x, no phase above 1.5x, and no more correlated than the noise itself (1.5x its
 integral time scale).
+
+Standard errors and the parameters' correlations come from a sandwich that allows for the
+residual's correlation in time (`rig.analysis.uncertainty`); `bic` is the one BIC the tool
+uses, on the effective number of independent residuals.
 """
 
 from __future__ import annotations
