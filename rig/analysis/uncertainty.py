@@ -16,7 +16,7 @@ result recoloured by 1 / (1 - rho)^2.
 Why this one: a block bootstrap would refit the model a hundred times per fit; the plain
 Newey-West sum needs a bandwidth many times the correlation time to lose its downward bias,
 and the fit's own residual (which sums to zero against J) biases it further, so at the
-correlation times of a filtered sensor it covered a 95 % interval only 85-90 % of the time.
+correlation times of a filtered sensor it covered a 95 % interval only 80-92 % of the time.
 Prewhitening leaves little correlation for the Bartlett sum to truncate and brings the
 coverage to nominal (tests/test_uncertainty.py measures it over many seeds).
 
