@@ -45,8 +45,10 @@ def result_json(res: FitResult, paths: list[str]) -> dict:
         "trials": paths,
         "parameters": {k: {"value": v, "stderr": res.stderr.get(k), "unit": units[k]}
                        for k, v in res.values.items()},
+        "correlations": correlations_json(res),
         "fit": {"rmse_N": res.overall.rmse_N, "mean_N": res.overall.mean_N, "std_N": res.overall.std_N,
                 "noise_N": res.noise_N, "noise_source": res.noise_source, "bic": res.bic,
+                "effective_samples": res.n_eff, "bic_definition": "N_eff ln(RSS / N) + k ln(N_eff)",
                 "rmse_over_noise": res.overall.rmse_N / res.noise_N if res.noise_N > 0 else None,
                 "residual_correlation_samples": res.white_L, "noise_correlation_samples": res.noise_L,
                 "seconds": res.seconds},
@@ -61,6 +63,16 @@ def result_json(res: FitResult, paths: list[str]) -> dict:
         "warnings": res.warnings,
         "suggestions": [],
     }
+
+
+def correlations_json(res: FitResult) -> dict[str, dict[str, float | None]] | None:
+    """The parameters' correlation matrix by name (null where a variance is zero)."""
+    c = res.correlation
+    if c is None:
+        return None
+    names = res.model.param_names
+    return {a: {b: (float(c[i, j]) if np.isfinite(c[i, j]) else None) for j, b in enumerate(names)}
+            for i, a in enumerate(names)}
 
 
 def holdout_json(res: FitResult, held: list[TrialData]) -> list[dict]:

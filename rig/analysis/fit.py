@@ -11,6 +11,10 @@ residual's short-lag differences (`rig.analysis.noise`), as a level and a correl
 time. `adequate` means the residual is consistent with that noise: overall RMSE within
 1.2x, no phase above 1.5x, and no more correlated than the noise itself (1.5x its
 integral time scale).
+
+Standard errors and the parameters' correlations come from a sandwich that allows for the
+residual's correlation in time (`rig.analysis.uncertainty`); `bic` is the one BIC the tool
+uses, on the effective number of independent residuals.
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ from scipy.optimize import least_squares
 from rig.analysis.data import PHASES, Scales, TrialData, decimate
 from rig.analysis.noise import Noise, from_baseline, from_residual, integral_scale
 from rig.analysis.scaling import ParamScaling
+from rig.analysis.uncertainty import bic as effective_bic
+from rig.analysis.uncertainty import correlation, effective_samples, hac_covariance, notable_correlations
 from rig.models.core import Model
 
 ADEQUATE_RMSE = 1.2
@@ -31,6 +37,7 @@ ADEQUATE_PHASE = 1.5
 ADEQUATE_WHITE = 1.5  # residual correlation time over the noise's own
 SCREEN_SAMPLES = 4000  # per trial, for the starts of a long record
 AT_BOUND = 1e-4  # fit units (order one): closer than this to a bound is "at" it
+CORRELATION_FLOOR = 0.1  # parameter correlations reported from this size up (lmfit's default)
 
 __all__ = ["ErrorStats", "FitResult", "error_table", "evaluate", "fit", "integral_scale", "noise_of"]
 
@@ -73,6 +80,17 @@ class FitResult:
     noise_L: float = 1.0  # integral time scale of the noise, samples
     scales: Scales | None = None
     z: dict[str, float] = field(default_factory=dict)  # the fit variables (order one)
+    covariance: np.ndarray | None = None  # of the parameters in SI, allowing for correlated residuals
+    n_eff: float = 0.0  # independent residuals: samples over the residual's correlation time
+
+    @property
+    def correlation(self) -> np.ndarray | None:
+        return None if self.covariance is None else correlation(self.covariance)
+
+    def correlations(self, floor: float = 0.1) -> list[tuple[str, str, float]]:
+        """Parameter pairs correlated by at least `floor`, largest first."""
+        c = self.correlation
+        return [] if c is None else notable_correlations(self.model.param_names, c, floor)
 
     @property
     def adequate(self) -> bool:
@@ -108,6 +126,10 @@ class FitResult:
             err = self.stderr.get(p.name)
             e = f" +/- {err:.4g}" if err is not None else ""
             lines.append(f"  {p.name:<18} {self.values[p.name]:>12.5g}{e}  {p.unit}")
+        pairs = self.correlations(CORRELATION_FLOOR)
+        if pairs:
+            lines.append(f"correlations (|C| >= {CORRELATION_FLOOR:g}, largest first)")
+            lines += [f"  C({a}, {b}) = {c:+.3f}" for a, b, c in pairs]
         lines.append(f"error by phase (RMSE, {self.force_unit[1]})")
         lines.append("  " + "  ".join(f"{ph} {s.rmse_N / self.force_unit[0]:.4g}" if s else f"{ph} -"
                                       for ph, s in self.phases.items()))
@@ -236,9 +258,8 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     residuals = [t.force_N - p for t, p in zip(trials, predictions, strict=True)]
     overall, phases = error_table(trials, residuals)
     noise = noise_of(trials, residuals)
-    stderr = _stderr(best, model.param_names, ps.jacobian(z), overall)
-    n = overall.n
-    bic = n * np.log(max(overall.rmse_N ** 2, 1e-300)) + len(model.params) * np.log(n)
+    cov = _covariance(best, ps.jacobian(z), [t.n for t in trials])
+    stderr = _stderr(cov, model.param_names)
     warnings = (_warnings(model, values, ps.at_bound(z, lo, hi, AT_BOUND), ps.integrator(z))
                 + _undetermined(model, values, stderr))
     per_trial = []
@@ -247,9 +268,13 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
         per_trial.append({"trial": t.name, **o.as_dict(),
                           "phases": {k: (v.rmse_N if v else None) for k, v in ph.items()}})
     white = float(np.mean([integral_scale(r) for r in residuals]))
+    n = overall.n
+    n_eff = effective_samples(n, white)
+    bic = effective_bic(n * overall.rmse_N ** 2, n, len(model.params), n_eff)
     return FitResult(model, trials, values, stderr, predictions, residuals, overall, phases, noise.std_N,
-                     noise.source, float(bic), warnings, time.perf_counter() - t0, nfev, per_trial, white,
-                     noise.scale_samples, scales, dict(zip(model.param_names, map(float, z), strict=True)))
+                     noise.source, bic, warnings, time.perf_counter() - t0, nfev, per_trial, white,
+                     noise.scale_samples, scales, dict(zip(model.param_names, map(float, z), strict=True)),
+                     cov, n_eff)
 
 
 def _inside(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -261,17 +286,20 @@ def _inside(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.clip(z, lo_in, hi_in)
 
 
-def _stderr(sol, names: list[str], to_si, overall: ErrorStats) -> dict[str, float | None]:
-    """Standard errors from the Jacobian (white-noise assumption: optimistic for correlated
-    residuals), carried from the fit variables to SI through `to_si` = d(SI)/dz."""
-    J = sol.jac
-    dof = max(overall.n - len(names), 1)
-    s2 = 2.0 * sol.cost / dof
+def _covariance(sol, to_si: np.ndarray, lengths: list[int]) -> np.ndarray | None:
+    """Covariance of the parameters in SI: the correlated-residual sandwich
+    (`rig.analysis.uncertainty`) in the fit variables, carried to SI through `to_si` = d(SI)/dz."""
     try:
-        cov = to_si @ np.linalg.inv(J.T @ J) @ to_si.T * s2
-        err = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    except np.linalg.LinAlgError:
+        cov = hac_covariance(sol.jac, sol.fun, lengths)
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    return to_si @ cov @ to_si.T
+
+
+def _stderr(cov: np.ndarray | None, names: list[str]) -> dict[str, float | None]:
+    if cov is None:
         return dict.fromkeys(names)
+    err = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     return {n: (float(e) if np.isfinite(e) else None) for n, e in zip(names, err, strict=True)}
 
 
