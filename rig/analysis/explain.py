@@ -95,7 +95,11 @@ class Explanation:
                 "closest": self.closest, "text": self.summary}
 
 
-def candidates(model: Model, registry: dict[str, Effect]) -> list[Effect]:
+def candidates(model: Model, registry: dict[str, Effect], trials: list[TrialData] | None = None) -> list[Effect]:
+    speeds = sorted(t.motion.loading_speed_m_s for t in trials) if trials else []
+    # a rate that follows the loading speed is told from a plain change of the lag only by
+    # trials at different speeds: on one speed it is a second name for the same fit
+    several_speeds = bool(speeds) and speeds[-1] > 1.2 * max(speeds[0], 1e-300)
     out = []
     for e in registry.values():
         if model.has(e.name):
@@ -104,6 +108,8 @@ def candidates(model: Model, registry: dict[str, Effect]) -> list[Effect]:
             continue
         if e.stage == "rate" and not any(x.stage == "lag" for x in model.effects):
             continue  # a rate speeds up a lag: without one it has nothing to act on
+        if e.stage == "rate" and trials is not None and not several_speeds:
+            continue
         out.append(e)
     return out
 
@@ -121,7 +127,7 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
                       polish=False)
     rss0_c = float(np.sum(np.concatenate(base_coarse.residuals) ** 2))
     screened = []
-    for e in candidates(base.model, registry):
+    for e in candidates(base.model, registry, trials):
         # a screen, not the final word: a candidate that has not converged by then is not the answer
         res = fit(base.model + e, coarse, starts=1, initial=base_coarse.values, tol=1e-6, max_nfev=SCREEN_NFEV,
                   polish=False)
