@@ -122,33 +122,21 @@ class SimRig:
 
     def _substep(self) -> None:
         p, dt = self.params, self.dt
-        fx, tp = p.effects, p.tissue
+        fx = p.effects
         slider = self.slider
         slider.step(dt)
-        # Frame compliance: the frame spring shortens under load, so the probe lags the slider.
+        # Frame compliance: the frame spring shortens under the force it carries, so the probe
+        # lags the slider. Probe and force are solved together in each sub-step (implicitly):
+        # taking last sub-step's force instead oscillates and grows once the tissue's damping
+        # over its relaxation time (tau2 x / tau1) exceeds the frame's stiffness.
         probe_mm = slider.position_mm
         if fx.compliance:
-            probe_mm -= 1000.0 * self.tissue_force_N / fx.compliance.k_frame_N_per_m
+            probe_mm = self._probe_through_frame(probe_mm, fx.compliance.k_frame_N_per_m)
         self.probe_velocity_mm_s = (probe_mm - self._probe_mm) / dt
         self._probe_mm = probe_mm
-        x = max(probe_mm - self._surface_mm, 0.0) / 1000.0
-        xdot = (x - self.indentation_m) / dt
+        x, f1, f2, total = self._tissue_at(probe_mm)
         self.indentation_m = x
-        if x > 0.0:
-            drive = ((tp.k1_N_per_m3 * x + tp.k2_N_per_m2) * x + tp.k3_N_per_m) * x \
-                + tp.tau2_N_s_per_m2 * x * xdot
-        else:
-            drive = 0.0
-        # Exact discretisation of f + tau1 df/dt = drive over one sub-step (drive held).
-        f1 = drive + (self.f1_N - drive) * self._a1
-        # The tissue cannot pull on the probe: when it would, the surface separates and the
-        # branch recovers freely instead of storing tension.
-        self.f1_N = max(f1, 0.0)
-        if fx.relaxation2:
-            r2 = fx.relaxation2
-            f2 = self.f2_N * self._a2 + r2.k_N_per_m * (xdot * dt)
-            self.f2_N = max(f2, 0.0) if x > 0.0 else 0.0
-        self.tissue_force_N = self.f1_N + self.f2_N if x > 0.0 else 0.0
+        self.f1_N, self.f2_N, self.tissue_force_N = f1, f2, total
         # What the load cell behind the probe carries.
         sensed = self.tissue_force_N
         if fx.friction:
@@ -165,6 +153,59 @@ class SimRig:
             self._delay_line.append(sensed)
             sensed = self._delay_line[0]
         self.sensor_force_N = sensed
+
+    def _tissue_at(self, probe_mm: float) -> tuple[float, float, float, float]:
+        """Indentation, both branches and the total tissue force after this sub-step if the
+        probe ends it at `probe_mm` (the state is not changed)."""
+        tp, dt = self.params.tissue, self.dt
+        x = max(probe_mm - self._surface_mm, 0.0) / 1000.0
+        xdot = (x - self.indentation_m) / dt
+        if x > 0.0:
+            drive = ((tp.k1_N_per_m3 * x + tp.k2_N_per_m2) * x + tp.k3_N_per_m) * x \
+                + tp.tau2_N_s_per_m2 * x * xdot
+        else:
+            drive = 0.0
+        # Exact discretisation of f + tau1 df/dt = drive over one sub-step (drive held).
+        # The tissue cannot pull on the probe: when it would, the surface separates and the
+        # branch recovers freely instead of storing tension.
+        f1 = max(drive + (self.f1_N - drive) * self._a1, 0.0)
+        f2 = 0.0
+        r2 = self.params.effects.relaxation2
+        if r2:
+            f2 = max(self.f2_N * self._a2 + r2.k_N_per_m * (xdot * dt), 0.0) if x > 0.0 else 0.0
+        return x, f1, f2, (f1 + f2 if x > 0.0 else 0.0)
+
+    def _probe_through_frame(self, slider_mm: float, k_frame_N_per_m: float) -> float:
+        """The probe position p with p = slider - f(p) / k_frame: the tissue force grows with
+        p, so the root is unique and lies between the slider and where the slider's own
+        force would push it; bisection guarded regula falsi to well below an encoder step."""
+        def gap(p: float) -> float:
+            return p - slider_mm + 1000.0 * self._tissue_at(p)[3] / k_frame_N_per_m
+
+        hi, g_hi = slider_mm, gap(slider_mm)
+        if g_hi <= 0.0:
+            return slider_mm
+        lo = slider_mm - 1000.0 * self._tissue_at(slider_mm)[3] / k_frame_N_per_m
+        g_lo = gap(lo)
+        if g_lo >= 0.0:
+            return lo
+        side = 0
+        for _ in range(100):
+            p = (lo * g_hi - hi * g_lo) / (g_hi - g_lo)
+            g = gap(p)
+            if abs(g) <= 1e-9 or hi - lo <= 1e-9:
+                return p
+            if g > 0.0:
+                hi, g_hi = p, g
+                if side == 1:
+                    g_lo *= 0.5  # Illinois: a stale end is halved so the bracket keeps shrinking
+                side = 1
+            else:
+                lo, g_lo = p, g
+                if side == -1:
+                    g_hi *= 0.5
+                side = -1
+        return p
 
     def read_force_N(self) -> float:
         """One load-cell conversion: the bridge force plus Gaussian noise, quantised."""

@@ -18,12 +18,22 @@ never a general ODE solver.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from scipy.linalg import solve_banded
 from scipy.signal import lfilter
+
+FRAME_RTOL = 1e-10  # of the force's own peak: far below any sensor's resolution
+FRAME_MAX_ITER = 60
+
+
+class NotConverged(RuntimeWarning):
+    pass
+
 
 STAGES = ("geometry", "drive", "lag", "branch", "sensor", "delay")
 
@@ -136,16 +146,97 @@ class Model:
         for e in plain_geometry:
             x, v = e.fn(x, v, **args(e))
         tissue = self._tissue(x, v, m, by_stage, args)
-        for e in compliance:  # the frame spring: indentation = x - f/k; a few fixed-point passes
-            for _ in range(3):
-                xc, vc = e.fn(x, v, tissue, m.dt_s, **args(e))
-                tissue = self._tissue(xc, vc, m, by_stage, args)
+        for e in compliance:  # the frame spring: indentation = x - f/k, solved for f
+            tissue = self._through_frame(e, x, v, m, by_stage, args, tissue)
         force = tissue
         for e in by_stage["sensor"]:
             force = force + e.fn(m, force, **args(e))
         for e in by_stage["delay"]:
             force = e.fn(m, force, **args(e))
         return force
+
+    def _through_frame(self, e: Effect, x, v, m: Motion, by_stage, args, f: np.ndarray) -> np.ndarray:
+        """The tissue force f with f = tissue(indentation given f), by Newton's method on the
+        whole trajectory.
+
+        Substituting the last force (a fixed point) diverges once the frame is softer than the
+        tissue: each pass over-corrects the last. Newton's step needs the chain's Jacobian,
+        which is cheap here: the drive acts sample by sample (its slopes in x and v, by
+        differences), velocity is a three-point difference, and a first-order lag has a
+        two-term inverse, so the lag's inverse times the Jacobian is tridiagonal
+        (`scipy.linalg.solve_banded`). What the step leaves out (a parallel branch, the
+        no-pull clamp) only slows it down: convergence is checked on the equation itself."""
+        dt = m.dt_s
+        n = len(x)
+        drives = by_stage["drive"]
+        lags = by_stage["lag"]
+        a = 0.0
+        if lags:  # the lag's pole, from its response to an impulse
+            y = lags[0].fn(np.array([1.0, 0.0]), dt, **args(lags[0]))
+            a = float(y[1] / y[0]) if y[0] else 0.0
+
+        def drive(xc, vc):
+            out = np.zeros_like(xc)
+            for d in drives:
+                out = out + d.fn(xc, vc, **args(d))
+            return out
+
+        def residual(f):
+            xc, vc = e.fn(x, v, f, dt, **args(e))
+            return f - self._tissue(xc, vc, m, by_stage, args), xc, vc
+
+        r, xc, vc = residual(f)
+        x_scale = max(float(np.max(np.abs(x))), 1e-300)
+        v_scale = max(float(np.max(np.abs(v))), x_scale / max(m.t_s[-1] - m.t_s[0], dt))
+        norm = float(np.max(np.abs(r)))
+        for _ in range(FRAME_MAX_ITER):
+            scale = max(float(np.max(np.abs(f))), 1e-300)
+            if norm <= FRAME_RTOL * scale:
+                return f - r
+            # slopes of the drive (zero out of contact) and of the frame's give (1/k)
+            hx, hv = 1e-6 * x_scale, 1e-6 * v_scale
+            d0 = drive(np.maximum(xc, 0.0), vc)
+            contact = xc > 0
+            alpha = np.where(contact, (drive(np.maximum(xc, 0.0) + hx, vc) - d0) / hx, 0.0)
+            beta = np.where(contact, (drive(np.maximum(xc, 0.0), vc + hv) - d0) / hv, 0.0)
+            hf = 1e-6 * scale
+            give = -(e.fn(x, v, f + hf, dt, **args(e))[0] - xc) / hf
+            # (L^-1 + (diag(alpha) + diag(beta) G) diag(give)) step = -L^-1 r, L the lag
+            g = 1.0 / (1.0 - a)
+            diag = g + alpha * give
+            lower = np.full(n, -a * g)  # lower[i] multiplies step[i-1] in row i
+            upper = np.zeros(n)  # upper[i] multiplies step[i+1] in row i
+            c = 0.5 / dt
+            # three-point velocity inside, one-sided at the ends (as np.gradient)
+            upper[1:-1] += beta[1:-1] * c * give[2:]
+            lower[1:-1] += -beta[1:-1] * c * give[:-2]
+            diag[0] += -beta[0] / dt * give[0]
+            upper[0] += beta[0] / dt * give[1]
+            diag[-1] += beta[-1] / dt * give[-1]
+            lower[-1] += -beta[-1] / dt * give[-2]
+            ab = np.zeros((3, n))
+            ab[0, 1:] = upper[:-1]
+            ab[1] = diag
+            ab[2, :-1] = lower[1:]
+            rhs = -(g * r - a * g * np.concatenate(([0.0], r[:-1])))
+            try:
+                step = solve_banded((1, 1), ab, rhs)
+            except (np.linalg.LinAlgError, ValueError):
+                step = -r
+            if not np.all(np.isfinite(step)):
+                step = -r
+            for _ in range(30):  # backtrack until the equation's error falls
+                r_new, xc_new, vc_new = residual(f + step)
+                norm_new = float(np.max(np.abs(r_new)))
+                if np.isfinite(norm_new) and norm_new < norm:
+                    break
+                step = 0.5 * step
+            else:
+                break
+            f, r, xc, vc, norm = f + step, r_new, xc_new, vc_new, norm_new
+        warnings.warn(f"frame compliance: the force did not converge (residual {norm:.3g} N)",
+                      NotConverged, stacklevel=3)
+        return f - r
 
     def _tissue(self, x, v, m: Motion, by_stage, args) -> np.ndarray:
         contact = x > 0
