@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.optimize import brentq
 
 from rig.cli import main
 from rig.config import RigConfig
@@ -98,17 +99,14 @@ def _integrate(effect: str, p: dict, speed_m_s: float, t_s: np.ndarray) -> np.nd
             x = x - p["x0_mm"] / 1000.0
         if effect == "compliance":
             # the frame spring carries the tissue force: indentation and force found together
-            # in each step (bisection: force grows with indentation, so the root is unique)
+            # in each step (force grows with indentation, so the bracketed root is unique)
             k_frame = p["k_frame_N_per_m"]
 
             def gap(xc: float, x: float = x, first: bool = i == 0, k_frame: float = k_frame) -> float:
                 return xc - x + tissue_at(xc, 0.0 if first else (xc - state["x"]) / h)[2] / k_frame
 
-            lo, hi = x - tissue_at(x, (x - state["x"]) / h if i else 0.0)[2] / k_frame, x
-            for _ in range(45):
-                mid = 0.5 * (lo + hi)
-                lo, hi = (mid, hi) if gap(mid) < 0 else (lo, mid)
-            x = 0.5 * (lo + hi)
+            lo = x - tissue_at(x, (x - state["x"]) / h if i else 0.0)[2] / k_frame
+            x = brentq(gap, lo, x, xtol=1e-15, rtol=1e-15) if lo < x else x
             v = (x - state["x"]) / h if i else 0.0
         f1, f2, tissue = tissue_at(x, v)
         state.update(f1=f1, f2=f2, x=x)
@@ -146,32 +144,48 @@ def test_effect_matches_a_fine_step_integration(effect, params):
     reference = _integrate(effect, params, motion.speed_m_s, t_s)
     peak = float(np.max(np.abs(reference)))
     err = np.abs(predicted - reference)
-    # within 0.5 % of the peak force everywhere: what one sample per step costs against the
-    # mechanism itself (all effects measure about 0.2 %; half a sample of lag on the relaxation)
-    assert float(np.max(err)) <= 0.005 * peak, (effect, float(np.max(err)), peak, int(np.argmax(err)))
+    # within 0.2 % of the peak force everywhere: what one sample per step costs against the
+    # mechanism itself (measured: 0.004 % for most effects, whose lags are exact for a drive
+    # linear between samples; 0.07 % for the softest frame; 0.1 % for friction, whose sign
+    # follows the sampled velocity). A lag that held each sample's drive over the step before
+    # it would lead by half a sample: 0.2 to 0.5 % here, and a bias in a stiff frame.
+    assert float(np.max(err)) <= 0.002 * peak, (effect, float(np.max(err)), peak, int(np.argmax(err)))
 
 
-STIFF_FRAME = pytest.param(5e4, id="stiff-50N_per_mm", marks=pytest.mark.xfail(strict=False, reason=(
-    "not identifiable on these trials: at 10 N a 50 N/mm frame gives 0.2 mm, a force signature "
-    "(about 0.04 N) below the sensor noise that the cubic stiffness partly absorbs; k_frame came "
-    "out -24 %, +130 % and +8 % at three seeds, and adding it leaves the error unchanged")))
+# A frame spring in series with the tissue takes f / k_frame of the slider's travel; it shows
+# only through that share, and the tissue's own stiffness terms absorb most of what it does to
+# the force at any one depth (fitted jointly over several depths they cannot). Against this
+# tissue (about 200 N/m at 30 mm) a 0.5 N/mm frame takes a third of the travel and stands far
+# out of the default rig's noise. A 50 N/mm frame takes 0.4 %, 0.2 mm at 10 N; what the tissue
+# cannot absorb of it is a few hundredths of a newton, so its error follows the instruments:
+# with the default 0.08 N load cell the standard error of k_frame is about 19 % on these
+# trials (no protocol within the rig's 20 N and 10 mm/s brings it under 12 %), and the 10 um
+# encoder steps bias it by -2.4 % even without force noise. A lab with a stiff frame measures
+# with a precision load cell (0.005 N) and a fine encoder (1 um): then it is about 1 %.
+FRAMES_HIDDEN = [pytest.param(500.0, 0.08, 100.0, id="soft-0.5N_per_mm"),
+                 pytest.param(5e4, 0.005, 1000.0, id="stiff-50N_per_mm-precision-rig")]
 
 
-@pytest.mark.parametrize("k_frame_N_per_m", [pytest.param(500.0, id="soft-0.5N_per_mm"), STIFF_FRAME])
-def test_hidden_frame_is_recovered_by_add_compliance(k_frame_N_per_m, tmp_path, capsys):
-    """A frame spring hidden in simulated trials: `rig analyze --add compliance` gives its
-    stiffness within 10 %. Three depths: at one depth a series spring and a stiffer tissue
-    curve look alike (the stiff frame is then not identifiable)."""
+@pytest.mark.parametrize("seed", range(5))
+@pytest.mark.parametrize(("k_frame_N_per_m", "noise_N", "steps_per_mm"), FRAMES_HIDDEN)
+def test_hidden_frame_is_recovered_by_add_compliance(k_frame_N_per_m, noise_N, steps_per_mm, seed,
+                                                     tmp_path, capsys):
+    """A frame spring hidden in trials made by the simulated rig to three depths: `rig analyze
+    --add compliance` gives its stiffness within 10 % at every seed."""
     paths = []
     for i, depth in enumerate((10, 20, 30)):
         cfg = RigConfig()
         cfg.sim.effects.compliance = ComplianceParams(k_frame_N_per_m=k_frame_N_per_m)
-        cfg.sim.seed = 30 + i
+        cfg.sim.loadcell.noise_N = noise_N
+        cfg.sim.slider.steps_per_mm = steps_per_mm
+        cfg.sim.substep_ms = 1.0
+        cfg.sim.seed = 100 * seed + i
         proto = (f"name: ramp to {depth} mm\nsteps:\n  - ramp: {{to_mm: {depth}, speed_mm_s: 3}}\n"
-                 "  - hold: {duration_s: 20}\n  - return: {to_mm: 0, speed_mm_s: 5}\n")
+                 "  - hold: {duration_s: 10}\n  - return: {to_mm: 0, speed_mm_s: 5}\n")
         paths.append(str(run_sim(proto, cfg, tmp_path, name=f"d{depth}.mcap").log_path))
     assert main(["analyze", *paths, "--add", "compliance", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
+    assert "compliance" in out["effects"]
     k = out["parameters"]["k_frame_N_per_m"]["value"]
     assert abs(k / k_frame_N_per_m - 1) <= 0.10, k
     assert out["fit"]["rmse_over_noise"] <= 1.2

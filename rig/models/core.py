@@ -18,22 +18,14 @@ never a general ODE solver.
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-from scipy.linalg import solve_banded
 from scipy.signal import lfilter
 
-FRAME_RTOL = 1e-10  # of the force's own peak: far below any sensor's resolution
-FRAME_MAX_ITER = 60
-
-
-class NotConverged(RuntimeWarning):
-    pass
-
+from rig.models import frame
 
 STAGES = ("geometry", "drive", "lag", "branch", "sensor", "delay")
 
@@ -106,6 +98,8 @@ class Model:
         for stage in ("lag", "delay"):
             if sum(e.stage == stage for e in self.effects) > 1:
                 raise ValueError(f"a model holds at most one '{stage}' effect")
+        if sum(e.needs_force for e in self.effects) > 1:
+            raise ValueError("a model holds at most one effect whose geometry depends on the force")
         seen: dict[str, Param] = {}
         for e in self.effects:
             for p in e.params:
@@ -145,35 +139,26 @@ class Model:
         x, v = m.x_m, m.v_m_s
         for e in plain_geometry:
             x, v = e.fn(x, v, **args(e))
-        tissue = self._tissue(x, v, m, by_stage, args)
-        for e in compliance:  # the frame spring: indentation = x - f/k, solved for f
-            tissue = self._through_frame(e, x, v, m, by_stage, args, tissue)
-        force = tissue
+        if compliance:  # the frame spring: indentation = x - f/k, solved for f
+            force = self._through_frame(compliance[0], x, v, m, by_stage, args)
+        else:
+            force = self._tissue(x, v, m, by_stage, args)
         for e in by_stage["sensor"]:
             force = force + e.fn(m, force, **args(e))
         for e in by_stage["delay"]:
             force = e.fn(m, force, **args(e))
         return force
 
-    def _through_frame(self, e: Effect, x, v, m: Motion, by_stage, args, f: np.ndarray) -> np.ndarray:
-        """The tissue force f with f = tissue(indentation given f), by Newton's method on the
-        whole trajectory.
-
-        Substituting the last force (a fixed point) diverges once the frame is softer than the
-        tissue: each pass over-corrects the last. Newton's step needs the chain's Jacobian,
-        which is cheap here: the drive acts sample by sample (its slopes in x and v, by
-        differences), velocity is a three-point difference, and a first-order lag has a
-        two-term inverse, so the lag's inverse times the Jacobian is tridiagonal
-        (`scipy.linalg.solve_banded`). What the step leaves out (a parallel branch, the
-        no-pull clamp) only slows it down: convergence is checked on the equation itself."""
+    def _through_frame(self, e: Effect, x, v, m: Motion, by_stage, args) -> np.ndarray:
+        """The tissue force f with f = tissue(indentation given f) (`rig.models.frame`), started
+        from the last solution of this model on this motion."""
         dt = m.dt_s
-        n = len(x)
-        drives = by_stage["drive"]
-        lags = by_stage["lag"]
-        a = 0.0
-        if lags:  # the lag's pole, from its response to an impulse
-            y = lags[0].fn(np.array([1.0, 0.0]), dt, **args(lags[0]))
-            a = float(y[1] / y[0]) if y[0] else 0.0
+        drives, lags = by_stage["drive"], by_stage["lag"]
+        lag = (1.0, 0.0, 0.0)
+        if lags:  # y[i] = a y[i-1] + b0 u[i] + b1 u[i-1], read off its response to an impulse
+            y = lags[0].fn(np.array([1.0, 0.0, 0.0]), dt, **args(lags[0]))
+            a = float(y[2] / y[1]) if y[1] else 0.0
+            lag = (float(y[0]), float(y[1]) - a * float(y[0]), a)
 
         def drive(xc, vc):
             out = np.zeros_like(xc)
@@ -181,62 +166,13 @@ class Model:
                 out = out + d.fn(xc, vc, **args(d))
             return out
 
-        def residual(f):
-            xc, vc = e.fn(x, v, f, dt, **args(e))
-            return f - self._tissue(xc, vc, m, by_stage, args), xc, vc
-
-        r, xc, vc = residual(f)
-        x_scale = max(float(np.max(np.abs(x))), 1e-300)
-        v_scale = max(float(np.max(np.abs(v))), x_scale / max(m.t_s[-1] - m.t_s[0], dt))
-        norm = float(np.max(np.abs(r)))
-        for _ in range(FRAME_MAX_ITER):
-            scale = max(float(np.max(np.abs(f))), 1e-300)
-            if norm <= FRAME_RTOL * scale:
-                return f - r
-            # slopes of the drive (zero out of contact) and of the frame's give (1/k)
-            hx, hv = 1e-6 * x_scale, 1e-6 * v_scale
-            d0 = drive(np.maximum(xc, 0.0), vc)
-            contact = xc > 0
-            alpha = np.where(contact, (drive(np.maximum(xc, 0.0) + hx, vc) - d0) / hx, 0.0)
-            beta = np.where(contact, (drive(np.maximum(xc, 0.0), vc + hv) - d0) / hv, 0.0)
-            hf = 1e-6 * scale
-            give = -(e.fn(x, v, f + hf, dt, **args(e))[0] - xc) / hf
-            # (L^-1 + (diag(alpha) + diag(beta) G) diag(give)) step = -L^-1 r, L the lag
-            g = 1.0 / (1.0 - a)
-            diag = g + alpha * give
-            lower = np.full(n, -a * g)  # lower[i] multiplies step[i-1] in row i
-            upper = np.zeros(n)  # upper[i] multiplies step[i+1] in row i
-            c = 0.5 / dt
-            # three-point velocity inside, one-sided at the ends (as np.gradient)
-            upper[1:-1] += beta[1:-1] * c * give[2:]
-            lower[1:-1] += -beta[1:-1] * c * give[:-2]
-            diag[0] += -beta[0] / dt * give[0]
-            upper[0] += beta[0] / dt * give[1]
-            diag[-1] += beta[-1] / dt * give[-1]
-            lower[-1] += -beta[-1] / dt * give[-2]
-            ab = np.zeros((3, n))
-            ab[0, 1:] = upper[:-1]
-            ab[1] = diag
-            ab[2, :-1] = lower[1:]
-            rhs = -(g * r - a * g * np.concatenate(([0.0], r[:-1])))
-            try:
-                step = solve_banded((1, 1), ab, rhs)
-            except (np.linalg.LinAlgError, ValueError):
-                step = -r
-            if not np.all(np.isfinite(step)):
-                step = -r
-            for _ in range(30):  # backtrack until the equation's error falls
-                r_new, xc_new, vc_new = residual(f + step)
-                norm_new = float(np.max(np.abs(r_new)))
-                if np.isfinite(norm_new) and norm_new < norm:
-                    break
-                step = 0.5 * step
-            else:
-                break
-            f, r, xc, vc, norm = f + step, r_new, xc_new, vc_new, norm_new
-        warnings.warn(f"frame compliance: the force did not converge (residual {norm:.3g} N)",
-                      NotConverged, stacklevel=3)
-        return f - r
+        last = m.__dict__.setdefault("_frame_force", {})
+        key = tuple(self.effect_names)
+        solution = frame.solve(lambda q: e.fn(x, v, q, dt, **args(e)),
+                               lambda xc, vc: self._tissue(xc, vc, m, by_stage, args),
+                               drive, lag, x, v, dt, last.get(key))
+        last[key] = solution
+        return solution.force_N
 
     def _tissue(self, x, v, m: Motion, by_stage, args) -> np.ndarray:
         contact = x > 0
@@ -254,9 +190,22 @@ class Model:
         return np.maximum(f, 0.0)  # the tissue cannot pull on the probe
 
 
-def first_order_lag(u: np.ndarray, dt: float, tau: float) -> np.ndarray:
-    """y + tau dy/dt = u, exact for u held over each sample (a linear filter)."""
+def lag_coefficients(dt: float, tau: float) -> tuple[float, float, float]:
+    """(b0, b1, a) of y[i] = a y[i-1] + b0 u[i] + b1 u[i-1]: y + tau dy/dt = u solved exactly
+    for u linear between samples. Holding u[i] over the step before it instead would put the
+    response half a sample early, an error in the force of (dt / 2) df/dt."""
     e = -dt / (tau if abs(tau) > 1e-9 else 1e-9)  # a negative tau grows: meaningless, but defined
-    # 1 - a from expm1: for a lag far longer than the record (a creep that never settles) 1 - a
-    # is tiny and would otherwise keep only the digits that survive the subtraction
-    return lfilter([-float(np.expm1(e))], [1.0, -float(np.exp(e))], u)
+    # from expm1 and, for a lag far longer than the step, a series: a creep that never settles
+    # has 1 - a tiny, and the differences below would keep only the digits that survive
+    one_minus_a = -float(np.expm1(e))
+    if abs(e) < 1e-3:
+        b0 = -e * (0.5 + e * (1.0 / 6.0 + e * (1.0 / 24.0 + e / 120.0)))
+    else:
+        b0 = 1.0 - one_minus_a / -e
+    return b0, one_minus_a - b0, 1.0 - one_minus_a
+
+
+def first_order_lag(u: np.ndarray, dt: float, tau: float) -> np.ndarray:
+    """y + tau dy/dt = u from rest, exact for u linear between samples (a linear filter)."""
+    b0, b1, a = lag_coefficients(dt, tau)
+    return lfilter([b0, b1], [1.0, -a], u)

@@ -1,0 +1,178 @@
+"""Frame compliance: the tissue sees x - f / k_frame, and f depends on what it sees.
+
+The force is found by Newton's method over the whole record. Substituting the last force (a
+fixed point) diverges once the frame is softer than the tissue: each pass over-corrects the
+last. Newton's step is exact for the chain drive -> lag -> no-pull clamp and cheap: the drive
+acts sample by sample (its slopes in x and v, by differences), velocity is a three-point
+difference, the lag is a two-term recursion and the clamp a mask, so the step is one banded
+solve (LAPACK's gbtrf/gbtrs). What the step leaves out (a parallel branch) only slows it
+down: convergence is checked on the equation itself.
+
+A fit evaluates the model many times at nearly the same parameters (its Jacobian by
+differences), so the last solution on the same motion and its factored Newton matrix are
+kept: from there one step with the kept matrix (a chord step) usually suffices, and the
+matrix is rebuilt only when such a step stops contracting.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import lapack
+
+FRAME_RTOL = 1e-10  # of the force's own peak: far below any sensor's resolution
+FRAME_MAX_ITER = 60
+WARM_RTOL = 1e-3  # a last solution this close is kept as the start without trying a cold one
+CHORD_CONTRACTION = 0.25  # a kept matrix whose step shrinks the error less than this is rebuilt
+KEEP_CONTRACTION = 1e-3  # kept for the next call if its last step shrank the error this much
+
+Give = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]  # force -> indentation, its rate
+Tissue = Callable[[np.ndarray, np.ndarray], np.ndarray]  # indentation, rate -> tissue force
+Drive = Callable[[np.ndarray, np.ndarray], np.ndarray]  # indentation, rate -> drive (in contact)
+
+
+class NotConverged(RuntimeWarning):
+    pass
+
+
+@dataclass
+class Solution:
+    force_N: np.ndarray
+    newton: _Step | None
+
+
+@dataclass
+class _Step:
+    """Newton's step for f = C L D(f), factored: (I - C L J) s = -r with J = -M the drive's
+    slope in the force, L the lag, C the clamp's mask. With z = L J s the step is s = -r + C z
+    where (1 - a S) z + (b0 + b1 S) M C z = (b0 + b1 S) M r, S the shift by one sample: two
+    bands below the diagonal, one above."""
+
+    md: np.ndarray  # M's diagonal
+    lo: np.ndarray  # lo[i] multiplies [i-1] in row i
+    up: np.ndarray  # up[i] multiplies [i+1] in row i
+    live: np.ndarray
+    b0: float
+    b1: float
+    lu: np.ndarray
+    piv: np.ndarray
+
+    @classmethod
+    def build(cls, md, lo, up, live, lag: tuple[float, float, float]) -> _Step | None:
+        b0, b1, pole = lag
+        n = len(md)
+        kl, ku = 2, 1
+        ab = np.zeros((2 * kl + ku + 1, n))  # gbtrf's layout: entry (i, j) at [kl + ku + i - j, j]
+        ab[2, 1:] = b0 * up[:-1] * live[1:]
+        diag = b0 * md
+        diag[1:] += b1 * up[:-1]
+        ab[3] = 1.0 + diag * live
+        ab[4, :-1] = (b0 * lo[1:] + b1 * md[:-1]) * live[:-1] - pole
+        ab[5, :-2] = b1 * lo[1:-1] * live[:-2]
+        lu, piv, info = lapack.dgbtrf(ab, kl, ku)
+        if info != 0 or not np.all(np.isfinite(lu)):
+            return None
+        return cls(md, lo, up, live, b0, b1, lu, piv)
+
+    def __call__(self, r: np.ndarray) -> np.ndarray:
+        mr = self.md * r
+        mr[1:] += self.lo[1:] * r[:-1]
+        mr[:-1] += self.up[:-1] * r[1:]
+        rhs = self.b0 * mr
+        rhs[1:] += self.b1 * mr[:-1]
+        z, info = lapack.dgbtrs(self.lu, 2, 1, rhs, self.piv)
+        return -r + self.live * z if info == 0 else -r
+
+
+def solve(give: Give, tissue: Tissue, drive: Drive, lag: tuple[float, float, float], x: np.ndarray,
+          v: np.ndarray, dt: float, last: Solution | None = None) -> Solution:
+    """The force f with f = tissue(give(f)). `lag` is (b0, b1, a) of the tissue's lag, y[i] =
+    a y[i-1] + b0 u[i] + b1 u[i-1] ((1, 0, 0) without one). The start is `last` (the solution
+    at nearby parameters) when the equation nearly holds there, else the tissue's force with a
+    rigid frame."""
+    n = len(x)
+
+    def residual(f: np.ndarray):
+        xc, vc = give(f)
+        out = tissue(xc, vc)
+        return f - out, out, xc, vc
+
+    def start(f0: np.ndarray):
+        r, out, xc, vc = residual(f0)
+        return float(np.max(np.abs(r))), (f0, r, out, xc, vc)
+
+    warm = last is not None and len(last.force_N) == n
+    best = start(last.force_N) if warm else None
+    newton = last.newton if warm else None
+    if best is None or not best[0] <= WARM_RTOL * max(float(np.max(np.abs(last.force_N))), 1e-300):
+        cold = start(tissue(x, v))
+        if best is None or not best[0] <= cold[0]:
+            best, newton = cold, None
+    norm, (f, r, out, xc, vc) = best
+    x_scale = max(float(np.max(np.abs(x))), 1e-300)
+    v_scale = max(float(np.max(np.abs(v))), x_scale / max(n * dt, dt))
+    fresh = False
+    contraction = 1.0  # of the last step taken
+    for _ in range(FRAME_MAX_ITER):
+        scale = max(float(np.max(np.abs(f))), 1e-300)
+        if norm <= FRAME_RTOL * scale:
+            # the matrix is kept for the next call only if it was still close to the solution's
+            return Solution(f - r, newton if contraction <= KEEP_CONTRACTION else None)
+        if newton is None:
+            newton = _build(give, drive, lag, f, xc, vc, out, x_scale, v_scale, scale, dt)
+            fresh = True
+        step = newton(r) if newton is not None else -r
+        if not np.all(np.isfinite(step)):
+            step = -r
+        if not fresh:  # a kept matrix: its step is taken if it contracts, else the matrix is rebuilt
+            r_new, out_new, xc_new, vc_new = residual(f + step)
+            norm_new = float(np.max(np.abs(r_new)))
+            if not norm_new <= CHORD_CONTRACTION * norm:
+                newton = None
+                if not norm_new < norm:
+                    continue
+        else:
+            for _ in range(30):  # backtrack until the equation's error falls
+                r_new, out_new, xc_new, vc_new = residual(f + step)
+                norm_new = float(np.max(np.abs(r_new)))
+                if np.isfinite(norm_new) and norm_new < norm:
+                    break
+                step = 0.5 * step
+            else:
+                break
+            fresh = False
+        contraction = norm_new / norm
+        f, r, out, xc, vc, norm = f + step, r_new, out_new, xc_new, vc_new, norm_new
+    warnings.warn(f"frame compliance: the force did not converge (residual {norm:.3g} N)",
+                  NotConverged, stacklevel=4)
+    return Solution(f - r, None)
+
+
+def _build(give: Give, drive: Drive, lag, f, xc, vc, out, x_scale, v_scale, scale, dt) -> _Step | None:
+    """Newton's matrix at f: the drive's slopes in x and v (zero out of contact), the frame's
+    give (1/k) by differences."""
+    n = len(f)
+    contact = xc > 0
+    xp = np.maximum(xc, 0.0)
+    d0 = drive(xp, vc)
+    hx, hv = 1e-6 * x_scale, 1e-6 * v_scale
+    alpha = np.where(contact, (drive(xp + hx, vc) - d0) / hx, 0.0)
+    beta = np.where(contact, (drive(xp, vc + hv) - d0) / hv, 0.0)
+    hf = 1e-6 * scale
+    gv = -(give(f + hf)[0] - xc) / hf
+    # M = (diag(alpha) + diag(beta) D) diag(gv), D the three-point difference (one-sided at the
+    # ends, as np.gradient): minus the drive's slope in the force
+    c = 0.5 / dt
+    md = alpha * gv
+    lo = np.zeros(n)
+    up = np.zeros(n)
+    up[1:-1] = beta[1:-1] * c * gv[2:]
+    lo[1:-1] = -beta[1:-1] * c * gv[:-2]
+    md[0] -= beta[0] / dt * gv[0]
+    up[0] = beta[0] / dt * gv[1]
+    md[-1] += beta[-1] / dt * gv[-1]
+    lo[-1] = -beta[-1] / dt * gv[-2]
+    return _Step.build(md, lo, up, (out > 0).astype(float), lag)
