@@ -159,9 +159,10 @@ def test_effect_matches_a_fine_step_integration(effect, params):
 # out of the default rig's noise. A 50 N/mm frame takes 0.4 %, 0.2 mm at 10 N; what the tissue
 # cannot absorb of it is a few hundredths of a newton, so its error follows the instruments:
 # with the default 0.08 N load cell the standard error of k_frame is about 19 % on these
-# trials (no protocol within the rig's 20 N and 10 mm/s brings it under 12 %), and the 10 um
-# encoder steps bias it by -2.4 % even without force noise. A lab with a stiff frame measures
-# with a precision load cell (0.005 N) and a fine encoder (1 um): then it is about 1 %.
+# trials (none of the protocols tried within the rig's 20 N and 10 mm/s brought it under
+# 12 %), and the 10 um encoder steps bias it by -2.4 % even without force noise. A lab with a
+# stiff frame measures with a precision load cell (0.005 N) and a fine encoder (1 um): then it
+# is about 1 %, and the five seeds here land within 5 %.
 FRAMES_HIDDEN = [pytest.param(500.0, 0.08, 100.0, id="soft-0.5N_per_mm"),
                  pytest.param(5e4, 0.005, 1000.0, id="stiff-50N_per_mm-precision-rig")]
 
