@@ -86,7 +86,7 @@ def _integrate(effect: str, p: dict, speed_m_s: float, t_s: np.ndarray) -> np.nd
             drive = 0.0
         f1 = drive + (state["f1"] - drive) * a1
         f2 = state["f2"]
-        if effect == "relaxation2":  # Maxwell branch: f2' = k v - f2 / tau
+        if "k_m_N_per_m" in p:  # Maxwell branch: f2' = k v - f2 / tau
             f2 += h * (p["k_m_N_per_m"] * vi - f2 / p["tau_m_s"])
         return f1, f2, max(f1 + f2, 0.0)
 
@@ -127,9 +127,12 @@ def _integrate(effect: str, p: dict, speed_m_s: float, t_s: np.ndarray) -> np.nd
     return out
 
 
-# a frame softer than the tissue (the plain fixed point diverges there) and a stiff one
-FRAMES = [pytest.param("compliance", {"k_frame_N_per_m": k}, id=f"compliance-{k:g}N_per_m")
-          for k in (300.0, 500.0)]
+# a frame softer than the tissue (the plain fixed point diverges there), and one behind a
+# tissue with a second, parallel relaxation branch (which Newton's step includes)
+FRAMES = [*(pytest.param("compliance", {"k_frame_N_per_m": k}, id=f"compliance-{k:g}N_per_m")
+            for k in (300.0, 500.0)),
+          pytest.param("compliance", {"k_frame_N_per_m": 300.0, **EFFECT["relaxation2"]},
+                       id="compliance-300N_per_m+relaxation2")]
 
 
 @pytest.mark.parametrize(("effect", "params"), [*((e, EFFECT[e]) for e in sorted(CATALOGUE)), *FRAMES])
@@ -137,8 +140,8 @@ def test_effect_matches_a_fine_step_integration(effect, params):
     t_s = np.arange(0.0, RAMP_S + HOLD_S + BACK_S + 4.0, DT_S)
     xv = np.array([_x(t) for t in t_s])
     motion = Motion(t_s, xv[:, 0], np.gradient(xv[:, 0], DT_S), DT_S)
-    model = build_model("proposed", [] if effect in ("poly_elastic", "nonlinear_damping", "relaxation")
-                        else [effect])
+    extra = [] if effect in ("poly_elastic", "nonlinear_damping", "relaxation") else [effect]
+    model = build_model("proposed", extra + (["relaxation2"] if "k_m_N_per_m" in params else []))
     values = {**TISSUE, **params}
     predicted = model.predict({k: values[k] for k in model.param_names}, motion)
     reference = _integrate(effect, params, motion.speed_m_s, t_s)

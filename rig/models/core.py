@@ -160,6 +160,17 @@ class Model:
             a = float(y[2] / y[1]) if y[1] else 0.0
             lag = (float(y[0]), float(y[1]) - a * float(y[0]), a)
 
+        branch = None
+        if len(by_stage["branch"]) == 1:  # a branch that filters the rate alone enters the step
+            b = by_stage["branch"][0]
+            zero, pulse = np.zeros(4), np.array([1.0, 0.0, 0.0, 0.0])
+            y = b.fn(zero, pulse, dt, **args(b))
+            first_order = y[1] != 0 and np.isclose(y[3] * y[1], y[2] ** 2, rtol=1e-9, atol=0.0)
+            if (first_order and np.allclose(b.fn(zero, 2 * pulse, dt, **args(b)), 2 * y, rtol=1e-12, atol=0.0)
+                    and not np.any(b.fn(pulse, zero, dt, **args(b)))):
+                a2 = float(y[2] / y[1])
+                branch = (float(y[0]), float(y[1]) - a2 * float(y[0]), a2)
+
         def drive(xc, vc):
             out = np.zeros_like(xc)
             for d in drives:
@@ -170,7 +181,7 @@ class Model:
         key = tuple(self.effect_names)
         solution = frame.solve(lambda q: e.fn(x, v, q, dt, **args(e)),
                                lambda xc, vc: self._tissue(xc, vc, m, by_stage, args),
-                               drive, lag, x, v, dt, last.get(key))
+                               drive, lag, x, v, dt, last.get(key), branch)
         last[key] = solution
         return solution.force_N
 

@@ -44,55 +44,117 @@ class Solution:
     newton: _Step | None
 
 
+def _poly(*factors: tuple[float, ...]) -> np.ndarray:
+    """The product of polynomials in the one-sample shift S (coefficients of S^0, S^1, ...)."""
+    out = np.array([1.0])
+    for f in factors:
+        out = np.convolve(out, f)
+    return out
+
+
+def _shifted(p: np.ndarray, bands: tuple[np.ndarray, np.ndarray, np.ndarray]) -> dict[int, np.ndarray]:
+    """p(S) T for T tridiagonal (lo, md, up): its bands by offset d = i - j, as rows i."""
+    lo, md, up = bands
+    n = len(md)
+    t = {-1: up, 0: md, 1: lo}
+    out: dict[int, np.ndarray] = {}
+    for k, pk in enumerate(p):
+        if pk == 0.0:
+            continue
+        for dt, band in t.items():
+            d = dt + k
+            row = out.setdefault(d, np.zeros(n))
+            row[k:] += pk * band[:n - k]
+    return out
+
+
+def _tri_times(bands, r: np.ndarray) -> np.ndarray:
+    lo, md, up = bands
+    out = md * r
+    out[1:] += lo[1:] * r[:-1]
+    out[:-1] += up[:-1] * r[1:]
+    return out
+
+
+def _shift_poly(p: np.ndarray, r: np.ndarray) -> np.ndarray:
+    out = p[0] * r
+    for k in range(1, len(p)):
+        out[k:] += p[k] * r[:-k]
+    return out
+
+
 @dataclass
 class _Step:
-    """Newton's step for f = C L D(f), factored: (I - C L J) s = -r with J = -M the drive's
-    slope in the force, L the lag, C the clamp's mask. With z = L J s the step is s = -r + C z
-    where (1 - a S) z + (b0 + b1 S) M C z = (b0 + b1 S) M r, S the shift by one sample: two
-    bands below the diagonal, one above."""
+    """Newton's step for f = C (L D(f) + B E(f)), factored. D is the drive (sample by sample in
+    indentation and rate), L the lag; E the rate in contact, B the parallel branch's filter of
+    it; C the no-pull clamp's mask. With L = L_b / L_a and B = B_b / B_a (polynomials in the
+    one-sample shift S) and M, N minus the slopes of D and E in the force (tridiagonal), the
+    step is s = -r + C z where
+        L_a B_a z + (L_b B_a M + B_b L_a N) C z = (L_b B_a M + B_b L_a N) r:
+    bands from three below the diagonal to one above."""
 
-    md: np.ndarray  # M's diagonal
-    lo: np.ndarray  # lo[i] multiplies [i-1] in row i
-    up: np.ndarray  # up[i] multiplies [i+1] in row i
+    drive_rhs: np.ndarray  # L_b B_a
+    rate_rhs: np.ndarray  # B_b L_a
+    m: tuple[np.ndarray, np.ndarray, np.ndarray]
+    nb: tuple[np.ndarray, np.ndarray, np.ndarray] | None
     live: np.ndarray
-    b0: float
-    b1: float
     lu: np.ndarray
     piv: np.ndarray
+    kl: int
+    ku: int
 
     @classmethod
-    def build(cls, md, lo, up, live, lag: tuple[float, float, float]) -> _Step | None:
-        b0, b1, pole = lag
-        n = len(md)
-        kl, ku = 2, 1
+    def build(cls, m, nb, live, lag: tuple[float, float, float],
+              branch: tuple[float, float, float] | None) -> _Step | None:
+        b0, b1, a = lag
+        la, lb = (1.0, -a), (b0, b1)
+        ba, bb = ((1.0, -branch[2]), (branch[0], branch[1])) if branch and nb is not None else ((1.0,), (0.0,))
+        drive_rhs, rate_rhs = _poly(lb, ba), _poly(bb, la)
+        bands = _shifted(drive_rhs, m)
+        if nb is not None and np.any(rate_rhs):
+            for d, row in _shifted(rate_rhs, nb).items():
+                bands[d] = bands.get(d, 0.0) + row
+        n = len(live)
+        for d, row in bands.items():  # the clamp's mask on the columns j = i - d
+            if d >= 0:
+                row[d:] *= live[:n - d]
+                row[:d] = 0.0
+            else:
+                row[:d] *= live[-d:]
+                row[d:] = 0.0
+        for d, c in enumerate(_poly(la, ba)):
+            bands[d] = bands.get(d, np.zeros(n)) + c
+        kl = max(d for d in bands if np.any(bands[d]) or d == 0)
+        ku = max(0, -min(bands))
         ab = np.zeros((2 * kl + ku + 1, n))  # gbtrf's layout: entry (i, j) at [kl + ku + i - j, j]
-        ab[2, 1:] = b0 * up[:-1] * live[1:]
-        diag = b0 * md
-        diag[1:] += b1 * up[:-1]
-        ab[3] = 1.0 + diag * live
-        ab[4, :-1] = (b0 * lo[1:] + b1 * md[:-1]) * live[:-1] - pole
-        ab[5, :-2] = b1 * lo[1:-1] * live[:-2]
+        for d, row in bands.items():
+            if d > kl:
+                continue
+            if d >= 0:
+                ab[kl + ku + d, :n - d] = row[d:]
+            else:
+                ab[kl + ku + d, -d:] = row[:d]
         lu, piv, info = lapack.dgbtrf(ab, kl, ku)
         if info != 0 or not np.all(np.isfinite(lu)):
             return None
-        return cls(md, lo, up, live, b0, b1, lu, piv)
+        return cls(drive_rhs, rate_rhs, m, nb, live, lu, piv, kl, ku)
 
     def __call__(self, r: np.ndarray) -> np.ndarray:
-        mr = self.md * r
-        mr[1:] += self.lo[1:] * r[:-1]
-        mr[:-1] += self.up[:-1] * r[1:]
-        rhs = self.b0 * mr
-        rhs[1:] += self.b1 * mr[:-1]
-        z, info = lapack.dgbtrs(self.lu, 2, 1, rhs, self.piv)
+        rhs = _shift_poly(self.drive_rhs, _tri_times(self.m, r))
+        if self.nb is not None and np.any(self.rate_rhs):
+            rhs += _shift_poly(self.rate_rhs, _tri_times(self.nb, r))
+        z, info = lapack.dgbtrs(self.lu, self.kl, self.ku, rhs, self.piv)
         return -r + self.live * z if info == 0 else -r
 
 
 def solve(give: Give, tissue: Tissue, drive: Drive, lag: tuple[float, float, float], x: np.ndarray,
-          v: np.ndarray, dt: float, last: Solution | None = None) -> Solution:
+          v: np.ndarray, dt: float, last: Solution | None = None,
+          branch: tuple[float, float, float] | None = None) -> Solution:
     """The force f with f = tissue(give(f)). `lag` is (b0, b1, a) of the tissue's lag, y[i] =
-    a y[i-1] + b0 u[i] + b1 u[i-1] ((1, 0, 0) without one). The start is `last` (the solution
-    at nearby parameters) when the equation nearly holds there, else the tissue's force with a
-    rigid frame."""
+    a y[i-1] + b0 u[i] + b1 u[i-1] ((1, 0, 0) without one); `branch` the same for a parallel
+    branch driven by the rate of indentation (None: none, or not of that form, and left out
+    of the step). The start is `last` (the solution at nearby parameters) when the equation
+    nearly holds there, else the tissue's force with a rigid frame."""
     n = len(x)
 
     def residual(f: np.ndarray):
@@ -122,7 +184,7 @@ def solve(give: Give, tissue: Tissue, drive: Drive, lag: tuple[float, float, flo
             # the matrix is kept for the next call only if it was still close to the solution's
             return Solution(f - r, newton if contraction <= KEEP_CONTRACTION else None)
         if newton is None:
-            newton = _build(give, drive, lag, f, xc, vc, out, x_scale, v_scale, scale, dt)
+            newton = _build(give, drive, lag, branch, f, xc, vc, out, x_scale, v_scale, scale, dt)
             fresh = True
         step = newton(r) if newton is not None else -r
         if not np.all(np.isfinite(step)):
@@ -151,10 +213,9 @@ def solve(give: Give, tissue: Tissue, drive: Drive, lag: tuple[float, float, flo
     return Solution(f - r, None)
 
 
-def _build(give: Give, drive: Drive, lag, f, xc, vc, out, x_scale, v_scale, scale, dt) -> _Step | None:
+def _build(give: Give, drive: Drive, lag, branch, f, xc, vc, out, x_scale, v_scale, scale, dt) -> _Step | None:
     """Newton's matrix at f: the drive's slopes in x and v (zero out of contact), the frame's
     give (1/k) by differences."""
-    n = len(f)
     contact = xc > 0
     xp = np.maximum(xc, 0.0)
     d0 = drive(xp, vc)
@@ -163,8 +224,15 @@ def _build(give: Give, drive: Drive, lag, f, xc, vc, out, x_scale, v_scale, scal
     beta = np.where(contact, (drive(xp, vc + hv) - d0) / hv, 0.0)
     hf = 1e-6 * scale
     gv = -(give(f + hf)[0] - xc) / hf
-    # M = (diag(alpha) + diag(beta) D) diag(gv), D the three-point difference (one-sided at the
-    # ends, as np.gradient): minus the drive's slope in the force
+    m = _slope_bands(alpha, beta, gv, dt)
+    nb = _slope_bands(np.zeros_like(gv), contact.astype(float), gv, dt) if branch else None
+    return _Step.build(m, nb, (out > 0).astype(float), lag, branch)
+
+
+def _slope_bands(alpha, beta, gv, dt):
+    """(diag(alpha) + diag(beta) D) diag(gv), D the three-point difference (one-sided at the
+    ends, as np.gradient): minus a sample-wise term's slope in the force, as (lo, md, up)."""
+    n = len(gv)
     c = 0.5 / dt
     md = alpha * gv
     lo = np.zeros(n)
@@ -175,4 +243,4 @@ def _build(give: Give, drive: Drive, lag, f, xc, vc, out, x_scale, v_scale, scal
     up[0] = beta[0] / dt * gv[1]
     md[-1] += beta[-1] / dt * gv[-1]
     lo[-1] = -beta[-1] / dt * gv[-2]
-    return _Step.build(md, lo, up, (out > 0).astype(float), lag)
+    return lo, md, up
