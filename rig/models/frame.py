@@ -2,11 +2,12 @@
 
 The force is found by Newton's method over the whole record. Substituting the last force (a
 fixed point) diverges once the frame is softer than the tissue: each pass over-corrects the
-last. Newton's step is exact for the chain drive -> lag -> no-pull clamp and cheap: the drive
-acts sample by sample (its slopes in x and v, by differences), velocity is a three-point
-difference, the lag is a two-term recursion and the clamp a mask, so the step is one banded
-solve (LAPACK's gbtrf/gbtrs). What the step leaves out (a parallel branch) only slows it
-down: convergence is checked on the equation itself.
+last. Newton's step is exact for the chain drive -> lag (+ a parallel branch filtering the
+rate) -> no-pull clamp, and cheap: the drive acts sample by sample (its slopes in x and v, by
+differences), velocity is a three-point difference, each lag is a two-term recursion and the
+clamp a mask, so the step is one banded solve (LAPACK's gbtrf/gbtrs). What the step leaves
+out (a branch of another form) only slows it down: convergence is checked on the equation
+itself.
 
 A fit evaluates the model many times at nearly the same parameters (its Jacobian by
 differences), so the last solution on the same motion and its factored Newton matrix are
