@@ -130,51 +130,28 @@ class SimRig:
 
     def _substep(self) -> None:
         p, dt = self.params, self.dt
-        fx, tp = p.effects, p.tissue
+        fx = p.effects
         slider = self.slider
         slider.step(dt)
-        # Frame compliance: the frame spring shortens under load, so the probe lags the slider.
+        # Frame compliance: the frame spring shortens under the force it carries, so the probe
+        # lags the slider. Probe and force are solved together in each sub-step (implicitly):
+        # taking last sub-step's force instead oscillates and grows once the tissue's damping
+        # over its relaxation time (tau2 x / tau1) exceeds the frame's stiffness.
         probe_mm = slider.position_mm
         if fx.compliance:
-            probe_mm -= 1000.0 * self.tissue_force_N / fx.compliance.k_frame_N_per_m
+            probe_mm = self._probe_through_frame(probe_mm, fx.compliance.k_frame_N_per_m)
         self.probe_velocity_mm_s = (probe_mm - self._probe_mm) / dt
         self._probe_mm = probe_mm
-        x = max(probe_mm - self._surface_mm, 0.0) / 1000.0
-        xdot = (x - self.indentation_m) / dt
+        x, f1, f2, total, state = self._tissue_at(probe_mm)
         if x == 0.0 and self.indentation_m > 0.0:  # a loading ends: the probe left the surface
             self._loadings += 1
             self._soften()
-            self._peak_rate_m_s = 0.0
+            state["peak_rate_m_s"] = 0.0
         self.indentation_m = x
-        if x > 0.0:
-            drive = self._stiffness * ((tp.k1_N_per_m3 * x + tp.k2_N_per_m2) * x + tp.k3_N_per_m) * x \
-                + tp.tau2_N_s_per_m2 * x * xdot
-        else:
-            drive = 0.0
-        a1 = self._a1
-        if fx.speed_relaxation and x > 0.0:
-            sr = fx.speed_relaxation
-            self._peak_rate_m_s = max(self._peak_rate_m_s, xdot)
-            ref = sr.ref_speed_mm_s / 1000.0
-            tau = tp.tau1_s * (ref / max(self._peak_rate_m_s, 1e-3 * ref)) ** sr.exponent
-            a1 = math.exp(-dt / tau)
-        # Exact discretisation of f + tau1 df/dt = drive over one sub-step (drive held).
-        f1 = drive + (self.f1_N - drive) * a1
-        # The tissue cannot pull on the probe: when it would, the surface separates and the
-        # branch recovers freely instead of storing tension.
-        self.f1_N = max(f1, 0.0)
-        if fx.relaxation2:
-            r2 = fx.relaxation2
-            f2 = self.f2_N * self._a2 + r2.k_N_per_m * (xdot * dt)
-            self.f2_N = max(f2, 0.0) if x > 0.0 else 0.0
-        frac = 0.0
-        if self._frac_modes is not None:
-            decay, gain = self._frac_modes
-            # out of contact the branch recovers freely; in contact it may push or pull on the
-            # rest of the tissue, only the sum on the probe cannot pull
-            self._frac_N = self._frac_N * decay + gain * xdot if x > 0.0 else np.zeros_like(decay)
-            frac = float(self._frac_N.sum())
-        self.tissue_force_N = max(self.f1_N + self.f2_N + frac, 0.0) if x > 0.0 else 0.0
+        self.f1_N, self.f2_N, self.tissue_force_N = f1, f2, total
+        self._peak_rate_m_s = state["peak_rate_m_s"]
+        if state["frac_N"] is not None:
+            self._frac_N = state["frac_N"]
         # What the load cell behind the probe carries.
         sensed = self.tissue_force_N
         if fx.friction:
@@ -196,6 +173,74 @@ class SimRig:
         pc = self.params.effects.preconditioning
         if pc:
             self._stiffness = 1.0 - pc.softening * (1.0 - math.exp(-self._loadings / pc.trials))
+
+    def _tissue_at(self, probe_mm: float) -> tuple[float, float, float, float, dict]:
+        """Indentation, the relaxing and parallel branches, the total tissue force, and the
+        state to keep, after this sub-step if the probe ends it at `probe_mm` (the state is
+        not changed: the frame's solve tries several probe positions)."""
+        tp, dt, fx = self.params.tissue, self.dt, self.params.effects
+        x = max(probe_mm - self._surface_mm, 0.0) / 1000.0
+        xdot = (x - self.indentation_m) / dt
+        if x > 0.0:
+            drive = self._stiffness * ((tp.k1_N_per_m3 * x + tp.k2_N_per_m2) * x + tp.k3_N_per_m) * x \
+                + tp.tau2_N_s_per_m2 * x * xdot
+        else:
+            drive = 0.0
+        a1, peak = self._a1, self._peak_rate_m_s
+        if fx.speed_relaxation and x > 0.0:
+            sr = fx.speed_relaxation
+            peak = max(peak, xdot)
+            ref = sr.ref_speed_mm_s / 1000.0
+            tau = tp.tau1_s * (ref / max(peak, 1e-3 * ref)) ** sr.exponent
+            a1 = math.exp(-dt / tau)
+        # Exact discretisation of f + tau1 df/dt = drive over one sub-step (drive held).
+        # The tissue cannot pull on the probe: when it would, the surface separates and the
+        # branch recovers freely instead of storing tension.
+        f1 = max(drive + (self.f1_N - drive) * a1, 0.0)
+        f2 = 0.0
+        if fx.relaxation2:
+            f2 = max(self.f2_N * self._a2 + fx.relaxation2.k_N_per_m * (xdot * dt), 0.0) if x > 0.0 else 0.0
+        frac_N, frac = None, 0.0
+        if self._frac_modes is not None:
+            decay, gain = self._frac_modes
+            # out of contact the branch recovers freely; in contact it may push or pull on the
+            # rest of the tissue, only the sum on the probe cannot pull
+            frac_N = self._frac_N * decay + gain * xdot if x > 0.0 else np.zeros_like(decay)
+            frac = float(frac_N.sum())
+        total = max(f1 + f2 + frac, 0.0) if x > 0.0 else 0.0
+        return x, f1, f2, total, {"peak_rate_m_s": peak, "frac_N": frac_N}
+
+    def _probe_through_frame(self, slider_mm: float, k_frame_N_per_m: float) -> float:
+        """The probe position p with p = slider - f(p) / k_frame: the tissue force grows with
+        p, so the root is unique and lies between the slider and where the slider's own
+        force would push it; bisection guarded regula falsi to well below an encoder step."""
+        def gap(p: float) -> float:
+            return p - slider_mm + 1000.0 * self._tissue_at(p)[3] / k_frame_N_per_m
+
+        hi, g_hi = slider_mm, gap(slider_mm)
+        if g_hi <= 0.0:
+            return slider_mm
+        lo = slider_mm - 1000.0 * self._tissue_at(slider_mm)[3] / k_frame_N_per_m
+        g_lo = gap(lo)
+        if g_lo >= 0.0:
+            return lo
+        side = 0
+        for _ in range(100):
+            p = (lo * g_hi - hi * g_lo) / (g_hi - g_lo)
+            g = gap(p)
+            if abs(g) <= 1e-9 or hi - lo <= 1e-9:
+                return p
+            if g > 0.0:
+                hi, g_hi = p, g
+                if side == 1:
+                    g_lo *= 0.5  # Illinois: a stale end is halved so the bracket keeps shrinking
+                side = 1
+            else:
+                lo, g_lo = p, g
+                if side == -1:
+                    g_hi *= 0.5
+                side = -1
+        return p
 
     def read_force_N(self) -> float:
         """One load-cell conversion: the bridge force plus Gaussian noise, quantised."""

@@ -59,11 +59,20 @@ def test_models_compose_with_plus_and_share_parameters():
             "relax_b", "lag", CATALOGUE["relaxation"].params, CATALOGUE["relaxation"].fn, "", "")
 
 
-def test_lag_filter_matches_the_exact_step_response():
-    dt, tau = 0.01, 2.0
-    y = first_order_lag(np.ones(1000), dt, tau)
-    t = np.arange(1, 1001) * dt
-    assert np.allclose(y, 1 - np.exp(-t / tau), atol=1e-12)
+@pytest.mark.parametrize("tau", [0.003, 2.0, 1e7])
+def test_lag_filter_matches_the_exact_response_to_a_ramp_and_hold(tau):
+    """y + tau y' = u for u rising linearly over T, then held: exact at every sample, also for a
+    lag much shorter than a sample and one far longer than the record (an integrator). Holding
+    each sample's u over the step before it would be half a sample early: relative errors of
+    dt / 2t, 5e-4 at the end of this record."""
+    dt, T = 0.01, 1.0
+    t = np.arange(0, 1000) * dt
+    y = first_order_lag(np.minimum(t / T, 1.0), dt, tau)
+    y_T = (T + tau * np.expm1(-T / tau)) / T
+    after = np.maximum(t - T, 0.0)
+    exact = np.where(t <= T, (t + tau * np.expm1(-t / tau)) / T,
+                     y_T * np.exp(-after / tau) - np.expm1(-after / tau))
+    assert np.allclose(y, exact, rtol=1e-7, atol=1e-14)
 
 
 def test_predicted_force_is_never_negative():

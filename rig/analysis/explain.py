@@ -95,7 +95,8 @@ class Explanation:
                 "closest": self.closest, "text": self.summary}
 
 
-def candidates(model: Model, registry: dict[str, Effect], trials: list[TrialData] | None = None) -> list[Effect]:
+def candidates(model: Model, registry: dict[str, Effect],
+               trials: list[TrialData] | None = None) -> list[Effect]:
     speeds = sorted(t.motion.loading_speed_m_s for t in trials) if trials else []
     # a rate that follows the loading speed is told from a plain change of the lag only by
     # trials at different speeds: on one speed it is a second name for the same fit

@@ -27,6 +27,8 @@ from functools import cached_property
 import numpy as np
 from scipy.signal import lfilter
 
+from rig.models import frame
+
 STAGES = ("geometry", "drive", "rate", "lag", "branch", "sensor", "delay")
 
 
@@ -105,6 +107,8 @@ class Model:
         for stage in ("rate", "lag", "delay"):
             if sum(e.stage == stage for e in self.effects) > 1:
                 raise ValueError(f"a model holds at most one '{stage}' effect")
+        if sum(e.needs_force for e in self.effects) > 1:
+            raise ValueError("a model holds at most one effect whose geometry depends on the force")
         seen: dict[str, Param] = {}
         for e in self.effects:
             for p in e.params:
@@ -144,17 +148,59 @@ class Model:
         x, v = m.x_m, m.v_m_s
         for e in plain_geometry:
             x, v = e.fn(x, v, **args(e))
-        tissue = self._tissue(x, v, m, by_stage, args)
-        for e in compliance:  # the frame spring: indentation = x - f/k; a few fixed-point passes
-            for _ in range(3):
-                xc, vc = e.fn(x, v, tissue, m.dt_s, **args(e))
-                tissue = self._tissue(xc, vc, m, by_stage, args)
-        force = tissue
+        if compliance:  # the frame spring: indentation = x - f/k, solved for f
+            force = self._through_frame(compliance[0], x, v, m, by_stage, args)
+        else:
+            force = self._tissue(x, v, m, by_stage, args)
         for e in by_stage["sensor"]:
             force = force + e.fn(m, force, **args(e))
         for e in by_stage["delay"]:
             force = e.fn(m, force, **args(e))
         return force
+
+    def _through_frame(self, e: Effect, x, v, m: Motion, by_stage, args) -> np.ndarray:
+        """The tissue force f with f = tissue(indentation given f) (`rig.models.frame`), started
+        from the last solution of this model on this motion."""
+        dt = m.dt_s
+        drives, lags = by_stage["drive"], by_stage["lag"]
+        lag = (1.0, 0.0, 0.0)
+        if lags:  # y[i] = a y[i-1] + b0 u[i] + b1 u[i-1], read off its response to an impulse
+            y = lags[0].fn(np.array([1.0, 0.0, 0.0]), dt, **self._lag_args(lags[0], m, by_stage, args))
+            a = float(y[2] / y[1]) if y[1] else 0.0
+            lag = (float(y[0]), float(y[1]) - a * float(y[0]), a)
+
+        branch = None
+        if len(by_stage["branch"]) == 1:  # a branch that filters the rate alone enters the step
+            b = by_stage["branch"][0]
+            zero, pulse = np.zeros(4), np.array([1.0, 0.0, 0.0, 0.0])
+            y = b.fn(zero, pulse, dt, **args(b))
+            first_order = y[1] != 0 and np.isclose(y[3] * y[1], y[2] ** 2, rtol=1e-9, atol=0.0)
+            if (first_order and np.allclose(b.fn(zero, 2 * pulse, dt, **args(b)), 2 * y, rtol=1e-12, atol=0.0)
+                    and not np.any(b.fn(pulse, zero, dt, **args(b)))):
+                a2 = float(y[2] / y[1])
+                branch = (float(y[0]), float(y[1]) - a2 * float(y[0]), a2)
+
+        def drive(xc, vc):
+            out = np.zeros_like(xc)
+            for d in drives:
+                out = out + d.fn(xc, vc, **args(d))
+            return out
+
+        last = m.__dict__.setdefault("_frame_force", {})
+        key = tuple(self.effect_names)
+        solution = frame.solve(lambda q: e.fn(x, v, q, dt, **args(e)),
+                               lambda xc, vc: self._tissue(xc, vc, m, by_stage, args),
+                               drive, lag, x, v, dt, last.get(key), branch)
+        last[key] = solution
+        return solution.force_N
+
+    @staticmethod
+    def _lag_args(e: Effect, m: Motion, by_stage, args) -> dict[str, float]:
+        a = args(e)
+        rate = sum(r.fn(m, **args(r)) for r in by_stage["rate"])
+        if rate:  # a faster lag: every time constant of it shortens alike
+            a = {p.name: 1.0 / (1.0 / a[p.name] + rate) if p.unit == "s" else a[p.name] for p in e.params}
+        return a
 
     def _tissue(self, x, v, m: Motion, by_stage, args) -> np.ndarray:
         contact = x > 0
@@ -165,12 +211,8 @@ class Model:
             drive = drive + e.fn(xc, vc, **args(e))
         drive = np.where(contact, drive, 0.0)
         f = drive
-        rate = sum(e.fn(m, **args(e)) for e in by_stage["rate"])
         for e in by_stage["lag"]:
-            a = args(e)
-            if rate:  # a faster lag: every time constant of it shortens alike
-                a = {p.name: 1.0 / (1.0 / a[p.name] + rate) if p.unit == "s" else a[p.name] for p in e.params}
-            f = e.fn(drive, m.dt_s, **a)
+            f = e.fn(drive, m.dt_s, **self._lag_args(e, m, by_stage, args))
         if by_stage["branch"]:
             # each part of the tissue separates on its own: a lag driven below zero (a fast
             # return) holds no tension to cancel a branch's push
@@ -180,9 +222,22 @@ class Model:
         return np.maximum(f, 0.0)  # the tissue cannot pull on the probe
 
 
-def first_order_lag(u: np.ndarray, dt: float, tau: float) -> np.ndarray:
-    """y + tau dy/dt = u, exact for u held over each sample (a linear filter)."""
+def lag_coefficients(dt: float, tau: float) -> tuple[float, float, float]:
+    """(b0, b1, a) of y[i] = a y[i-1] + b0 u[i] + b1 u[i-1]: y + tau dy/dt = u solved exactly
+    for u linear between samples. Holding u[i] over the step before it instead would put the
+    response half a sample early, an error in the force of (dt / 2) df/dt."""
     e = -dt / (tau if abs(tau) > 1e-9 else 1e-9)  # a negative tau grows: meaningless, but defined
-    # 1 - a from expm1: for a lag far longer than the record (a creep that never settles) 1 - a
-    # is tiny and would otherwise keep only the digits that survive the subtraction
-    return lfilter([-float(np.expm1(e))], [1.0, -float(np.exp(e))], u)
+    # from expm1 and, for a lag far longer than the step, a series: a creep that never settles
+    # has 1 - a tiny, and the differences below would keep only the digits that survive
+    one_minus_a = -float(np.expm1(e))
+    if abs(e) < 1e-3:
+        b0 = -e * (0.5 + e * (1.0 / 6.0 + e * (1.0 / 24.0 + e / 120.0)))
+    else:
+        b0 = 1.0 - one_minus_a / -e
+    return b0, one_minus_a - b0, 1.0 - one_minus_a
+
+
+def first_order_lag(u: np.ndarray, dt: float, tau: float) -> np.ndarray:
+    """y + tau dy/dt = u from rest, exact for u linear between samples (a linear filter)."""
+    b0, b1, a = lag_coefficients(dt, tau)
+    return lfilter([b0, b1], [1.0, -a], u)

@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from rig.errors import RigError
-from rig.models.core import Model, Motion
+from rig.models.core import Model, Motion, lag_coefficients
 
 # Effects with a causal one-step form. Compliance is implicit in the force, friction's
 # rounding scales with the whole record's speed and the delay looks back by a fraction
@@ -50,12 +50,13 @@ class OnlineModel:
         self._eta = v["eta_N_s_per_m"] if "viscous" in names else 0.0
         self._hc = (v["b_N_s_per_m_n1"], v["n"]) if "hc_damping" in names else None
         self._tau2 = v["tau2_N_s_per_m2"] if "nonlinear_damping" in names else 0.0
-        self._a1 = (math.exp(-dt_s / max(v["tau1_s"], 1e-9)) if "relaxation" in names else None)
+        # each lag as Model.predict steps it (exact for its input linear between ticks)
+        self._lag1 = lag_coefficients(dt_s, v["tau1_s"]) if "relaxation" in names else None
         if "relaxation2" in names:
             self._km_tau = v["k_m_N_per_m"] * v["tau_m_s"]
-            self._a2 = math.exp(-dt_s / max(v["tau_m_s"], 1e-9))
+            self._lag2 = lag_coefficients(dt_s, v["tau_m_s"])
         else:
-            self._a2 = None
+            self._lag2 = None
         self._x0 = v["x0_mm"] / 1000.0 if "contact_offset" in names else None
         self._offset = v.get("offset_N", 0.0) if "offset" in names else 0.0
         self._drift = v.get("drift_N_per_s", 0.0) if "drift" in names else 0.0
@@ -66,6 +67,8 @@ class OnlineModel:
         self._v = 0.0
         self._f1 = 0.0
         self._f2 = 0.0
+        self._g_prev = 0.0  # the lags' inputs at the last tick
+        self._u_prev = 0.0
         self._t0: float | None = None
 
     def step(self, t_s: float, x_m: float) -> float:
@@ -91,14 +94,18 @@ class OnlineModel:
         else:
             v = 0.0
             g = 0.0
-        if self._a1 is not None:
-            self._f1 = g + (self._f1 - g) * self._a1
+        if self._lag1 is not None:
+            b0, b1, a = self._lag1
+            self._f1 = a * self._f1 + b0 * g + b1 * self._g_prev
+            self._g_prev = g
             f = self._f1
         else:
             f = g
-        if self._a2 is not None:
+        if self._lag2 is not None:
+            b0, b1, a = self._lag2
             u = self._km_tau * v
-            self._f2 = u + (self._f2 - u) * self._a2
+            self._f2 = a * self._f2 + b0 * u + b1 * self._u_prev
+            self._u_prev = u
             f += self._f2
         f = f if f > 0.0 else 0.0
         return f + self._offset + self._drift * (t_s - self._t0)
