@@ -102,6 +102,8 @@ class OnlineModel:
         else:
             f = g
         if self._lag2 is not None:
+            # as Model.predict: a lag driven below zero holds no tension against the branch
+            f = f if f > 0.0 else 0.0
             b0, b1, a = self._lag2
             u = self._km_tau * v
             self._f2 = a * self._f2 + b0 * u + b1 * self._u_prev
