@@ -30,7 +30,7 @@ from rig.analysis.noise import Noise, from_baseline, from_residual, integral_sca
 from rig.analysis.scaling import ParamScaling
 from rig.analysis.uncertainty import bic as effective_bic
 from rig.analysis.uncertainty import correlation, effective_samples, hac_covariance, notable_correlations
-from rig.models.core import Model
+from rig.models.core import Effect, Model
 
 ADEQUATE_RMSE = 1.2
 ADEQUATE_PHASE = 1.5
@@ -172,19 +172,11 @@ def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0
     nfev = 0
     if stride > 1 and len(candidates) > 1:
         coarse = [decimate(t, stride) for t in trials]
-        best_c = None
-        for z0 in candidates:
-            sol = _solve(model, ps, coarse, scales, z0, lo, hi, tol, max_nfev)
-            nfev += sol.nfev
-            if best_c is None or sol.cost < best_c.cost:
-                best_c = sol
+        best_c, n = _best_start(model, ps, coarse, scales, candidates, lo, hi, tol, max_nfev)
+        nfev += n
         candidates = [_inside(best_c.x, lo, hi)]
-    best = None
-    for z0 in candidates:
-        sol = _solve(model, ps, trials, scales, z0, lo, hi, tol, max_nfev)
-        nfev += sol.nfev
-        if best is None or sol.cost < best.cost:
-            best = sol
+    best, n = _best_start(model, ps, trials, scales, candidates, lo, hi, tol, max_nfev)
+    nfev += n
     if polish and tol <= 1e-8:
         # Gauss-Newton steps with a central-difference Jacobian: the solver's forward-difference
         # Jacobian (its own error ~ sqrt of machine precision) would otherwise decide the last
@@ -192,6 +184,12 @@ def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0
         # same parameters
         best = _newton_polish(_residual_fn(model, ps, trials, scales), best, lo, hi)
     return _result(model, ps, trials, scales, best, lo, hi, nfev, t0)
+
+
+def _best_start(model, ps: ParamScaling, trials, scales: Scales, starts, lo, hi, tol, max_nfev):
+    """The lowest-cost solution from several starting points, and the evaluations spent."""
+    sols = [_solve(model, ps, trials, scales, z0, lo, hi, tol, max_nfev) for z0 in starts]
+    return min(sols, key=lambda sol: sol.cost), sum(sol.nfev for sol in sols)
 
 
 def _residual_fn(model, ps: ParamScaling, trials, scales: Scales):
@@ -303,8 +301,8 @@ def _stderr(cov: np.ndarray | None, names: list[str]) -> dict[str, float | None]
     return {n: (float(e) if np.isfinite(e) else None) for n, e in zip(names, err, strict=True)}
 
 
-def e_stage(model: Model, p) -> str:
-    return next(e.stage for e in model.effects if p in e.params)
+def _owner(model: Model, p) -> Effect:
+    return next(e for e in model.effects if p in e.params)
 
 
 def _undetermined(model: Model, values: dict[str, float], stderr: dict[str, float | None]) -> list[str]:
@@ -313,9 +311,8 @@ def _undetermined(model: Model, values: dict[str, float], stderr: dict[str, floa
     for p in model.params:
         err, v = stderr.get(p.name), values[p.name]
         if err is not None and err > abs(v):
-            owner = next(e.name for e in model.effects if p in e.params)
-            out.append(f"{owner}.{p.name} = {v:.4g} +/- {err:.3g} {p.unit}: not determined by these "
-                       "trials (its standard error exceeds its value)")
+            out.append(f"{_owner(model, p).name}.{p.name} = {v:.4g} +/- {err:.3g} {p.unit}: not determined "
+                       "by these trials (its standard error exceeds its value)")
     return out
 
 
@@ -323,10 +320,11 @@ def _warnings(model: Model, values: dict[str, float], at_bound: np.ndarray, inte
     out = []
     for p, bound in zip(model.params, at_bound, strict=True):
         v = values[p.name]
-        owner = next(e.name for e in model.effects if p in e.params)
+        effect = _owner(model, p)
+        owner = effect.name
         if p.warn_negative and v < 0:
             out.append(f"{owner}.{p.name} is negative ({v:.4g} {p.unit}): physically meaningless")
-        if bound and e_stage(model, p) == "lag" and v > 0 and integrator:
+        if bound and effect.stage == "lag" and v > 0 and integrator:
             out.append(f"{owner}.{p.name} = {v:.4g} {p.unit}: the force does not relax on this record; "
                        f"the lag acts as an integrator (its rate 1/{p.name} sits at its bound, zero)")
         elif bound:
