@@ -55,15 +55,8 @@ def test_every_real_record_loads_and_fits_every_named_model(path):
 
 
 OOCYTE = [p for p in FILES if p.name.startswith("cell1-")]
-# cell1-0008: the paper's model lands on optima whose costs differ by 1e-10 relative in the two
-# unit systems and the cubic's first coefficient differs by 2.9e-6; Gauss-Newton steps do not
-# lower either cost. Kept visible as a known failure of the 1e-6 target.
-RELABEL = [*OOCYTE[:1],
-           *(pytest.param(p, marks=pytest.mark.xfail(
-               strict=True, reason="proposed k1 differs by 2.9e-6 between unit systems (flat optimum)"))
-             for p in OOCYTE[7:8]),
-           *(p for p in FILES if "creep" in p.name)]
-RELABEL_IDS = _ids([*OOCYTE[:1], *OOCYTE[7:8], *(p for p in FILES if "creep" in p.name)])
+RELABEL = [*OOCYTE[:1], *OOCYTE[7:8], *(p for p in FILES if "creep" in p.name)]
+RELABEL_IDS = _ids(RELABEL)
 
 
 @pytest.mark.parametrize("path", RELABEL, ids=RELABEL_IDS)

@@ -211,12 +211,15 @@ def _solve(model, ps: ParamScaling, trials, scales: Scales, z0, lo, hi, tol, max
                          x_scale=1.0, max_nfev=max_nfev, ftol=tol, xtol=tol, gtol=tol, jac=jac)
 
 
-def _newton_polish(resid, sol, lo, hi, steps: int = 3):
-    """Gauss-Newton steps with a central-difference Jacobian from an interior optimum.
+def _newton_polish(resid, sol, lo, hi, steps: int = 30):
+    """Newton steps with a central-difference Jacobian from an interior optimum.
 
     A trust-region solver stops when the cost stops falling, which along a nearly flat
-    direction (terms that trade off) leaves the last digits to chance; a full Newton step
-    settles them, so the same problem posed in other units gives the same parameters.
+    direction (terms that trade off) leaves the last digits to chance. Gauss-Newton alone
+    converges only linearly when the model misses the data by many times the noise (the
+    curvature of the residuals themselves is left out), so the Hessian carries a secant
+    correction for that term (the structured update of Dennis, Gay and Welsch, as in NL2SOL):
+    the same problem posed in other units then lands on the same parameters.
     """
     z = sol.x.copy()
     with np.errstate(invalid="ignore"):
@@ -224,25 +227,52 @@ def _newton_polish(resid, sol, lo, hi, steps: int = 3):
                 & (~np.isfinite(hi) | (hi - z > 1e-6 * np.maximum(1.0, np.abs(hi)))))
     if not np.any(free):
         return sol
-    r = resid(z)
-    cost = 0.5 * float(r @ r)
-    for _ in range(steps):
+    idx = np.flatnonzero(free)
+
+    def jacobian(z: np.ndarray) -> np.ndarray:
         h = 6e-6 * np.maximum(1.0, np.abs(z))
-        J = np.empty((len(r), int(free.sum())))
-        for j, i in enumerate(np.flatnonzero(free)):
+        J = np.empty((len(r), len(idx)))
+        for j, i in enumerate(idx):
             dz = np.zeros_like(z)
             dz[i] = h[i]
             J[:, j] = (resid(z + dz) - resid(z - dz)) / (2 * h[i])
-        step = np.zeros_like(z)
-        step[free] = np.linalg.lstsq(J, -r, rcond=None)[0]
-        trial = np.clip(z + step, lo, hi)
+        return J
+
+    r = resid(z)
+    cost = 0.5 * float(r @ r)
+    J = jacobian(z)
+    g = J.T @ r
+    A = np.zeros((len(idx), len(idx)))  # the residuals' own curvature, learnt from the steps
+    for _ in range(steps):
+        JTJ = J.T @ J
+        try:
+            s = np.linalg.solve(JTJ + A, -g)
+        except np.linalg.LinAlgError:
+            break
+        if not float(s @ g) < 0.0:  # the correction made the model of the cost indefinite
+            A[:] = 0.0
+            s = np.linalg.lstsq(J, -r, rcond=None)[0]
+        trial = z.copy()
+        trial[idx] += s
+        trial = np.clip(trial, lo, hi)
         r_new = resid(trial)
         cost_new = 0.5 * float(r_new @ r_new)
         # near the optimum the cost no longer resolves the step (rounding): a step that does not
         # make it worse beyond that is taken, since it is where the gradient vanishes
         if not cost_new <= cost * (1.0 + 1e-12):
             break
-        z, r, cost = trial, r_new, cost_new
+        J_new = jacobian(trial)
+        g_new = J_new.T @ r_new
+        step = trial[idx] - z[idx]
+        y = g_new - g
+        y_sharp = g_new - J.T @ r_new  # what the residuals' curvature alone changed
+        ys = float(y @ step)
+        if ys > 0.0:
+            w = y_sharp - A @ step
+            A = A + (np.outer(w, y) + np.outer(y, w)) / ys - float(w @ step) * np.outer(y, y) / ys ** 2
+        z, r, cost, J, g = trial, r_new, cost_new, J_new, g_new
+        if np.max(np.abs(step) / np.maximum(1.0, np.abs(z[idx]))) < 1e-12:
+            break
     if cost <= sol.cost * (1.0 + 1e-12):
         sol.x, sol.cost, sol.fun = z, cost, r
     return sol

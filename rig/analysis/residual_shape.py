@@ -10,8 +10,6 @@ noise, with what the noise alone would give; the scales are the record's own.
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import periodogram
-from scipy.stats import spearmanr
 
 from rig.analysis.data import PHASES, TrialData
 
@@ -76,6 +74,8 @@ def _confined(trials, residuals, noise_N: float, fmt) -> str:
 
 def _periodic(trials, residuals) -> str:
     """A line in the spectrum of the residual, averaged over trials on a common frequency grid."""
+    from scipy.signal import periodogram  # imports scipy.stats: 0.7 s a plain fit need not pay
+
     found = []
     for t, r in zip(trials, residuals, strict=True):
         if len(r) < 64:
@@ -94,6 +94,8 @@ def _periodic(trials, residuals) -> str:
 
 
 def _with_depth(trials, residuals) -> str:
+    from scipy.stats import spearmanr
+
     x = np.concatenate([t.motion.x_m[t.mask("ramp")] for t in trials])
     r = np.concatenate([res[t.mask("ramp")] for t, res in zip(trials, residuals, strict=True)])
     if len(r) < 20 or np.ptp(x) <= 0:

@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from rig.errors import RigError
-from rig.models.core import Model, Motion, lag_coefficients
+from rig.models.core import Model, Motion, lag_coefficients, linear_recursion
 
 # Effects with a causal one-step form. Compliance is implicit in the force, friction's
 # rounding scales with the whole record's speed and the delay looks back by a fraction
@@ -115,11 +115,9 @@ class OnlineModel:
 
 def causal_velocity(x_m: np.ndarray, dt_s: float, velocity_tau_s: float = VELOCITY_TAU_S) -> np.ndarray:
     """The loop's velocity, vectorised: backward difference, then the same one-pole filter."""
-    from scipy.signal import lfilter
-
     raw = np.diff(x_m, prepend=x_m[:1]) / dt_s
     a = math.exp(-dt_s / velocity_tau_s)
-    return lfilter([1.0 - a], [1.0, -a], raw)
+    return linear_recursion(raw, 1.0 - a, 0.0, a)
 
 
 def offline_force(model: Model, values: dict[str, float], t_s: np.ndarray, x_m: np.ndarray,
