@@ -27,9 +27,9 @@ from dataclasses import dataclass
 from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
+from rig.drivers.base import LinkStats, Reading, SliderStatus
+from rig.drivers.registers import RegisterMap, from_words, to_words
 
-from drivers.base import LinkStats, Reading, SliderStatus
-from drivers.registers import RegisterMap, from_words, to_words
 from rig.errors import DeviceError
 
 # pymodbus logs every timeout at ERROR level; we count and report them ourselves.
@@ -61,7 +61,7 @@ def open_client(link: ModbusLink, tap=None) -> ModbusSerialClient | ModbusTcpCli
     """A connected client; with a `tap` (drivers.spy), every frame each way goes to it too."""
     serial_cls, tcp_cls = ModbusSerialClient, ModbusTcpClient
     if tap is not None:
-        from drivers.spy import SpiedSerialClient, SpiedTcpClient
+        from rig.drivers.spy import SpiedSerialClient, SpiedTcpClient
 
         serial_cls, tcp_cls = SpiedSerialClient, SpiedTcpClient
     if link.transport == "tcp":

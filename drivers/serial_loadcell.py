@@ -18,8 +18,7 @@ import time
 from dataclasses import dataclass
 
 import serial
-
-from drivers.base import ForceReading, LinkStats
+from rig.drivers.base import ForceReading, LinkStats
 
 # Force per unit, to newtons.
 UNITS_N = {"N": 1.0, "kN": 1000.0, "mN": 0.001, "lbf": 4.4482216152605, "lbF": 4.4482216152605,

@@ -29,9 +29,8 @@ from pathlib import Path
 from typing import Protocol
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
-
-from drivers.serial_loadcell import SerialLoadCell
-from drivers.wireframes import FROM_DEVICE, TO_DEVICE, Assembler, WireRecord
+from rig.drivers.serial_loadcell import SerialLoadCell
+from rig.drivers.wireframes import FROM_DEVICE, TO_DEVICE, Assembler, WireRecord
 
 SPY_MAGIC = "# rig spy 1"
 

@@ -40,9 +40,9 @@ def _seconds(text: str) -> float:
 # ------------------------------------------------------------------ commands
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from rig.config import load_config
-    from rig.protocol import load_protocol
-    from rig.trialrun import RunOptions, run_trial
+    from rig.service.run import RunOptions, run_trial
+    from rig.specs.config import load_config
+    from rig.specs.protocol import load_protocol
 
     config = load_config(args.config)
     proto = load_protocol(args.protocol, config)  # refused here, before anything moves
@@ -63,8 +63,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from rig.logs import export_csv, read_log
-    from rig.replay import format_summary, plot_log, summarize
+    from rig.recording.logs import export_csv, read_log
+    from rig.views.replay import format_summary, plot_log, summarize
 
     log = read_log(args.log)
     summary = summarize(log)
@@ -86,9 +86,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from rig.config import load_config
-    from rig.estimator import excitation_order
-    from rig.protocol import load_protocol, plan
+    from rig.control.estimator import excitation_order
+    from rig.specs.config import load_config
+    from rig.specs.protocol import load_protocol, plan
 
     config = load_config(args.config)
     proto = load_protocol(args.protocol, config)
@@ -131,8 +131,8 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_position(args: argparse.Namespace) -> int:
-    from rig.config import load_config
-    from rig.manual import position
+    from rig.control.manual import position
+    from rig.specs.config import load_config
 
     info = position(load_config(args.config))
     if args.json:
@@ -147,8 +147,8 @@ def cmd_position(args: argparse.Namespace) -> int:
 
 
 def cmd_move(args: argparse.Namespace) -> int:
-    from rig.config import load_config
-    from rig.manual import move
+    from rig.control.manual import move
+    from rig.specs.config import load_config
 
     r = move(load_config(args.config), args.to_mm, args.speed_mm_s)
     print(f"moved from {r['from_mm']:.3f} mm to {r['position_mm']:.3f} mm")
@@ -157,12 +157,12 @@ def cmd_move(args: argparse.Namespace) -> int:
 
 def cmd_reset_alarm(args: argparse.Namespace) -> int:
     if args.socket:
-        from rig.client import request
+        from rig.service.client import request
 
         r = _reply(request(Path(args.socket), {"cmd": "reset_alarm"}))
     else:
-        from rig.config import load_config
-        from rig.manual import reset_alarm
+        from rig.control.manual import reset_alarm
+        from rig.specs.config import load_config
 
         r = reset_alarm(load_config(args.config))
     before = f"alarm 0x{r['alarm_before']:02X}" if r["alarm_before"] else "no alarm"
@@ -171,8 +171,8 @@ def cmd_reset_alarm(args: argparse.Namespace) -> int:
 
 
 def cmd_home(args: argparse.Namespace) -> int:
-    from rig.config import load_config
-    from rig.manual import move
+    from rig.control.manual import move
+    from rig.specs.config import load_config
 
     r = move(load_config(args.config), 0.0, 0.0, home=True)
     print(f"homed: from {r['from_mm']:.3f} mm to {r['position_mm']:.3f} mm")
@@ -182,8 +182,8 @@ def cmd_home(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------ daemon and its clients
 
 def _socket(args: argparse.Namespace) -> Path:
-    from rig.config import load_config
-    from rig.daemon import default_socket_path
+    from rig.service.daemon import default_socket_path
+    from rig.specs.config import load_config
 
     if args.socket:
         return Path(args.socket)
@@ -197,16 +197,16 @@ def _reply(reply: dict) -> dict:
 
 
 def cmd_daemon(args: argparse.Namespace) -> int:
-    from rig.config import load_config
-    from rig.daemon import run_daemon
+    from rig.service.daemon import run_daemon
+    from rig.specs.config import load_config
 
     config = load_config(args.config)
     return run_daemon(config, Path(args.socket) if args.socket else None, spy_path=args.spy)
 
 
 def cmd_start(args: argparse.Namespace) -> int:
-    from rig.client import request
-    from rig.yamlspec import read_text
+    from rig.service.client import request
+    from rig.specs.yamlspec import read_text
 
     path = Path(args.protocol).resolve()
     text = read_text(path, "protocol file")
@@ -222,7 +222,7 @@ def cmd_start(args: argparse.Namespace) -> int:
 
 
 def cmd_stop(args: argparse.Namespace) -> int:
-    from rig.client import request
+    from rig.service.client import request
 
     mode = "hold" if args.hold else "abort"
     _reply(request(_socket(args), {"cmd": "stop", "mode": mode}))
@@ -231,7 +231,7 @@ def cmd_stop(args: argparse.Namespace) -> int:
 
 
 def cmd_estop(args: argparse.Namespace) -> int:
-    from rig.client import request
+    from rig.service.client import request
 
     reply = _reply(request(_socket(args), {"cmd": "estop"}))
     print(f"emergency stop: {reply.get('message', 'sent')}")
@@ -239,8 +239,8 @@ def cmd_estop(args: argparse.Namespace) -> int:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from rig.client import request
-    from rig.watch import format_status
+    from rig.service.client import request
+    from rig.views.watch import format_status
 
     reply = _reply(request(_socket(args), {"cmd": "status"}))
     print(json.dumps(reply, indent=2) if args.json else format_status(reply))
@@ -248,8 +248,8 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_watch(args: argparse.Namespace) -> int:
-    from rig.client import stream
-    from rig.watch import Watcher
+    from rig.service.client import stream
+    from rig.views.watch import Watcher
 
     watcher = Watcher(sys.stdout)
     for msg in stream(_socket(args), {"cmd": "watch", "rate_Hz": args.rate}, timeout_s=30.0):
@@ -262,9 +262,9 @@ def cmd_watch(args: argparse.Namespace) -> int:
 
 
 def cmd_logs(args: argparse.Namespace) -> int:
-    from rig.config import load_config
-    from rig.recovery import list_trials
-    from rig.watch import format_logs
+    from rig.recording.recovery import list_trials
+    from rig.specs.config import load_config
+    from rig.views.watch import format_logs
 
     out_dir = Path(args.dir) if args.dir else Path(load_config(args.config).recorder.out_dir)
     entries = list_trials(out_dir)
@@ -276,12 +276,12 @@ def cmd_logs(args: argparse.Namespace) -> int:
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
-    from rig.config import load_config
-    from sim_device.control import serve_sim
+    from rig.sim.control import serve_sim
+    from rig.specs.config import load_config
 
     config = load_config(args.config)
-    return serve_sim(config, json_out=args.json, exit_with_parent=args.exit_with_parent,
-                     tcp_port=args.tcp_port)
+    return serve_sim(config.sim, loop_priority=config.loop.realtime_priority, json_out=args.json,
+                     exit_with_parent=args.exit_with_parent, tcp_port=args.tcp_port)
 
 
 def cmd_models(args: argparse.Namespace) -> int:
@@ -422,7 +422,7 @@ def _design_args(args: argparse.Namespace):
     target = Path(args.design)
     if target.is_dir() or not target.parent.is_dir():
         raise RigError(f"--design {args.design}: not a file in an existing directory")
-    from rig.config import load_config
+    from rig.specs.config import load_config
 
     return load_config(args.config)
 
@@ -468,7 +468,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from rig.bench import format_bench, run_bench
+    from rig.diagnostics.bench import format_bench, run_bench
 
     result = run_bench(duration_s=args.duration, rate_Hz=args.rate, progress=not args.json,
                        wire=args.wire, find_max_rate=args.max_rate, load=args.load,
@@ -480,7 +480,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------ setting up a real rig
 
 def cmd_ports(args: argparse.Namespace) -> int:
-    from rig.ports import format_ports, list_ports
+    from rig.diagnostics.ports import format_ports, list_ports
 
     ports = list_ports()
     if args.json:
@@ -491,8 +491,8 @@ def cmd_ports(args: argparse.Namespace) -> int:
 
 
 def cmd_probe(args: argparse.Namespace) -> int:
-    from rig.config import load_config
-    from rig.probe import probe
+    from rig.diagnostics.probe import probe
+    from rig.specs.config import load_config
 
     report = probe(load_config(args.config), seconds=args.seconds, spy_path=args.spy)
     print(json.dumps(report.as_dict(), indent=2) if args.json else report.format())
@@ -500,16 +500,16 @@ def cmd_probe(args: argparse.Namespace) -> int:
 
 
 def cmd_spy(args: argparse.Namespace) -> int:
-    from rig.spyview import format_spy, read_spy
+    from rig.views.spyview import format_spy, read_spy
 
     print(format_spy(read_spy(args.file), show_hex=args.hex, channel=args.channel))
     return 0
 
 
 def cmd_config_init(args: argparse.Namespace) -> int:
-    from rig.config import load_config
-    from rig.configinit import write_config
-    from rig.probe import probe
+    from rig.diagnostics.probe import probe
+    from rig.specs.config import load_config
+    from rig.specs.configinit import write_config
 
     path = write_config(args.out, slider_port=args.slider, loadcell_port=args.loadcell,
                         baudrate=args.baudrate, parity=args.parity, device_id=args.device_id,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import difflib
+
 
 class RigError(Exception):
     """Base of every error the user can cause and fix (bad file, bad argument, lost device)."""
@@ -42,3 +44,9 @@ class LimitError(RigError):
 
 class DeviceError(RigError):
     """A device did not answer, answered nonsense, or reported an alarm."""
+
+
+def did_you_mean(name: str, choices, cutoff: float = 0.6) -> str:
+    """' (did you mean 'x'?)' for the nearest choice, or ''."""
+    near = difflib.get_close_matches(name, list(choices), n=1, cutoff=cutoff)
+    return f" (did you mean '{near[0]}'?)" if near else ""

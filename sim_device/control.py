@@ -13,19 +13,22 @@ import sys
 import threading
 from dataclasses import fields
 
-from rig.config import RigConfig
+from rig.sim.params import SimParams
+from rig.sim.server import WireSim
+
 from rig.realtime import Realtime
-from sim_device.server import WireSim
 
 
-def serve_sim(config: RigConfig, *, json_out: bool = False, exit_with_parent: bool = False,
-              tcp_port: int = 0) -> int:
+def serve_sim(params: SimParams, *, loop_priority: int = 0, json_out: bool = False,
+              exit_with_parent: bool = False, tcp_port: int = 0) -> int:
+    """Serve until stdin closes; `loop_priority`: the controller's real-time priority (the
+    simulator runs one below it)."""
     # Like the controller: no thread may hold the interpreter for the default 5 ms while
     # a Modbus reply is due.
     sys.setswitchinterval(0.0005)
     # Before any thread starts: they inherit the policy.
-    Realtime(config.sim.realtime, max(config.loop.realtime_priority - 1, 1)).enter()
-    sim = WireSim(config.sim, tcp_port=tcp_port)
+    Realtime(params.realtime, max(loop_priority - 1, 1)).enter()
+    sim = WireSim(params, tcp_port=tcp_port)
     ep = sim.start()
     gc.collect()
     gc.freeze()  # keep full collections short while serving (see rig.loop)
@@ -41,9 +44,9 @@ def serve_sim(config: RigConfig, *, json_out: bool = False, exit_with_parent: bo
     else:
         host, port = ep.modbus_tcp.rsplit(":", 1)
         print(f"simulated drive   Modbus TCP {ep.modbus_tcp}  |  Modbus RTU {ep.modbus_rtu} "
-              f"(115200 8N1, unit {config.sim.drive.device_id})\n"
-              f"simulated load cell  {ep.loadcell}  ({config.sim.loadcell.mode}, "
-              f"{config.sim.loadcell.rate_Hz:g} lines/s)\n\n"
+              f"(115200 8N1, unit {params.drive.device_id})\n"
+              f"simulated load cell  {ep.loadcell}  ({params.loadcell.mode}, "
+              f"{params.loadcell.rate_Hz:g} lines/s)\n\n"
               "For a rig config (RTU):\n"
               f"  slider:   {{backend: modbus-rtu, port: {ep.modbus_rtu}, profile: oriental_az_sim}}\n"
               f"  loadcell: {{backend: serial, port: {ep.loadcell}}}\n"
@@ -51,7 +54,7 @@ def serve_sim(config: RigConfig, *, json_out: bool = False, exit_with_parent: bo
               f"  slider:   {{backend: modbus-tcp, host: {host}, tcp_port: {port}, profile: oriental_az_sim}}\n"
               "Ctrl-C stops.", flush=True)
 
-    fault_names = {f.name: f.type for f in fields(config.sim.faults)}
+    fault_names = {f.name: f.type for f in fields(params.faults)}
 
     def handle(line: str) -> None:
         try:
@@ -66,13 +69,13 @@ def serve_sim(config: RigConfig, *, json_out: bool = False, exit_with_parent: bo
             if name not in fault_names:
                 say({"error": f"unknown fault '{name}'", "known": sorted(fault_names)})
                 continue
-            setattr(config.sim.faults, name, value)
+            setattr(params.faults, name, value)
         if cmd.get("status"):
             with sim.rig.lock:
                 sim.drive.sync()
                 m = sim.rig.slider
                 say({"position_mm": m.position_mm, "moving": m.moving,
-                     "alarm_code": config.sim.faults.alarm_code, "requests": sim.drive.requests,
+                     "alarm_code": params.faults.alarm_code, "requests": sim.drive.requests,
                      "moves": sim.drive.moves, "stops": sim.drive.stops,
                      "stop_held": sim.drive.stop_held, "ignored_moves": sim.drive.ignored_moves,
                      "comm_timeout_s": sim.drive.comm_timeout_s})

@@ -9,9 +9,10 @@ fail), `loadcell.silent`, `loadcell.force_scale` (a cell that reads too high).
 
 from __future__ import annotations
 
-from drivers.base import ForceReading, LinkStats, Reading, SliderStatus
+from rig.drivers.base import ForceReading, LinkStats, Reading, SliderStatus
+from rig.sim.physics import SimRig
+
 from rig.clock import Clock
-from sim_device.physics import SimRig
 
 
 class InProcessSlider:

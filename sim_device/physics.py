@@ -19,8 +19,7 @@ import threading
 from collections import deque
 
 import numpy as np
-
-from sim_device.params import SimParams
+from rig.sim.params import SimParams
 
 
 class SliderMotion:

@@ -31,10 +31,9 @@ from dataclasses import dataclass
 from pymodbus import FramerType
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
-
-from drivers.registers import PROFILES, RegisterMap, from_words, to_words
-from sim_device.params import SimParams
-from sim_device.physics import SimRig
+from rig.drivers.registers import PROFILES, RegisterMap, from_words, to_words
+from rig.sim.params import SimParams
+from rig.sim.physics import SimRig
 
 ALARM_COMM_TIMEOUT = 0x85
 N_REGISTERS = 0x400

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from rig.config import RigConfig
-from rig.protocol import load_protocol, parse_protocol
-from rig.trialrun import RunOptions, run_trial
+from rig.service.run import RunOptions, run_trial
+from rig.specs.config import RigConfig
+from rig.specs.protocol import load_protocol, parse_protocol
 
 ROOT = Path(__file__).resolve().parent.parent
 PROTOCOLS = ROOT / "protocols"

@@ -11,17 +11,17 @@ import math
 
 import numpy as np
 import pytest
+from rig.sim.params import FractionalParams, PreconditioningParams, SpeedRelaxationParams
 
 from rig.analysis.data import load_trial
 from rig.analysis.explain import explain, format_explain
 from rig.analysis.fit import fit
 from rig.analysis.residual_shape import describe, not_the_answer
-from rig.config import RigConfig
-from rig.logs import read_log
 from rig.models import CATALOGUE, build_model
 from rig.models.core import Model, Motion
 from rig.models.fractional import modes
-from sim_device.params import FractionalParams, PreconditioningParams, SpeedRelaxationParams
+from rig.recording.logs import read_log
+from rig.specs.config import RigConfig
 from tests.conftest import run_sim
 
 SEEDS = (1, 2, 3, 4, 5)

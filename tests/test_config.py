@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from rig.config import RigConfig, load_config, parse_config
 from rig.errors import SpecError
+from rig.specs.config import RigConfig, load_config, parse_config
 from tests.conftest import ROOT
 
 

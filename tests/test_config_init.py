@@ -6,11 +6,11 @@ import subprocess
 import sys
 
 import yaml
+from rig.sim.params import SimParams
+from rig.sim.server import WireSim
 
-from rig.config import RigConfig, load_config, parse_config
-from rig.configinit import config_text
-from sim_device.params import SimParams
-from sim_device.server import WireSim
+from rig.specs.config import RigConfig, load_config, parse_config
+from rig.specs.configinit import config_text
 from tests.conftest import ROOT
 
 

@@ -18,20 +18,20 @@ import numpy as np
 import pytest
 import yaml
 from pymodbus.client import ModbusTcpClient
+from rig.sim.params import SimParams
+from rig.sim.server import WireSim
 
 from rig.clock import RealClock, VirtualClock
-from rig.config import RigConfig
-from rig.devices import open_devices
+from rig.control.devices import open_devices
+from rig.control.trial import StopMode, Trial
 from rig.errors import LimitError
-from rig.logs import read_log
-from rig.loop import StopMode, Trial
-from rig.progress import ProgressBar
-from rig.protocol import parse_protocol
 from rig.realtime import Realtime
-from rig.recorder import TrialInfo
-from rig.trialrun import RunOptions, run_trial
-from sim_device.params import SimParams
-from sim_device.server import WireSim
+from rig.recording.logs import read_log
+from rig.recording.recorder import TrialInfo
+from rig.service.run import RunOptions, run_trial
+from rig.specs.config import RigConfig
+from rig.specs.protocol import parse_protocol
+from rig.views.progress import ProgressBar
 from tests.conftest import PROTOCOLS, ROOT, run_sim
 
 FAST = """name: fast ramp
@@ -173,9 +173,9 @@ def test_every_move_goes_through_the_limit_check(tmp_path, monkeypatch):
     """The check before the start is the first line; the second is the check of each move as it
     is issued (the same one `rig move` uses). With the first switched off, a move beyond the
     window (an approach whose contact sits deep) is refused before it is sent."""
-    import rig.loop
+    import rig.control.trial
 
-    monkeypatch.setattr(rig.loop, "check_limits", lambda *a, **k: None)
+    monkeypatch.setattr(rig.control.trial, "check_limits", lambda *a, **k: None)
     cfg = RigConfig()
     cfg.sim.tissue.surface_mm = 30.0
     text = ("name: a\nsteps:\n  - approach: {speed_mm_s: 5, contact_N: 0.2, max_mm: 40}\n"
@@ -309,7 +309,7 @@ def test_rig_move_that_does_not_happen_is_an_error_not_a_success(tmp_path):
 
 def test_disk_full_mid_trial_stops_the_slider_and_ends_as_a_fault(tmp_path, monkeypatch):
     """The writer's error used to be stored and never read: 'trial completed'."""
-    import rig.recorder as recorder
+    import rig.recording.recorder as recorder
 
     real_fsync = os.fsync
     calls = {"n": 0}
@@ -358,7 +358,7 @@ def test_recorder_queue_past_its_bound_is_a_fault(tmp_path):
         return _orig(item)
 
     trial.on_tick = block_writer
-    from rig import recorder as recmod
+    from rig.recording import recorder as recmod
 
     orig_write = recmod.Recorder._write
     recmod.Recorder._write = lambda self, item: patched_write(item, lambda it: orig_write(self, it))
@@ -512,7 +512,7 @@ def wired_dict(sim: WireSim, transport: str = "rtu") -> dict:
 
 
 def wired(sim: WireSim, transport: str = "rtu") -> RigConfig:
-    from rig.config import parse_config
+    from rig.specs.config import parse_config
 
     return parse_config(yaml.safe_dump(wired_dict(sim, transport)), "<wired>")
 
@@ -525,8 +525,9 @@ def rig(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
 def test_speed_is_measured_over_two_ticks_not_between_a_late_tick_and_the_next():
     """A late tick followed by one on time leaves half a millisecond between two readings: one
     0.01 mm encoder step over that reads as 20 mm/s. The meter spans at least two periods."""
-    from drivers.base import Reading
-    from rig.safety import SpeedMeter
+    from rig.drivers.base import Reading
+
+    from rig.control.safety import SpeedMeter
 
     meter = SpeedMeter(0.02)
     speeds = []

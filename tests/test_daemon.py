@@ -16,14 +16,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from rig.sim.params import SimParams
+from rig.sim.server import ALARM_COMM_TIMEOUT, WireSim
 
-from rig.client import request, stream
-from rig.daemon import peer_allowed
 from rig.errors import RigError
-from rig.logs import read_log
-from rig.sdnotify import healthy
-from sim_device.params import SimParams
-from sim_device.server import ALARM_COMM_TIMEOUT, WireSim
+from rig.recording.logs import read_log
+from rig.service.client import request, stream
+from rig.service.daemon import peer_allowed
+from rig.service.sdnotify import healthy
 from tests.conftest import PROTOCOLS, ROOT
 
 LONG = "name: long ramp\nsteps:\n  - ramp: {to_mm: 30, speed_mm_s: 1}\n  - return: {speed_mm_s: 5}\n"

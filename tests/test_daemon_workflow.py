@@ -11,10 +11,10 @@ import time
 from dataclasses import dataclass
 
 import pytest
+from rig.sim.params import LoadCellParams, SimParams
+from rig.sim.server import WireSim
 
-from rig.logs import read_log
-from sim_device.params import LoadCellParams, SimParams
-from sim_device.server import WireSim
+from rig.recording.logs import read_log
 from tests.conftest import ROOT
 from tests.test_daemon import DaemonProc
 

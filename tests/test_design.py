@@ -13,9 +13,9 @@ from rig.analysis.data import load_trial
 from rig.analysis.explain import explain
 from rig.analysis.fit import fit
 from rig.cli import main
-from rig.config import RigConfig, load_config
 from rig.models import CATALOGUE, build_model
-from rig.protocol import load_protocol
+from rig.specs.config import RigConfig, load_config
+from rig.specs.protocol import load_protocol
 from tests.test_explain import simulate
 
 HIDDEN = {"compliance": {"k_frame_N_per_m": 2000.0}}

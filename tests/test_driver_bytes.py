@@ -6,10 +6,10 @@ import os
 import time
 
 import pytest
+from rig.drivers.modbus_slider import ModbusLink, ModbusSlider
+from rig.drivers.registers import PROFILES
+from rig.drivers.serial_loadcell import SerialLoadCell
 
-from drivers.modbus_slider import ModbusLink, ModbusSlider
-from drivers.registers import PROFILES
-from drivers.serial_loadcell import SerialLoadCell
 from tests.wire_helpers import ScriptedDevice, crc16, raw_pty, read_exactly, rtu
 
 

@@ -9,12 +9,12 @@ import math
 
 import numpy as np
 import pytest
+from rig.sim.params import ComplianceParams
 from scipy.optimize import brentq
 
 from rig.cli import main
-from rig.config import RigConfig
 from rig.models import CATALOGUE, Motion, build_model
-from sim_device.params import ComplianceParams
+from rig.specs.config import RigConfig
 from tests.conftest import run_sim
 
 DT_S = 0.01

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rig.estimator import StiffnessRLS, excitation_order
-from rig.logs import read_log
+from rig.control.estimator import StiffnessRLS, excitation_order
+from rig.recording.logs import read_log
 
 
 def test_converges_to_a_constant_stiffness():

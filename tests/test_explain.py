@@ -13,9 +13,9 @@ from rig.analysis.data import load_trial
 from rig.analysis.explain import auto, explain, format_explain
 from rig.analysis.fit import fit
 from rig.cli import main
-from rig.config import RigConfig
-from rig.logs import export_csv, read_log
 from rig.models import CATALOGUE, build_model
+from rig.recording.logs import export_csv, read_log
+from rig.specs.config import RigConfig
 from tests.conftest import PROTOCOLS, run_sim
 
 SPECIMENS = {
@@ -70,7 +70,7 @@ def simulate(tmp, specimen: str, effects: dict, seed: int, speeds=("0.75", "1.5"
 
 
 def _default(name):
-    from sim_device import params as P
+    from rig.sim import params as P
 
     return {"relaxation2": P.Relaxation2Params, "drift": P.DriftParams, "offset": P.OffsetParams,
             "contact_offset": P.ContactOffsetParams, "delay": P.DelayParams,

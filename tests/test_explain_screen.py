@@ -6,8 +6,8 @@ from __future__ import annotations
 from rig.analysis.data import decimate, load_trial
 from rig.analysis.explain import Suggestion, _indistinguishable
 from rig.analysis.fit import fit
-from rig.config import RigConfig
 from rig.models import CATALOGUE, build_model
+from rig.specs.config import RigConfig
 from tests.conftest import run_sim
 
 PROTO = ("name: ramp\nsteps:\n  - ramp: {to_mm: 30, speed_mm_s: 3}\n  - hold: {duration_s: 10}\n"

@@ -12,11 +12,11 @@ import threading
 import time
 
 import pytest
+from rig.sim.params import SimParams
+from rig.sim.server import WireSim, free_tcp_port
 
-from rig.logs import read_log
-from rig.recorder import SAMPLE_SCHEMA
-from sim_device.params import SimParams
-from sim_device.server import WireSim, free_tcp_port
+from rig.recording.logs import read_log
+from rig.recording.recorder import SAMPLE_SCHEMA
 from tests.test_daemon import DaemonProc
 
 pytest.importorskip("foxglove", reason="the live view needs foxglove-sdk (pip install '.[live]')")
@@ -112,7 +112,7 @@ def test_every_tick_reaches_a_live_viewer_and_a_stalled_one_costs_nothing(tmp_pa
 
 
 def test_the_shipped_layout_plots_only_fields_the_log_has():
-    from rig.recorder import SCHEMAS
+    from rig.recording.recorder import SCHEMAS
     from tests.conftest import ROOT
 
     layout = json.loads((ROOT / "config" / "foxglove-layout.json").read_text())

@@ -10,8 +10,8 @@ import time
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from rig.drivers.serial_loadcell import LineFormat, LineRejected, SerialLoadCell, parse_line
 
-from drivers.serial_loadcell import LineFormat, LineRejected, SerialLoadCell, parse_line
 from tests.wire_helpers import raw_pty
 
 

@@ -17,9 +17,9 @@ import pytest
 from mcap.reader import make_reader
 
 from rig.errors import RigError
-from rig.logs import export_csv, read_csv_trial, read_log
-from rig.recorder import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC
-from rig.replay import summarize
+from rig.recording.logs import export_csv, read_csv_trial, read_log
+from rig.recording.recorder import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC
+from rig.views.replay import summarize
 from tests.conftest import PROTOCOLS, ROOT, run_sim
 
 

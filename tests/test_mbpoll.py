@@ -8,9 +8,8 @@ import subprocess
 import time
 
 import pytest
-
-from sim_device.params import SimParams
-from sim_device.server import WireSim
+from rig.sim.params import SimParams
+from rig.sim.server import WireSim
 
 MBPOLL = shutil.which("mbpoll")
 if MBPOLL is None and os.environ.get("CI"):

@@ -11,12 +11,12 @@ import time
 import numpy as np
 import pytest
 
-from rig.config import RigConfig
-from rig.logs import read_log
 from rig.models.catalogue import build_model
 from rig.models.online import OnlineModel, offline_force
 from rig.models.saved import load, loads
-from rig.replay import summarize
+from rig.recording.logs import read_log
+from rig.specs.config import RigConfig
+from rig.views.replay import summarize
 from tests.conftest import PROTOCOLS, ROOT, run_sim
 
 
@@ -120,7 +120,7 @@ def test_without_a_load_cell_the_estimate_trips_the_force_limit_within_one_tick(
     assert r.returncode == 0, r.stderr
     cfg = RigConfig()
     cfg.loadcell.backend = "none"
-    from rig.protocol import load_protocol
+    from rig.specs.protocol import load_protocol
 
     # the protocol's 15 N; the default specimen's model peaks at about 12 N with the margin
     limit = load_protocol(PROTOCOLS / "paper-3mm_s.yaml").effective_limits(cfg.limits).max_force_N
@@ -163,8 +163,9 @@ def test_bad_model_files_get_one_line(tmp_path, text, fragment):
 
 
 def test_the_daemon_runs_a_model_sent_with_start(fitted, tmp_path):
-    from sim_device.params import SimParams
-    from sim_device.server import WireSim
+    from rig.sim.params import SimParams
+    from rig.sim.server import WireSim
+
     from tests.test_daemon import DaemonProc
 
     with WireSim(SimParams(), rtu=False) as sim:
@@ -190,7 +191,7 @@ def test_the_daemon_runs_a_model_sent_with_start(fitted, tmp_path):
 def test_status_and_watch_show_the_model():
     from io import StringIO
 
-    from rig.watch import Watcher, format_status
+    from rig.views.watch import Watcher, format_status
 
     snap = {"state": "running", "t_s": 3.0, "step": 0, "step_kind": "ramp", "steps_total": 3,
             "time_left_s": 10.0, "force_N": 2.5, "position_mm": 5.0, "stiffness_N_per_m": 90.0,

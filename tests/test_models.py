@@ -15,10 +15,10 @@ from rig.analysis.analyze import compare, holdout_json
 from rig.analysis.data import load_trial
 from rig.analysis.fit import fit
 from rig.cli import main
-from rig.config import RigConfig
 from rig.errors import RigError, SpecError
 from rig.models import CATALOGUE, NAMED_MODELS, Motion, build_model
 from rig.models.core import first_order_lag
+from rig.specs.config import RigConfig
 from tests.conftest import PROTOCOLS, ROOT, run_sim
 
 CATALOGUE_NAMES = ["linear_elastic", "poly_elastic", "power_elastic", "viscous", "hc_damping",
@@ -220,7 +220,7 @@ def test_unknown_names(paper_logs, args, fragment):
 
 
 def test_csv_input_and_bad_csv(paper_logs, tmp_path):
-    from rig.logs import export_csv, read_log
+    from rig.recording.logs import export_csv, read_log
 
     csv_path = tmp_path / "trial.csv"
     export_csv(read_log(paper_logs[0]), csv_path)

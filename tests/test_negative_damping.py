@@ -10,10 +10,10 @@ import csv
 import json
 
 import pytest
+from rig.sim.params import ContactOffsetParams
 
 from rig.cli import main
-from rig.config import RigConfig
-from sim_device.params import ContactOffsetParams
+from rig.specs.config import RigConfig
 from tests.conftest import PROTOCOLS, run_sim
 
 SEEDS = (1, 2, 3)

@@ -11,8 +11,8 @@ from rig.analysis.data import load_trial
 from rig.analysis.explain import explain
 from rig.analysis.fit import fit
 from rig.analysis.noise import from_baseline, from_residual, integral_scale
-from rig.config import RigConfig
 from rig.models import CATALOGUE, build_model
+from rig.specs.config import RigConfig
 from tests.conftest import PROTOCOLS, run_sim
 
 

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from sim_device.params import (
+from rig.sim.params import (
     ComplianceParams,
     ContactOffsetParams,
     DelayParams,
@@ -15,7 +14,7 @@ from sim_device.params import (
     Relaxation2Params,
     SimParams,
 )
-from sim_device.physics import SimRig, SliderMotion
+from rig.sim.physics import SimRig, SliderMotion
 
 
 def ramp_hold(params: SimParams, speed=0.75, depth=30.0, hold_s=60.0, dt=0.01):

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from serial.tools.list_ports_common import ListPortInfo
 
-from rig.ports import format_ports, list_ports
+from rig.diagnostics.ports import format_ports, list_ports
 from tests.conftest import ROOT
 
 

@@ -9,12 +9,12 @@ import threading
 
 import pytest
 import yaml
+from rig.sim.params import SimParams
+from rig.sim.server import WireSim
 
-from rig.config import RigConfig
-from rig.probe import probe
-from rig.probe_report import EXIT_OK, EXIT_PROBLEMS, EXIT_SILENT
-from sim_device.params import SimParams
-from sim_device.server import WireSim
+from rig.diagnostics.probe import probe
+from rig.specs.config import RigConfig
+from rig.views.probe_report import EXIT_OK, EXIT_PROBLEMS, EXIT_SILENT
 from tests.conftest import ROOT
 from tests.wire_helpers import raw_pty
 

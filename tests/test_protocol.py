@@ -8,9 +8,9 @@ import sys
 import pytest
 
 from rig.cli import main
-from rig.config import RigConfig
 from rig.errors import LimitError, SpecError
-from rig.protocol import Approach, Hold, Ramp, Return, load_protocol, parse_protocol, plan
+from rig.specs.config import RigConfig
+from rig.specs.protocol import Approach, Hold, Ramp, Return, load_protocol, parse_protocol, plan
 from tests.conftest import PROTOCOLS
 
 
@@ -103,7 +103,7 @@ def test_limit_and_spec_errors_are_distinct():
     with pytest.raises(SpecError):
         parse_protocol("name: x\nsteps: 3\n")
     p = parse_protocol("name: x\nsteps:\n  - ramp: {to_mm: 60, speed_mm_s: 1}\n")
-    from rig.protocol import check_limits
+    from rig.specs.protocol import check_limits
 
     with pytest.raises(LimitError):
         check_limits(p, RigConfig())
@@ -120,7 +120,7 @@ def test_approach_travel_is_checked_relative_to_contact():
     # contact may be found as far as 30 mm, then a 20 mm ramp would reach 50 mm > 45 mm travel
     p = parse_protocol("name: x\nsteps:\n  - approach: {speed_mm_s: 1, contact_N: 0.1, max_mm: 30}\n"
                        "  - ramp: {to_mm: 20, speed_mm_s: 1}\n")
-    from rig.protocol import check_limits
+    from rig.specs.protocol import check_limits
 
     with pytest.raises(LimitError, match="outside the travel"):
         check_limits(p, RigConfig())

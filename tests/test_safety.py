@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from rig.config import LimitsConfig
-from rig.safety import TickState, check
+from rig.control.safety import TickState, check
+from rig.specs.config import LimitsConfig
 
 LIM = LimitsConfig(max_force_N=10, travel_mm=(-5, 45), max_speed_mm_s=10, loadcell_stale_ms=100,
                    overspeed_factor=1.5)

@@ -13,18 +13,18 @@ import time
 import numpy as np
 import pytest
 import yaml
+from rig.drivers.spy import WireSpy
+from rig.sim.params import SimParams
+from rig.sim.server import WireSim
 
-from drivers.spy import WireSpy
 from rig.cli import main
-from rig.client import request
-from rig.config import RigConfig
 from rig.errors import RigError
-from rig.logs import read_log
-from rig.protocol import parse_protocol
-from rig.spyview import decode, format_spy, read_spy
-from rig.trialrun import RunOptions, run_trial
-from sim_device.params import SimParams
-from sim_device.server import WireSim
+from rig.recording.logs import read_log
+from rig.service.client import request
+from rig.service.run import RunOptions, run_trial
+from rig.specs.config import RigConfig
+from rig.specs.protocol import parse_protocol
+from rig.views.spyview import decode, format_spy, read_spy
 from tests.conftest import ROOT
 from tests.wire_helpers import rtu
 
@@ -113,8 +113,8 @@ def test_tcp_trial_spy_holds_mbap_frames_and_polled_lines(tmp_path):
 
 def test_bad_crc_and_lost_replies_show_in_the_spy(tmp_path):
     """A corrupted reply is shown with CRC BAD, a dropped one as an unanswered request."""
-    from drivers.modbus_slider import ModbusLink, ModbusSlider, open_client
-    from drivers.registers import PROFILES
+    from rig.drivers.modbus_slider import ModbusLink, ModbusSlider, open_client
+    from rig.drivers.registers import PROFILES
 
     with WireSim(SimParams(), tcp=False, loadcell=False) as sim:
         spy = WireSpy(tmp_path / "s.spy")

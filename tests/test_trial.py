@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from rig.clock import VirtualClock
-from rig.config import RigConfig
-from rig.devices import open_devices
-from rig.logs import read_log
-from rig.loop import StopMode, Trial
-from rig.protocol import parse_protocol
-from rig.replay import summarize
+from rig.control.devices import open_devices
+from rig.control.trial import StopMode, Trial
+from rig.recording.logs import read_log
+from rig.specs.config import RigConfig
+from rig.specs.protocol import parse_protocol
+from rig.views.replay import summarize
 from tests.conftest import PROTOCOLS, run_sim
 
 

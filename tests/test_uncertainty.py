@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 import pytest
+from rig.sim.params import DriftParams
 from scipy.optimize import least_squares
 from scipy.signal import lfilter
 
@@ -16,9 +17,8 @@ from rig.analysis.data import load_trial
 from rig.analysis.explain import explain
 from rig.analysis.fit import fit
 from rig.analysis.uncertainty import bic, delta_bic, hac_covariance, white_covariance
-from rig.config import RigConfig
 from rig.models import CATALOGUE, build_model
-from sim_device.params import DriftParams
+from rig.specs.config import RigConfig
 from tests.conftest import run_sim
 
 TRUE = np.array([1.0, 5.0, 0.2])  # amplitude, time constant (s), offset of a relaxation

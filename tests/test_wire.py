@@ -12,14 +12,14 @@ import time
 import numpy as np
 import pytest
 import yaml
+from rig.sim.params import SimParams
+from rig.sim.server import ALARM_COMM_TIMEOUT, WireSim
 
-from rig.config import RigConfig
-from rig.logs import read_log
-from rig.protocol import parse_protocol
-from rig.replay import summarize
-from rig.trialrun import RunOptions, run_trial
-from sim_device.params import SimParams
-from sim_device.server import ALARM_COMM_TIMEOUT, WireSim
+from rig.recording.logs import read_log
+from rig.service.run import RunOptions, run_trial
+from rig.specs.config import RigConfig
+from rig.specs.protocol import parse_protocol
+from rig.views.replay import summarize
 from tests.conftest import ROOT
 
 PAPER_LIKE = """name: paper-like, shortened for the test suite
@@ -225,7 +225,7 @@ def test_killed_controller_is_stopped_by_the_drive_timeout(wire_sim, tmp_path, t
 
 
 def test_sim_process_prints_endpoints_and_takes_fault_commands():
-    from sim_device.process import SimProcess
+    from rig.sim.process import SimProcess
 
     sim = SimProcess(RigConfig().text())
     try:
@@ -243,7 +243,7 @@ def test_sim_process_prints_endpoints_and_takes_fault_commands():
 
 def test_positions_agree_between_transports(wire_sim):
     """TCP and RTU are two doors to one drive: a move made over one is seen over the other."""
-    from rig.devices import open_slider
+    from rig.control.devices import open_slider
 
     rtu, _, _ = open_slider(wired_config(wire_sim, "rtu"))
     tcp, _, _ = open_slider(wired_config(wire_sim, "tcp"))

@@ -29,11 +29,11 @@ import numpy as np
 from rig.analysis.data import PHASES, TrialData, decimate
 from rig.analysis.explain import Explanation
 from rig.analysis.fit import FitResult, fit
-from rig.config import RigConfig
 from rig.errors import LimitError, RigError
 from rig.models.core import Model, Motion
-from rig.motion import sample_move
-from rig.protocol import check_limits, parse_protocol, plan
+from rig.specs.config import RigConfig
+from rig.specs.motion import sample_move
+from rig.specs.protocol import check_limits, parse_protocol, plan
 
 FORCE_MARGIN = 1.25  # a candidate's predicted peak force, times this, must stay within the limit
 MAX_DURATION = 2.0  # a candidate may take at most this many times the longest trial given

@@ -10,7 +10,7 @@ import numpy as np
 from rig.analysis.analyze import fe_points
 from rig.analysis.data import PHASES
 from rig.analysis.fit import FitResult
-from rig.plots import pyplot, shade_spans
+from rig.views.plots import pyplot, shade_spans
 
 PHASE_COLOURS = {"ramp": "#cfe3f7", "hold_early": "#d8f0d2", "hold_late": "#eaf7e6", "return": "#f7d9d4"}
 

@@ -168,12 +168,7 @@ NAMED_MODELS: dict[str, list[str]] = {
 
 def build_model(name: str, extra: list[str] | None = None,
                 registry: dict[str, Effect] | None = None) -> Model:
-    from rig.errors import RigError
-
-    def did_you_mean(name: str, known) -> str:  # the YAML layer only when there is a mistake to name
-        from rig.yamlspec import did_you_mean as near
-
-        return near(name, known)
+    from rig.errors import RigError, did_you_mean
 
     reg = registry or CATALOGUE
     if name not in NAMED_MODELS and name not in reg:

@@ -56,7 +56,7 @@ def read_record(path: str | Path, block: int | None = None) -> Record:
 
 
 def _read_mcap(path: Path) -> Record:
-    from rig.logs import read_log
+    from rig.recording.logs import read_log
 
     log = read_log(path)
     if log.n < 10:

@@ -36,9 +36,9 @@ if __name__ == "__main__":  # run as a script: the tests package lives at the re
 from rig.analysis import explain as ex_mod  # noqa: E402
 from rig.analysis.data import load_trial  # noqa: E402
 from rig.analysis.fit import fit  # noqa: E402
-from rig.config import RigConfig  # noqa: E402
-from rig.logs import read_log  # noqa: E402
 from rig.models import CATALOGUE, build_model  # noqa: E402
+from rig.recording.logs import read_log  # noqa: E402
+from rig.specs.config import RigConfig  # noqa: E402
 from tests.conftest import run_sim  # noqa: E402
 from tests.test_explain import SPECIMENS, SPEEDS, _default, _protocol  # noqa: E402
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from rig.config import RigConfig
-from rig.protocol import parse_protocol
-from rig.trialrun import RunOptions, run_trial
+from rig.service.run import RunOptions, run_trial
+from rig.specs.config import RigConfig
+from rig.specs.protocol import parse_protocol
 
 STAIRCASE = """name: long staircase
 steps:
@@ -27,7 +27,7 @@ limits: {max_force_N: 15}
 
 def make(out_dir: Path, n: int = 3, drift_N_per_s: float = 0.0) -> list[Path]:
     """`n` long logs of one specimen (noise seeded apart); optionally a hidden load-cell drift."""
-    from sim_device.params import DriftParams
+    from rig.sim.params import DriftParams
 
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from rig.logs import export_csv, read_log
+from rig.recording.logs import export_csv, read_log
 from tests.bench.long_records import make
 from tests.conftest import PROTOCOLS, ROOT, run_sim
 

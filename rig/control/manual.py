@@ -12,11 +12,11 @@ import sys
 import time
 
 from rig.clock import RealClock
-from rig.config import RigConfig
-from rig.devices import Devices, open_devices
+from rig.control.devices import Devices, open_devices
+from rig.control.movewatch import MoveWatch
+from rig.control.safety import SpeedMeter, TickState, check, check_move
 from rig.errors import DeviceError, LimitError
-from rig.movewatch import MoveWatch
-from rig.safety import SpeedMeter, TickState, check, check_move
+from rig.specs.config import RigConfig
 
 
 def _open(config: RigConfig) -> Devices:

@@ -17,7 +17,7 @@ from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
 from rig.errors import RigError, SpecError
-from rig.recorder import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC
+from rig.recording.recorder import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC
 
 NUMERIC_FIELDS = ("seq", "t_s", "position_mm", "position_cmd_mm", "force_N", "stiffness_N_per_m",
                   "force_pred_N", "error_N", "forgetting", "step", "late_ms")

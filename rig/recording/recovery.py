@@ -17,8 +17,8 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from rig.errors import RigError
-from rig.logs import read_log
-from rig.recorder import SCHEMAS
+from rig.recording.logs import read_log
+from rig.recording.recorder import SCHEMAS
 
 
 @dataclass

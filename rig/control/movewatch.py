@@ -12,8 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
-from rig.config import LimitsConfig
-from rig.motion import move_time
+from rig.specs.config import LimitsConfig
+from rig.specs.motion import move_time
 
 
 @dataclass

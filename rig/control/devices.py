@@ -11,10 +11,10 @@ import contextlib
 import re
 from dataclasses import dataclass, field
 
-from drivers.base import LoadCell, Slider
 from rig.clock import Clock
-from rig.config import RigConfig
+from rig.drivers.base import LoadCell, Slider
 from rig.errors import RigError
+from rig.specs.config import RigConfig
 
 
 @dataclass
@@ -62,8 +62,8 @@ def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0,
         raise RigError("--spy needs devices on a wire: a real rig, or the simulated rig at --speed 1 "
                        "with sim.wire rtu or tcp")
     if sb == "sim" and not uses_wire(config, speed):
-        from sim_device.inprocess import InProcessLoadCell, InProcessSlider
-        from sim_device.physics import SimRig
+        from rig.sim.inprocess import InProcessLoadCell, InProcessSlider
+        from rig.sim.physics import SimRig
 
         sim = SimRig(config.sim)
         origin = clock.now()
@@ -75,7 +75,7 @@ def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0,
     sim_proc = None
     cfg = config
     if sb == "sim":
-        from sim_device.process import SimProcess
+        from rig.sim.process import SimProcess
 
         sim_proc = SimProcess(config.text())
         cfg = wire_config(config, sim_proc.endpoints)
@@ -105,7 +105,7 @@ def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0,
 
 def open_spy(path: str, config: RigConfig):
     """A WireSpy on `path`, its header naming what each channel is connected to."""
-    from drivers.spy import WireSpy
+    from rig.drivers.spy import WireSpy
 
     spy = WireSpy(path)
     s, lc = config.slider, config.loadcell
@@ -143,8 +143,8 @@ def make_slider(config: RigConfig, clock: Clock | None = None, *, tap=None, time
                 max_consecutive_errors: int | None = None):
     """The slider driver with its link open, nothing written yet (`DeviceError` if the port
     cannot be opened). `timeout_s` overrides the config's per-transaction timeout."""
-    from drivers.modbus_slider import ModbusLink, ModbusSlider, open_client
-    from drivers.registers import PROFILES
+    from rig.drivers.modbus_slider import ModbusLink, ModbusSlider, open_client
+    from rig.drivers.registers import PROFILES
 
     s = config.slider
     if s.profile not in PROFILES:
@@ -197,7 +197,7 @@ def open_slider(config: RigConfig, clock: Clock | None = None, *, tap=None):
 
 def open_loadcell(config: RigConfig, clock: Clock, *, tap=None):
     """The load-cell driver, reading; with a `tap`, every line each way goes to it too."""
-    from drivers.serial_loadcell import DEFAULT_PATTERN, LineFormat, SerialLoadCell
+    from rig.drivers.serial_loadcell import DEFAULT_PATTERN, LineFormat, SerialLoadCell
 
     lc = config.loadcell
     if not lc.port:
@@ -212,7 +212,7 @@ def open_loadcell(config: RigConfig, clock: Clock, *, tap=None):
     kwargs = {"baudrate": lc.baudrate, "mode": lc.mode, "request": lc.request.encode(), "fmt": fmt,
               "clock": clock}
     if tap is not None:
-        from drivers.spy import SpiedSerialLoadCell
+        from rig.drivers.spy import SpiedSerialLoadCell
 
         return SpiedSerialLoadCell(lc.port, tap=tap, **kwargs)
     return SerialLoadCell(lc.port, **kwargs)

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.config import RigConfig
-from rig.estimator import StiffnessRLS
-from rig.protocol import parse_protocol
-from rig.recorder import SAMPLE_TOPIC, Recorder
+from rig.control.estimator import StiffnessRLS
+from rig.recording.recorder import SAMPLE_TOPIC, Recorder
+from rig.specs.config import RigConfig
+from rig.specs.protocol import parse_protocol
 
 
 def _bench_protocol(duration_s: float) -> str:
@@ -51,7 +51,7 @@ class CpuLoad:
 
 def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: str = "none",
                load: int = 0, realtime: str = "auto") -> dict:
-    from rig.trialrun import RunOptions, run_trial
+    from rig.service.run import RunOptions, run_trial
 
     config = RigConfig()
     config.loop.rate_Hz = rate_Hz
@@ -92,7 +92,7 @@ def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: s
 
 
 def read_log_meta(path: Path) -> tuple[dict, dict]:
-    from rig.logs import read_log
+    from rig.recording.logs import read_log
 
     log = read_log(path)
     return log.trial, (log.health[-1] if log.health else {})
@@ -170,7 +170,7 @@ def bench_record(n: int = 50_000) -> dict:
 
 
 def bench_replay(path: Path) -> dict:
-    from rig.logs import read_log
+    from rig.recording.logs import read_log
 
     t0 = time.perf_counter()
     log = read_log(path)
@@ -255,7 +255,7 @@ def bench_fit(ode_fit: bool = True) -> dict:
     from rig.analysis.data import load_trial
     from rig.analysis.fit import fit
     from rig.models.catalogue import build_model
-    from rig.trialrun import RunOptions, run_trial
+    from rig.service.run import RunOptions, run_trial
 
     trials = []
     with tempfile.TemporaryDirectory() as tmp:

@@ -7,9 +7,9 @@ import statistics
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
-from drivers.registers import PROFILES, RegisterMap
-from drivers.spy import SPY_MAGIC
-from drivers.wireframes import (
+from rig.drivers.registers import PROFILES, RegisterMap
+from rig.drivers.spy import SPY_MAGIC
+from rig.drivers.wireframes import (
     CHANNELS,
     FROM_DEVICE,
     TO_DEVICE,

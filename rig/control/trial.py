@@ -30,20 +30,20 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.base import LinkStats, LoadCell, Slider, SliderStatus
 from rig import __version__
 from rig.clock import Clock, RealClock
-from rig.config import RigConfig
+from rig.control.estimator import StiffnessRLS
+from rig.control.movewatch import MoveWatch
+from rig.control.safety import Fault, SpeedMeter, TickState, check, check_move
+from rig.control.sequencer import Move, Sequencer, Stop
+from rig.drivers.base import LinkStats, LoadCell, Slider, SliderStatus
 from rig.errors import DeviceError, RigError
-from rig.estimator import StiffnessRLS
 from rig.models.online import OnlineModel
 from rig.models.saved import SavedModel
-from rig.movewatch import MoveWatch
-from rig.protocol import Approach, Protocol, check_limits
 from rig.realtime import Realtime, RealtimeState
-from rig.recorder import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC, Recorder, TrialInfo
-from rig.safety import Fault, SpeedMeter, TickState, check, check_move
-from rig.sequencer import Move, Sequencer, Stop
+from rig.recording.recorder import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC, Recorder, TrialInfo
+from rig.specs.config import RigConfig
+from rig.specs.protocol import Approach, Protocol, check_limits
 
 
 class StopMode(enum.Enum):

@@ -16,12 +16,12 @@ import os
 import statistics
 import time
 
-from drivers.alarms import alarm_meaning
-from drivers.spy import MemoryTap, Tee
-from drivers.wireframes import FROM_DEVICE, TO_DEVICE
-from rig.config import RigConfig
+from rig.drivers.alarms import alarm_meaning
+from rig.drivers.spy import MemoryTap, Tee
+from rig.drivers.wireframes import FROM_DEVICE, TO_DEVICE
 from rig.errors import DeviceError, RigError
-from rig.probe_report import ProbeReport, Timing
+from rig.specs.config import RigConfig
+from rig.views.probe_report import ProbeReport, Timing
 
 # The first contact waits this long for a reply, to tell a slow drive from a silent one.
 DIAGNOSTIC_TIMEOUT_S = 0.5
@@ -29,7 +29,7 @@ DIAGNOSTIC_TIMEOUT_S = 0.5
 
 def probe(config: RigConfig, *, seconds: float = 2.0, spy_path: str | None = None) -> ProbeReport:
     """Probe the rig `config` names; the built-in simulated rig is started on the wire."""
-    from rig.devices import open_spy, wire_config
+    from rig.control.devices import open_spy, wire_config
 
     sb, lb = config.slider.backend, config.loadcell.backend
     if (sb == "sim") != (lb == "sim"):
@@ -39,7 +39,7 @@ def probe(config: RigConfig, *, seconds: float = 2.0, spy_path: str | None = Non
     cfg = config
     target = f"{config.name} ({config.source_path})"
     if sb == "sim":
-        from sim_device.process import SimProcess
+        from rig.sim.process import SimProcess
 
         if config.sim.wire == "none":
             config = copy.deepcopy(config)
@@ -95,14 +95,14 @@ class _Probe:
         return ["slider.port", "slider.baudrate", "slider.parity", "slider.stopbits", "slider.device_id"]
 
     def _make(self, timeout_s: float | None = None):
-        from rig.devices import make_slider
+        from rig.control.devices import make_slider
 
         return make_slider(self.cfg, tap=self.spy, timeout_s=timeout_s, max_consecutive_errors=10**9)
 
     def _open_slider(self) -> None:
         """First contact with a long timeout, so a slow drive is told from a silent one and its
         status is read right; then the configured timeout, for the timing a trial will see."""
-        from drivers.modbus_slider import ModbusLink
+        from rig.drivers.modbus_slider import ModbusLink
 
         s, r = self.cfg.slider, self.r
         link = ModbusLink("tcp" if s.backend == "modbus-tcp" else "rtu", port=s.port, baudrate=s.baudrate,
@@ -221,7 +221,7 @@ class _Probe:
 
     # ------------------------------------------------------------ load cell
     def _open_loadcell(self) -> None:
-        from rig.devices import open_loadcell
+        from rig.control.devices import open_loadcell
 
         lc, r = self.cfg.loadcell, self.r
         r.loadcell["link"] = f"{lc.port} {lc.baudrate} baud, {lc.mode}" + (
@@ -242,7 +242,7 @@ class _Probe:
             self.cell_tap.chunks.clear()
 
     def _judge_loadcell(self) -> None:
-        from drivers.serial_loadcell import LineRejected, parse_line
+        from rig.drivers.serial_loadcell import LineRejected, parse_line
 
         r, lc, cell = self.r, self.cfg.loadcell, self.cell
         recs = self.cell_tap.records("cell")

@@ -31,14 +31,14 @@ from pathlib import Path
 
 from rig import __version__
 from rig.clock import RealClock
-from rig.config import RigConfig
-from rig.devices import Devices, open_devices
+from rig.control.devices import Devices, open_devices
+from rig.control.trial import Snapshot, StopMode, Trial, TrialResult, default_log_path
 from rig.errors import RigError
-from rig.loop import Snapshot, StopMode, Trial, TrialResult, default_log_path
-from rig.protocol import check_limits, parse_protocol
-from rig.recorder import TrialInfo
-from rig.recovery import find_unfinished, list_trials, recover
-from rig.sdnotify import Watchdog, healthy, notify, watchdog_interval_s
+from rig.recording.recorder import TrialInfo
+from rig.recording.recovery import find_unfinished, list_trials, recover
+from rig.service.sdnotify import Watchdog, healthy, notify, watchdog_interval_s
+from rig.specs.config import RigConfig
+from rig.specs.protocol import check_limits, parse_protocol
 
 
 def default_socket_path(config: RigConfig | None = None) -> Path:
@@ -134,7 +134,7 @@ class Daemon:
             raise
         self.say(f"devices: {self.devices.description}")
         if self.config.daemon.live is not None:
-            from rig.live import LiveView
+            from rig.service.live import LiveView
 
             lv = self.config.daemon.live
             try:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from rig.config import LoadCellConfig, SliderConfig, parse_config
 from rig.errors import RigError
+from rig.specs.config import LoadCellConfig, SliderConfig, parse_config
 
 _HOST_PORT = re.compile(r"^(?P<host>[\w.-]+):(?P<port>\d{1,5})$")
 

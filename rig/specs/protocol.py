@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.config import LimitsConfig, RigConfig
 from rig.errors import LimitError, SpecError
-from rig.motion import sample_move
-from rig.yamlspec import MapView, Marked, load_marked, read_text
+from rig.specs.config import LimitsConfig, RigConfig
+from rig.specs.motion import sample_move
+from rig.specs.yamlspec import MapView, Marked, load_marked, read_text
 
 
 @dataclass(frozen=True)

@@ -9,13 +9,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rig.clock import RealClock, VirtualClock
-from rig.config import RigConfig
-from rig.devices import Devices, open_devices
+from rig.control.devices import Devices, open_devices
+from rig.control.trial import Snapshot, StopMode, Trial, TrialResult, default_log_path
 from rig.errors import RigError
-from rig.loop import Snapshot, StopMode, Trial, TrialResult, default_log_path
-from rig.progress import ProgressBar
-from rig.protocol import Protocol, plan
-from rig.recorder import TrialInfo
+from rig.recording.recorder import TrialInfo
+from rig.specs.config import RigConfig
+from rig.specs.protocol import Protocol, plan
+from rig.views.progress import ProgressBar
 
 
 @dataclass
@@ -65,7 +65,7 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None
     trial.on_tick = opts.on_tick
     live = None
     if opts.live_port is not None:
-        from rig.live import LiveView
+        from rig.service.live import LiveView
 
         host = config.daemon.live.host if config.daemon.live is not None else "127.0.0.1"
         try:

@@ -9,7 +9,6 @@ using the dataclass fields (and their `metadata`) as the schema.
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import types
 import typing
 from dataclasses import dataclass
@@ -18,7 +17,7 @@ from typing import Any
 
 import yaml
 
-from rig.errors import SpecError
+from rig.errors import SpecError, did_you_mean
 
 
 @dataclass
@@ -189,12 +188,6 @@ def range_problem(value: float, gt: float | None = None, ge: float | None = None
     if le is not None and not value <= le:
         return f"must be at most {le:g}, got {value:g}"
     return None
-
-
-def did_you_mean(name: str, choices, cutoff: float = 0.6) -> str:
-    """' (did you mean 'x'?)' for the nearest choice, or ''."""
-    near = difflib.get_close_matches(name, list(choices), n=1, cutoff=cutoff)
-    return f" (did you mean '{near[0]}'?)" if near else ""
 
 
 def _check_range(view: MapView, key: str, value: float, *, gt: float | None = None,

@@ -11,7 +11,7 @@ import threading
 from collections.abc import Callable
 from typing import TextIO
 
-from rig.loop import Snapshot
+from rig.control.trial import Snapshot
 
 
 class ProgressBar:

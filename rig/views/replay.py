@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.config import RigConfig, parse_config
+from rig.control.estimator import StiffnessRLS
 from rig.errors import RigError, SpecError
-from rig.estimator import StiffnessRLS
-from rig.logs import TrialLog
-from rig.plots import pyplot, shade_spans
+from rig.recording.logs import TrialLog
+from rig.specs.config import RigConfig, parse_config
+from rig.views.plots import pyplot, shade_spans
 
 
 @dataclass

@@ -13,8 +13,8 @@ from pathlib import Path
 import yaml
 
 from rig.errors import SpecError
-from rig.yamlspec import bind, load_marked, read_text
-from sim_device.params import SimParams
+from rig.sim.params import SimParams
+from rig.specs.yamlspec import bind, load_marked, read_text
 
 
 @dataclass

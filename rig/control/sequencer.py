@@ -11,8 +11,8 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-from rig.motion import move_time, position_at
-from rig.protocol import Approach, Hold, Protocol, Ramp, Return, Step
+from rig.specs.motion import move_time, position_at
+from rig.specs.protocol import Approach, Hold, Protocol, Ramp, Return, Step
 
 
 @dataclass(frozen=True)

@@ -11,8 +11,8 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
-from drivers.base import Reading
-from rig.config import LimitsConfig
+from rig.drivers.base import Reading
+from rig.specs.config import LimitsConfig
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,1 @@
+"""The rig checked: do the devices answer (`rig probe`), which ports exist, timing benchmarks."""
