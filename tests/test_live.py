@@ -16,7 +16,7 @@ from rig.sim.params import SimParams
 from rig.sim.server import WireSim, free_tcp_port
 
 from rig.recording.logs import read_log
-from rig.recording.recorder import SAMPLE_SCHEMA
+from rig.recording.messages import SAMPLE
 from tests.test_daemon import DaemonProc
 
 pytest.importorskip("foxglove", reason="the live view needs foxglove-sdk (pip install '.[live]')")
@@ -90,7 +90,7 @@ def test_every_tick_reaches_a_live_viewer_and_a_stalled_one_costs_nothing(tmp_pa
             # the same channel and schema as the log's
             ch = reader.advertised["/rig/sample"]
             assert ch["encoding"] == "json" and ch["schemaEncoding"] == "jsonschema"
-            assert json.loads(ch["schema"]) == SAMPLE_SCHEMA
+            assert json.loads(ch["schema"]) == SAMPLE.schema
             assert {"/rig/sample", "/rig/event", "/rig/health"} <= set(reader.advertised)
             r = d.start_trial(TRIAL)
             assert r["ok"], r
@@ -112,7 +112,7 @@ def test_every_tick_reaches_a_live_viewer_and_a_stalled_one_costs_nothing(tmp_pa
 
 
 def test_the_shipped_layout_plots_only_fields_the_log_has():
-    from rig.recording.recorder import SCHEMAS
+    from rig.recording.messages import SCHEMAS
     from tests.conftest import ROOT
 
     layout = json.loads((ROOT / "config" / "foxglove-layout.json").read_text())

@@ -18,7 +18,7 @@ from mcap.reader import make_reader
 
 from rig.errors import RigError
 from rig.recording.logs import export_csv, read_csv_trial, read_log
-from rig.recording.recorder import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC
+from rig.recording.messages import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC
 from rig.views.replay import summarize
 from tests.conftest import PROTOCOLS, ROOT, run_sim
 

@@ -18,7 +18,6 @@ missed, never silently dropped.
 
 from __future__ import annotations
 
-import enum
 import gc
 import socket
 import sys
@@ -36,20 +35,16 @@ from rig.control.estimator import StiffnessRLS
 from rig.control.movewatch import MoveWatch
 from rig.control.safety import Fault, SpeedMeter, TickState, check, check_move
 from rig.control.sequencer import Move, Sequencer, Stop
+from rig.control.stopping import Ending, StopMode
 from rig.drivers.base import LinkStats, LoadCell, Slider, SliderStatus
 from rig.errors import DeviceError, RigError
 from rig.models.online import OnlineModel
 from rig.models.saved import SavedModel
 from rig.realtime import Realtime, RealtimeState
-from rig.recording.recorder import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC, Recorder, TrialInfo
+from rig.recording.messages import EVENT, HEALTH, SAMPLE
+from rig.recording.recorder import Recorder, TrialInfo
 from rig.specs.config import RigConfig
 from rig.specs.protocol import Approach, Protocol, check_limits
-
-
-class StopMode(enum.Enum):
-    ESTOP = "estop"  # stop the motor now, nothing else
-    HOLD = "hold"  # stop and stay
-    ABORT = "abort"  # stop, then return to the start position at a safe speed
 
 
 @dataclass
@@ -98,17 +93,6 @@ class StopTicket:
 
     def wait(self, timeout_s: float) -> bool:
         return self.done.wait(timeout_s)
-
-
-@dataclass
-class _Stopping:
-    """A STOP sent to the drive and not yet confirmed by a fresh status saying 'not moving'."""
-
-    sent_t: float
-    last_sent_t: float
-    resends: int = 0
-    confirmed: bool = False
-    gave_up: bool = False
 
 
 class Trial:
@@ -297,8 +281,8 @@ class Trial:
             self.live.put(topic, log_time_ns, message)
 
     def _event(self, rec: Recorder, t: float, kind: str, message: str, data: dict | None = None) -> None:
-        self._emit(rec, EVENT_TOPIC, self.clock.wall_ns(self._t0 + t),
-                {"t_s": round(t, 6), "kind": kind, "message": message, "data": data or {}})
+        self._emit(rec, EVENT.topic, self.clock.wall_ns(self._t0 + t),
+                   EVENT.record(t_s=round(t, 6), kind=kind, message=message, data=data or {}))
 
     def _safe_stop(self) -> bool:
         # nothing more can be done from here if this fails: the drive's comm timeout is the backstop
@@ -331,11 +315,7 @@ class Trial:
         tare_sum, tare_n, tare_N = 0.0, 0, 0.0
         speedometer = SpeedMeter(2.0 * self.period)
         x_prev_m = 0.0
-        fault: Fault | None = None
-        fault_t = 0.0
-        outcome = "completed"
-        stop_mode: StopMode | None = None
-        stopping: _Stopping | None = None
+        ending = Ending()
         watch: MoveWatch | None = None
         last_step = -2
         next_health = cfg.loop.health_every_s
@@ -345,18 +325,15 @@ class Trial:
         self.snapshot = replace(self.snapshot, state="running")
 
         def send_stop(t: float) -> bool:
-            nonlocal stopping
             ok = self._safe_stop()
-            if stopping is None:
-                stopping = _Stopping(t, t)
-            stopping.last_sent_t = t
+            ending.on_stop_sent(t)
             return ok
 
         def raise_fault(found: Fault, t: float, force: float, pos: float) -> None:
-            nonlocal fault, fault_t, outcome, watch
+            nonlocal watch
             send_stop(t)  # stop first, explain after
             watch = None
-            fault, fault_t, outcome = found, t, "fault"
+            ending.on_fault(found, t)
             self._event(rec, t, "fault", found.message,
                         {"kind": found.kind, "seq": self._seq, "force_N": force,
                          "position_mm": pos - seq.zero_mm})
@@ -387,7 +364,8 @@ class Trial:
             t_log = round(t, 6)
             force_model = online.step(t_log, x_rel_mm / 1000.0) if online is not None else None
             status_fresh = False
-            confirming = (stopping is not None and not stopping.confirmed) or (seq.done and watch is not None)
+            confirming = ((ending.stop is not None and not ending.stop.confirmed)
+                          or (seq.done and watch is not None))
             if self._seq % status_every == 0 or confirming:
                 sr = slider.status()
                 status, status_fresh = sr.value, sr.fresh
@@ -405,7 +383,7 @@ class Trial:
             force = raw - tare_N
 
             # ---- safety first: stop, then explain
-            if fault is None:
+            if ending.fault is None:
                 checked = force if cell is not None else force * (1.0 + lim.model_force_margin)
                 found = check(TickState(checked, pos, speed, age, status.alarm_code if status.alarm else 0,
                                         bool(reading and reading.over_range), raw,
@@ -425,55 +403,41 @@ class Trial:
 
             # ---- operator stop requests (an estop may follow an abort that is returning)
             req = self._take_stop_request()
-            if req is not None and fault is not None:
-                req[3].settle(True, f"already stopped by a fault: {fault.message}")
-                req = None
-            elif req is not None and stop_mode is not None and req[0] != StopMode.ESTOP:
-                req[3].settle(True, f"already stopping ({stop_mode.value} in progress)")
-                req = None
             if req is not None:
                 mode, user, received, ticket = req
-                ok = send_stop(t)
-                sent = time.monotonic()
-                latency_ms = round((sent - received) * 1000.0, 3)
-                ticket.settle(ok, f"STOP sent in {latency_ms:g} ms" if ok else
-                              "STOP not acknowledged by the drive; still trying (the drive's "
-                              "communication timeout is the backstop)")
-                self._settle_tickets(ok, ticket.message)
-                stop_mode = mode
-                watch = None
-                outcome = {StopMode.ESTOP: "estopped", StopMode.HOLD: "stopped",
-                           StopMode.ABORT: "aborted"}[mode]
-                self._event(rec, t, "stop_requested", f"{mode.value} requested by {user or '?'}",
-                            {"mode": mode.value, "user": user, "seq": self._seq,
-                             "latency_ms": latency_ms, "acknowledged": ok})
-                if mode == StopMode.ABORT:
-                    seq.abort_to_start(t, return_speed)
+                refused = ending.on_request(mode, t)
+                if refused:
+                    ticket.settle(True, refused)
                 else:
-                    seq.done = True
-                fault_t = t
+                    ok = send_stop(t)
+                    sent = time.monotonic()
+                    latency_ms = round((sent - received) * 1000.0, 3)
+                    ticket.settle(ok, f"STOP sent in {latency_ms:g} ms" if ok else
+                                  "STOP not acknowledged by the drive; still trying (the drive's "
+                                  "communication timeout is the backstop)")
+                    self._settle_tickets(ok, ticket.message)
+                    watch = None
+                    self._event(rec, t, "stop_requested", f"{mode.value} requested by {user or '?'}",
+                                {"mode": mode.value, "user": user, "seq": self._seq,
+                                 "latency_ms": latency_ms, "acknowledged": ok})
+                    if mode == StopMode.ABORT:
+                        seq.abort_to_start(t, return_speed)
+                    else:
+                        seq.done = True
 
             # ---- a STOP stands until a fresh status says the drive stands still
-            if stopping is not None and not stopping.confirmed and not stopping.gave_up:
-                if moving is False:
-                    stopping.confirmed = True
+            sent_t, resends = (ending.stop.sent_t, ending.stop.resends) if ending.stop else (t, 0)
+            match ending.on_status(t, moving, lim.stop_confirm_s, self.resend_stop_s):
+                case ("confirmed", _):
                     self._event(rec, t, "stop_confirmed", "the drive reports standing still",
-                                {"after_s": round(t - stopping.sent_t, 4), "resends": stopping.resends})
-                elif t - stopping.sent_t > lim.stop_confirm_s:
-                    stopping.gave_up = True
-                    msg = (f"STOP not confirmed by the drive within {lim.stop_confirm_s:g} s "
-                           f"({stopping.resends} re-sends); its communication timeout is the backstop")
-                    self._event(rec, t, "fault", msg, {"kind": "stop_unconfirmed", "seq": self._seq})
-                    if fault is not None:
-                        fault = Fault(fault.kind, f"{fault.message}; {msg}")
-                    else:
-                        fault, fault_t, outcome = Fault("stop_unconfirmed", msg), t, "fault"
-                elif t - stopping.last_sent_t >= self.resend_stop_s:
-                    stopping.resends += 1
+                                {"after_s": round(t - sent_t, 4), "resends": resends})
+                case ("gave_up", why):
+                    self._event(rec, t, "fault", why, {"kind": "stop_unconfirmed", "seq": self._seq})
+                case ("resend", _):
                     send_stop(t)
 
             # ---- sequence
-            if fault is None:
+            if ending.fault is None:
                 was_tare = seq.index < 0
                 for cmd in seq.tick(t, pos, force, moving):
                     if isinstance(cmd, Move):
@@ -482,7 +446,7 @@ class Trial:
                             raise_fault(Fault("move_limit", f"move refused: {why}"), t, force, pos)
                             break
                         slider.move_to(cmd.to_mm, cmd.speed_mm_s, cmd.accel_mm_s2)
-                        stopping = None  # a new move releases the STOP
+                        ending.on_move()
                         watch = MoveWatch(pos, cmd.to_mm, cmd.speed_mm_s, cmd.accel_mm_s2, t, lim,
                                           cfg.slider.position_tolerance_mm)
                     elif isinstance(cmd, Stop):
@@ -502,23 +466,19 @@ class Trial:
             est = rls.update(x_prev_m, force)
             x_prev_m = (pos - seq.zero_mm) / 1000.0
 
-            kind = "fault" if fault else seq.kind
-            sample = {
-                "seq": self._seq, "t_s": t_log,
-                "position_mm": x_rel_mm,
-                "position_cmd_mm": round(seq.position_cmd_mm(t), 6),
-                "force_N": force,
-                "stiffness_N_per_m": est.stiffness_N_per_m,
-                "force_pred_N": est.force_pred_N, "error_N": est.error_N,
-                "forgetting": est.forgetting, "contact": est.updated,
-                "step": seq.index, "step_kind": kind,
-                "late_ms": round(lateness * 1000.0, 4),
-            }
+            kind = "fault" if ending.fault else seq.kind
+            model = {}
             if force_model is not None:
-                sample["force_model_N"] = force_model
+                model["force_model_N"] = force_model
                 if cell is not None:
-                    sample["model_error_N"] = force - force_model
-            self._emit(rec, SAMPLE_TOPIC, clock.wall_ns(now), sample)
+                    model["model_error_N"] = force - force_model
+            sample = SAMPLE.record(
+                seq=self._seq, t_s=t_log, position_mm=x_rel_mm,
+                position_cmd_mm=round(seq.position_cmd_mm(t), 6), force_N=force,
+                stiffness_N_per_m=est.stiffness_N_per_m, force_pred_N=est.force_pred_N,
+                error_N=est.error_N, forgetting=est.forgetting, contact=est.updated,
+                step=seq.index, step_kind=kind, late_ms=round(lateness * 1000.0, 4), **model)
+            self._emit(rec, SAMPLE.topic, clock.wall_ns(now), sample)
             self._seq += 1
 
             if t >= next_health:
@@ -535,32 +495,27 @@ class Trial:
                 self.on_tick(self.snapshot)
 
             # ---- end? Only once the drive has confirmed the STOP (or the wait for it ran out).
-            settled = stopping is None or stopping.confirmed or stopping.gave_up
-            if fault is not None and t - fault_t >= self.post_fault_s and settled:
-                return outcome, fault.message
-            if stop_mode in (StopMode.ESTOP, StopMode.HOLD) and t - fault_t >= self.post_fault_s and settled:
-                return outcome, None
             # a protocol ends once the drive reports standing still at the last target
-            if seq.done and fault is None and stop_mode in (None, StopMode.ABORT) and watch is None:
-                return outcome, None
+            done = ending.result(t, self.post_fault_s, seq.done and watch is None)
+            if done is not None:
+                return done
 
     def _health(self, rec: Recorder, t: float, now: float, mark: int) -> None:
         times = np.asarray(self._tick_times[max(mark - 1, 0):])
         err = np.abs(np.diff(times) - self.period) * 1000.0 if len(times) > 1 else np.zeros(1)
         s = self.slider.stats
         c = self.loadcell.stats if self.loadcell is not None else LinkStats()
-        self._emit(rec, HEALTH_TOPIC, self.clock.wall_ns(now), {
-            "t_s": round(t, 6), "ticks": self._seq, "late_ticks": self._late,
-            "missed_ticks": self._missed,
-            "period_err_p50_ms": float(np.percentile(err, 50)),
-            "period_err_p99_ms": float(np.percentile(err, 99)),
-            "period_err_max_ms": float(err.max()),
-            "bus_transactions": s.transactions, "bus_errors": s.errors,
-            "loadcell_lines_ok": c.lines_ok, "loadcell_lines_bad": c.lines_bad,
-            "loadcell_age_ms": (self._last_age or 0.0) * 1000.0,
-            "queue_depth": rec.depth(),
-            "live_dropped": self.live.dropped if self.live is not None else 0,
-        })
+        self._emit(rec, HEALTH.topic, self.clock.wall_ns(now), HEALTH.record(
+            t_s=round(t, 6), ticks=self._seq, late_ticks=self._late, missed_ticks=self._missed,
+            period_err_p50_ms=float(np.percentile(err, 50)),
+            period_err_p99_ms=float(np.percentile(err, 99)),
+            period_err_max_ms=float(err.max()),
+            bus_transactions=s.transactions, bus_errors=s.errors,
+            loadcell_lines_ok=c.lines_ok, loadcell_lines_bad=c.lines_bad,
+            loadcell_age_ms=(self._last_age or 0.0) * 1000.0,
+            queue_depth=rec.depth(),
+            live_dropped=self.live.dropped if self.live is not None else 0,
+        ))
 
 
 def _warm_up() -> None:

@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from rig.control.estimator import StiffnessRLS
-from rig.recording.recorder import SAMPLE_TOPIC, Recorder
+from rig.recording.messages import SAMPLE
+from rig.recording.recorder import Recorder
 from rig.specs.config import RigConfig
 from rig.specs.protocol import parse_protocol
 
@@ -155,10 +156,10 @@ def bench_record(n: int = 50_000) -> dict:
         rec = Recorder(Path(tmp) / "r.mcap")
         t0 = time.perf_counter()
         for i in range(n):
-            rec.put(SAMPLE_TOPIC, i, {
-                "seq": i, "t_s": i * 0.01, "position_mm": 1.0, "position_cmd_mm": 1.0,
-                "force_N": 0.5, "stiffness_N_per_m": 80.0, "force_pred_N": 0.5, "error_N": 0.0,
-                "forgetting": 0.99, "contact": True, "step": 0, "step_kind": "ramp", "late_ms": 0.0})
+            rec.put(SAMPLE.topic, i, SAMPLE.record(
+                seq=i, t_s=i * 0.01, position_mm=1.0, position_cmd_mm=1.0, force_N=0.5,
+                stiffness_N_per_m=80.0, force_pred_N=0.5, error_N=0.0, forgetting=0.99, contact=True,
+                step=0, step_kind="ramp", late_ms=0.0))
         loop_side = time.perf_counter() - t0
         t1 = time.perf_counter()
         rec.close()

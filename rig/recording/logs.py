@@ -17,11 +17,7 @@ from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
 from rig.errors import RigError, SpecError
-from rig.recording.recorder import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC
-
-NUMERIC_FIELDS = ("seq", "t_s", "position_mm", "position_cmd_mm", "force_N", "stiffness_N_per_m",
-                  "force_pred_N", "error_N", "forgetting", "step", "late_ms")
-OPTIONAL_FIELDS = ("force_model_N", "model_error_N")
+from rig.recording.messages import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE, SAMPLE_TOPIC
 
 
 @dataclass
@@ -97,8 +93,8 @@ def read_log(path: str | Path, keep_raw: bool = False) -> TrialLog:
                 raise RigError(f"{path}: not a readable MCAP log ({error})") from None
     samples = rows[SAMPLE_TOPIC]
     cols = {name: np.array([s.get(name, np.nan) for s in samples], dtype=float)
-            for name in NUMERIC_FIELDS}
-    for name in OPTIONAL_FIELDS:  # present when a model ran in the loop
+            for name in SAMPLE.numeric}
+    for name in SAMPLE.optional_numeric:  # present when a model ran in the loop
         if samples and name in samples[0]:
             cols[name] = np.array([s.get(name, np.nan) for s in samples], dtype=float)
     return TrialLog(
@@ -113,7 +109,7 @@ def read_log(path: str | Path, keep_raw: bool = False) -> TrialLog:
 
 def export_csv(log: TrialLog, out: str | Path) -> int:
     """Write the samples as CSV; the first columns are t_s, position_mm, force_N."""
-    order = ["t_s", "position_mm", "force_N"] + [c for c in NUMERIC_FIELDS
+    order = ["t_s", "position_mm", "force_N"] + [c for c in SAMPLE.numeric
                                                  if c not in ("t_s", "position_mm", "force_N")]
     with open(out, "w", newline="") as fh:
         w = csv.writer(fh)

@@ -25,77 +25,8 @@ from typing import Any
 from mcap.writer import CompressionType, Writer
 
 from rig import __version__
+from rig.recording.messages import SCHEMAS
 
-SAMPLE_TOPIC = "/rig/sample"
-EVENT_TOPIC = "/rig/event"
-HEALTH_TOPIC = "/rig/health"
-
-
-def _num(desc: str) -> dict:
-    return {"type": "number", "description": desc}
-
-
-SAMPLE_SCHEMA = {
-    "title": "rig.Sample",
-    "description": "One loop tick.",
-    "type": "object",
-    "properties": {
-        "seq": {"type": "integer", "minimum": 0, "description": "tick number"},
-        "t_s": _num("time since trial start, s"),
-        "position_mm": _num("feedback position from the trial zero, mm"),
-        "position_cmd_mm": _num("commanded (ideal profile) position from the trial zero, mm"),
-        "force_N": _num("load cell force after tare, N"),
-        "stiffness_N_per_m": _num("online RLS estimate k in f(t) = k x(t-1)"),
-        "force_pred_N": _num("a-priori prediction k(t-1) x(t-1), N"),
-        "error_N": _num("a-priori error f(t) - k(t-1) x(t-1), N"),
-        "forgetting": _num("forgetting factor used this tick (1 = no update)"),
-        "contact": {"type": "boolean", "description": "estimator updated (probe in contact)"},
-        "step": {"type": "integer", "description": "step index (-1 tare)"},
-        "step_kind": {"type": "string", "description": "tare, ramp, hold, return, approach, fault, done"},
-        "late_ms": _num("tick start after its scheduled time, ms"),
-        "force_model_N": _num("the loaded model's force from the measured position (if a model runs), N"),
-        "model_error_N": _num("force_N - force_model_N, N"),
-    },
-    "required": ["seq", "t_s", "position_mm", "position_cmd_mm", "force_N", "stiffness_N_per_m",
-                 "force_pred_N", "error_N", "forgetting", "step", "late_ms"],
-}
-
-EVENT_SCHEMA = {
-    "title": "rig.Event",
-    "type": "object",
-    "properties": {
-        "t_s": _num("time since trial start, s"),
-        "kind": {"type": "string", "description": "trial_start, step_start, tare, stop_requested, "
-                                                  "fault, abort, trial_end"},
-        "message": {"type": "string"},
-        "data": {"type": "object"},
-    },
-    "required": ["t_s", "kind", "message"],
-}
-
-HEALTH_SCHEMA = {
-    "title": "rig.Health",
-    "type": "object",
-    "properties": {
-        "t_s": _num("time since trial start, s"),
-        "ticks": {"type": "integer"},
-        "late_ticks": {"type": "integer", "description": "ticks late so far"},
-        "missed_ticks": {"type": "integer", "description": "scheduled ticks skipped so far"},
-        "period_err_p50_ms": _num("median |period - nominal| over the last interval, ms"),
-        "period_err_p99_ms": _num("99th percentile |period - nominal|, ms"),
-        "period_err_max_ms": _num("largest |period - nominal|, ms"),
-        "bus_transactions": {"type": "integer"},
-        "bus_errors": {"type": "integer"},
-        "loadcell_lines_ok": {"type": "integer"},
-        "loadcell_lines_bad": {"type": "integer"},
-        "loadcell_age_ms": _num("age of the newest load-cell reading, ms"),
-        "queue_depth": {"type": "integer", "description": "messages waiting for the writer"},
-        "live_dropped": {"type": "integer", "description": "messages the live view dropped (slow viewer)"},
-    },
-    "required": ["t_s", "ticks", "late_ticks", "period_err_p99_ms"],
-}
-
-SCHEMAS = {SAMPLE_TOPIC: SAMPLE_SCHEMA, EVENT_TOPIC: EVENT_SCHEMA, HEALTH_TOPIC: HEALTH_SCHEMA}
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 _STOP = object()
 

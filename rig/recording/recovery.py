@@ -18,7 +18,7 @@ from mcap.writer import CompressionType, Writer
 
 from rig.errors import RigError
 from rig.recording.logs import read_log
-from rig.recording.recorder import SCHEMAS
+from rig.recording.messages import SCHEMAS
 
 
 @dataclass

@@ -32,7 +32,8 @@ from pathlib import Path
 from rig import __version__
 from rig.clock import RealClock
 from rig.control.devices import Devices, open_devices
-from rig.control.trial import Snapshot, StopMode, Trial, TrialResult, default_log_path
+from rig.control.stopping import StopMode
+from rig.control.trial import Snapshot, Trial, TrialResult, default_log_path
 from rig.errors import RigError
 from rig.recording.recorder import TrialInfo
 from rig.recording.recovery import find_unfinished, list_trials, recover

@@ -15,7 +15,7 @@ from collections import deque
 from typing import Any
 
 from rig.errors import RigError
-from rig.recording.recorder import SCHEMAS
+from rig.recording.messages import SCHEMAS
 
 INSTALL_HINT = "the live view needs the optional extra: python3 -m pip install 'indentation-rig[live]'"
 

@@ -10,7 +10,8 @@ from pathlib import Path
 
 from rig.clock import RealClock, VirtualClock
 from rig.control.devices import Devices, open_devices
-from rig.control.trial import Snapshot, StopMode, Trial, TrialResult, default_log_path
+from rig.control.stopping import StopMode
+from rig.control.trial import Snapshot, Trial, TrialResult, default_log_path
 from rig.errors import RigError
 from rig.recording.recorder import TrialInfo
 from rig.specs.config import RigConfig
