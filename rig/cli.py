@@ -285,7 +285,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 
 def cmd_models(args: argparse.Namespace) -> int:
-    from rig.models.catalogue import CATALOGUE, NAMED_MODELS
+    from rig.models.catalogue import CATALOGUE, catalogue_json, format_catalogue
     from rig.models.plugins import load_plugin
 
     if args.action:
@@ -300,114 +300,20 @@ def cmd_models(args: argparse.Namespace) -> int:
     effects = dict(CATALOGUE)
     for p in args.plugin or []:
         effects.update({e.name: e for e in load_plugin(p)})
-    if args.json:
-        print(json.dumps({"effects": {n: {"stage": e.stage, "equation": e.equation, "signature": e.signature,
-                                          "source": e.source,
-                                          "params": [{"name": p.name, "unit": p.unit, "init": p.init,
-                                                      "lo": p.lo, "hi": p.hi,
-                                                      "in_record_units": p.relative} for p in e.params]}
-                                      for n, e in effects.items()},
-                          "models": NAMED_MODELS}, indent=2))
-        return 0
-    print("effects (stage: equation; parameters; where its absence shows)")
-    for n, e in effects.items():
-        params = ", ".join(f"{p.name} [{p.unit}]" for p in e.params)
-        src = "" if e.source == "catalogue" else f"  ({e.source})"
-        print(f"  {n:<18} {e.stage:<8} {e.equation}{src}\n  {'':<18} {'':<8} {params}\n"
-              f"  {'':<18} {'':<8} missing: {e.signature}")
-    print("\n(catalogue starting values and bounds are in each record's own units: its peak force, its travel "
-          "and its loading time, combined as the parameter's unit says)")
-    print("\nnamed models")
-    for n, parts in NAMED_MODELS.items():
-        print(f"  {n:<14} {' + '.join(parts)}")
+    print(json.dumps(catalogue_json(effects), indent=2) if args.json else format_catalogue(effects))
     return 0
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
-    from rig.analysis.analyze import (
-        compare,
-        format_compare,
-        format_holdout,
-        holdout_json,
-        load_inputs,
-        result_json,
-    )
-    from rig.analysis.explain import auto, explain, format_auto, format_explain
-    from rig.analysis.fit import fit
-    from rig.analysis.report import write_report
-    from rig.models.catalogue import build_model
+    from rig.analysis.session import AnalyzeRequest, analyze
 
     design_config = _design_args(args)  # refused before the long work, not after it
-    inputs = load_inputs(args.inputs, args.holdout or [], args.plugin or [], args.block)
-    model = build_model(args.model, args.add or [], inputs.registry)
-    res = fit(model, inputs.trials)
-    out = result_json(res, args.inputs)
-    before = fit(build_model(args.model, [], inputs.registry), inputs.trials) if args.add else None
-    if before is not None:
-        out["before_add"] = result_json(before, args.inputs)
-    results = compare(inputs.trials, inputs.registry) if args.compare else None
-    text = format_compare(results, res.noise_N) if results else ""
-    if results:
-        out["compare"] = [result_json(r, args.inputs) for r in results]
-    held = holdout_json(res, inputs.holdout) if inputs.holdout else None
-    if held:
-        out["holdout"] = held
-    ex = explain(res, inputs.registry) if args.explain else None
-    if ex is not None:
-        out["suggestions"] = [s.as_dict() for s in ex.suggestions]
-        out["indistinguishable"] = ex.indistinguishable
-        out["diagnosis"] = ex.verdict()
-        out["effective_samples"] = ex.n_eff
-    design_text = ""
-    if args.design:
-        from rig.analysis.design import NOTHING_TO_SETTLE, design, format_design, write_design
-
-        d = design(ex, design_config)
-        if d is None:
-            out["design"] = {"file": None, "text": NOTHING_TO_SETTLE}
-            design_text = f"design: {NOTHING_TO_SETTLE}"
-        else:
-            out["design"] = {"file": str(write_design(d, args.design)), **d.as_dict()}
-            design_text = format_design(d, args.design)
-    steps = auto(res, inputs.registry) if args.auto else None
-    if steps is not None:
-        out["auto"] = [{"step": s["step"], "added": s["added"], "removed": s.get("removed"),
-                        "model": s["fit"].model.name, "rmse_N": s["fit"].overall.rmse_N,
-                        "phases": {k: (v.rmse_N if v else None) for k, v in s["fit"].phases.items()},
-                        "delta_bic": s["delta_bic"], "adequate": s["fit"].adequate, "why": s.get("why", "")}
-                       for s in steps]
-        out["auto_final"] = result_json(steps[-1]["fit"], args.inputs)
-    if args.save:
-        from rig.models.saved import from_fit, save
-
-        out["saved"] = str(save(from_fit(res, args.inputs), args.save))
-    if args.report:
-        out["report"] = str(write_report(res, args.report, compare=results, holdout=held, text=text,
-                                         before=before, steps=steps,
-                                         explain_text=format_explain(ex) if ex else ""))
-    if args.json:
-        print(json.dumps(out, indent=2, default=float))
-        return 0
-    if before is not None:
-        print(format_before_after(before, res))
-    else:
-        print(res.report())
-        print(f"fitted in {res.seconds:.2f} s")
-    if text:
-        print("\n" + text)
-    if held:
-        print("\n" + format_holdout(held, res.force_unit))
-    if ex is not None:
-        print("\n" + format_explain(ex))
-    if design_text:
-        print("\n" + design_text)
-    if steps is not None:
-        print("\nstepwise: add the best effect while the error falls (criterion: BIC on effective samples)")
-        print(format_auto(steps))
-    if args.report:
-        print(f"\nreport: {out['report']}")
-    if args.save:
-        print(f"\nmodel saved: {out['saved']} (run it in the loop: rig run PROTOCOL --model {out['saved']})")
+    done = analyze(AnalyzeRequest(
+        inputs=args.inputs, model=args.model, add=args.add or [], holdout=args.holdout or [],
+        plugins=args.plugin or [], block=args.block, compare=args.compare, explain=args.explain,
+        auto=args.auto, design=args.design, design_config=design_config, save=args.save,
+        report=args.report))
+    print(json.dumps(done.json, indent=2, default=float) if args.json else done.text)
     return 0
 
 
@@ -425,30 +331,6 @@ def _design_args(args: argparse.Namespace):
     from rig.specs.config import load_config
 
     return load_config(args.config)
-
-
-def format_before_after(before, after) -> str:
-    from rig.analysis.data import PHASES
-
-    k, u = after.force_unit
-    added = [e for e in after.model.effect_names if e not in before.model.effect_names]
-    rows = [("", before.model.name, after.model.name),
-            (f"RMSE ({u})", f"{before.overall.rmse_N / k:.4g}", f"{after.overall.rmse_N / k:.4g}"),
-            (f"mean ({u})", f"{before.overall.mean_N / k:+.4g}", f"{after.overall.mean_N / k:+.4g}"),
-            (f"std ({u})", f"{before.overall.std_N / k:.4g}", f"{after.overall.std_N / k:.4g}")]
-    for ph in PHASES:
-        a, b = before.phases[ph], after.phases[ph]
-        rows.append((f"{ph} RMSE", f"{a.rmse_N / k:.4g}" if a else "-", f"{b.rmse_N / k:.4g}" if b else "-"))
-    rows.append(("adequate", str(before.adequate).lower(), str(after.adequate).lower()))
-    w0 = max(len(r[0]) for r in rows)
-    w1 = max(len(r[1]) for r in rows)
-    lines = [f"adding {', '.join(added)}: before and after (noise {after.f(after.noise_N)})"]
-    lines += [f"  {r[0]:<{w0}}  {r[1]:>{w1}}  {r[2]}" for r in rows]
-    drop = 1 - after.overall.rmse_N / before.overall.rmse_N
-    lines.append(f"  error {'falls' if drop > 0 else 'rises'} by {abs(drop) * 100:.1f} %")
-    lines.append("")
-    lines.append(after.report())
-    return "\n".join(lines)
 
 
 def cmd_import(args: argparse.Namespace) -> int:

@@ -184,3 +184,27 @@ def build_model(name: str, extra: list[str] | None = None,
     if extra:
         model.name = name + "".join(f"+{n}" for n in extra)
     return model
+
+
+def catalogue_json(effects: dict[str, Effect]) -> dict:
+    """The effects (with their parameters) and the named models, as `rig models --json` gives them."""
+    return {"effects": {n: {"stage": e.stage, "equation": e.equation, "signature": e.signature,
+                            "source": e.source,
+                            "params": [{"name": p.name, "unit": p.unit, "init": p.init, "lo": p.lo, "hi": p.hi,
+                                        "in_record_units": p.relative} for p in e.params]}
+                        for n, e in effects.items()},
+            "models": NAMED_MODELS}
+
+
+def format_catalogue(effects: dict[str, Effect]) -> str:
+    lines = ["effects (stage: equation; parameters; where its absence shows)"]
+    for n, e in effects.items():
+        params = ", ".join(f"{p.name} [{p.unit}]" for p in e.params)
+        src = "" if e.source == "catalogue" else f"  ({e.source})"
+        lines.append(f"  {n:<18} {e.stage:<8} {e.equation}{src}\n  {'':<18} {'':<8} {params}\n"
+                     f"  {'':<18} {'':<8} missing: {e.signature}")
+    lines.append("\n(catalogue starting values and bounds are in each record's own units: its peak force, "
+                 "its travel and its loading time, combined as the parameter's unit says)")
+    lines.append("\nnamed models")
+    lines += [f"  {n:<14} {' + '.join(parts)}" for n, parts in NAMED_MODELS.items()]
+    return "\n".join(lines)

@@ -1,0 +1,130 @@
+"""One `rig analyze` request carried out: fit, before and after an addition, comparison,
+held-out trials, diagnosis, designed protocol, stepwise search, saved model, report; what it
+finds as the JSON document (SI) and as the text a person reads (the record's units)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from rig.analysis.analyze import compare, format_compare, format_holdout, holdout_json, load_inputs, result_json
+from rig.analysis.data import PHASES
+from rig.analysis.explain import auto, explain, format_auto, format_explain
+from rig.analysis.fit import FitResult, fit
+from rig.analysis.report import write_report
+from rig.models.catalogue import build_model
+
+
+@dataclass
+class AnalyzeRequest:
+    inputs: list[str]
+    model: str = "proposed"
+    add: list[str] = field(default_factory=list)
+    holdout: list[str] = field(default_factory=list)
+    plugins: list[str] = field(default_factory=list)
+    block: int | None = None
+    compare: bool = False
+    explain: bool = False
+    auto: bool = False
+    design: str | None = None  # where a designed protocol is written
+    design_config: Any = None  # the rig (RigConfig) whose limits it must respect
+    save: str | None = None
+    report: str | None = None
+
+
+@dataclass
+class Analysis:
+    json: dict
+    text: str
+
+
+def analyze(req: AnalyzeRequest) -> Analysis:
+    inputs = load_inputs(req.inputs, req.holdout, req.plugins, req.block)
+    model = build_model(req.model, req.add, inputs.registry)
+    res = fit(model, inputs.trials)
+    out = result_json(res, req.inputs)
+    before = fit(build_model(req.model, [], inputs.registry), inputs.trials) if req.add else None
+    if before is not None:
+        out["before_add"] = result_json(before, req.inputs)
+    results = compare(inputs.trials, inputs.registry) if req.compare else None
+    compare_text = format_compare(results, res.noise_N) if results else ""
+    if results:
+        out["compare"] = [result_json(r, req.inputs) for r in results]
+    held = holdout_json(res, inputs.holdout) if inputs.holdout else None
+    if held:
+        out["holdout"] = held
+    ex = explain(res, inputs.registry) if req.explain else None
+    if ex is not None:
+        out["suggestions"] = [s.as_dict() for s in ex.suggestions]
+        out["indistinguishable"] = ex.indistinguishable
+        out["diagnosis"] = ex.verdict()
+        out["effective_samples"] = ex.n_eff
+    design_text = ""
+    if req.design:
+        from rig.analysis.design import NOTHING_TO_SETTLE, design, format_design, write_design
+
+        d = design(ex, req.design_config)
+        if d is None:
+            out["design"] = {"file": None, "text": NOTHING_TO_SETTLE}
+            design_text = f"design: {NOTHING_TO_SETTLE}"
+        else:
+            out["design"] = {"file": str(write_design(d, req.design)), **d.as_dict()}
+            design_text = format_design(d, req.design)
+    steps = auto(res, inputs.registry) if req.auto else None
+    if steps is not None:
+        out["auto"] = [{"step": s["step"], "added": s["added"], "removed": s.get("removed"),
+                        "model": s["fit"].model.name, "rmse_N": s["fit"].overall.rmse_N,
+                        "phases": {k: (v.rmse_N if v else None) for k, v in s["fit"].phases.items()},
+                        "delta_bic": s["delta_bic"], "adequate": s["fit"].adequate, "why": s.get("why", "")}
+                       for s in steps]
+        out["auto_final"] = result_json(steps[-1]["fit"], req.inputs)
+    if req.save:
+        from rig.models.saved import from_fit, save
+
+        out["saved"] = str(save(from_fit(res, req.inputs), req.save))
+    if req.report:
+        out["report"] = str(write_report(res, req.report, compare=results, holdout=held, text=compare_text,
+                                         before=before, steps=steps,
+                                         explain_text=format_explain(ex) if ex else ""))
+
+    parts = [format_before_after(before, res) if before is not None
+             else f"{res.report()}\nfitted in {res.seconds:.2f} s"]
+    if compare_text:
+        parts.append(compare_text)
+    if held:
+        parts.append(format_holdout(held, res.force_unit))
+    if ex is not None:
+        parts.append(format_explain(ex))
+    if design_text:
+        parts.append(design_text)
+    if steps is not None:
+        parts.append("stepwise: add the best effect while the error falls (criterion: BIC on effective "
+                     f"samples)\n{format_auto(steps)}")
+    if req.report:
+        parts.append(f"report: {out['report']}")
+    if req.save:
+        parts.append(f"model saved: {out['saved']} "
+                     f"(run it in the loop: rig run PROTOCOL --model {out['saved']})")
+    return Analysis(out, "\n\n".join(parts))
+
+
+def format_before_after(before: FitResult, after: FitResult) -> str:
+    k, u = after.force_unit
+    added = [e for e in after.model.effect_names if e not in before.model.effect_names]
+    rows = [("", before.model.name, after.model.name),
+            (f"RMSE ({u})", f"{before.overall.rmse_N / k:.4g}", f"{after.overall.rmse_N / k:.4g}"),
+            (f"mean ({u})", f"{before.overall.mean_N / k:+.4g}", f"{after.overall.mean_N / k:+.4g}"),
+            (f"std ({u})", f"{before.overall.std_N / k:.4g}", f"{after.overall.std_N / k:.4g}")]
+    for ph in PHASES:
+        a, b = before.phases[ph], after.phases[ph]
+        rows.append((f"{ph} RMSE", f"{a.rmse_N / k:.4g}" if a else "-", f"{b.rmse_N / k:.4g}" if b else "-"))
+    rows.append(("adequate", str(before.adequate).lower(), str(after.adequate).lower()))
+    w0 = max(len(r[0]) for r in rows)
+    w1 = max(len(r[1]) for r in rows)
+    lines = [f"adding {', '.join(added)}: before and after (noise {after.f(after.noise_N)})"]
+    lines += [f"  {r[0]:<{w0}}  {r[1]:>{w1}}  {r[2]}" for r in rows]
+    drop = 1 - after.overall.rmse_N / before.overall.rmse_N
+    lines.append(f"  error {'falls' if drop > 0 else 'rises'} by {abs(drop) * 100:.1f} %")
+    lines.append("")
+    lines.append(after.report())
+    return "\n".join(lines)
