@@ -41,9 +41,14 @@ class Analysis:
 def analyze(req: AnalyzeRequest) -> Analysis:
     inputs = load_inputs(req.inputs, req.holdout, req.plugins, req.block)
     model = build_model(req.model, req.add, inputs.registry)
-    res = fit(model, inputs.trials)
-    out = result_json(res, req.inputs)
     before = fit(build_model(req.model, [], inputs.registry), inputs.trials) if req.add else None
+    res = fit(model, inputs.trials)
+    if before is not None:
+        # from the model's own fit, the added effect at its starting value changes little: the
+        # error can only fall from there, where a start from the catalogue may find a worse optimum
+        warm = fit(model, inputs.trials, starts=1, initial=before.values)
+        res = min(res, warm, key=lambda r: r.overall.rmse_N)
+    out = result_json(res, req.inputs)
     if before is not None:
         out["before_add"] = result_json(before, req.inputs)
     results = compare(inputs.trials, inputs.registry) if req.compare else None
