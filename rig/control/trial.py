@@ -132,7 +132,7 @@ class Trial:
         if loadcell is None and any(isinstance(s, Approach) for s in proto.steps):
             raise RigError(f"{proto.source_path}: an approach step finds contact by force: it needs a "
                            "load cell")
-        self.live = None  # a rig.live.LiveView publishing the same messages, if any
+        self.live = None  # a rig.service.live.LiveView publishing the same messages, if any
         self._seq = self._late = self._missed = 0
         self._tick_times: list[float] = []
 

@@ -110,7 +110,7 @@ class Daemon:
         self._listener: socket.socket | None = None
         self._conn_threads: list[threading.Thread] = []
         self.watchdog: Watchdog | None = None
-        self.live = None  # rig.live.LiveView when daemon.live is configured
+        self.live = None  # rig.service.live.LiveView when daemon.live is configured
 
     def say(self, msg: str) -> None:
         print(f"rigd: {msg}", file=self.log, flush=True)
