@@ -405,6 +405,10 @@ def cmd_config_init(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------ parser
 
+def _rig_config(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="rig", description="Soft-tissue indentation rig: run and control trials, replay logs, fit and "
@@ -418,7 +422,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Run a protocol file on the rig named by --config (default: the "
                                    "built-in simulated rig) and write one MCAP log.")
     r.add_argument("protocol", help="protocol file (YAML), e.g. protocols/demo.yaml")
-    r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
+    _rig_config(r)
     r.add_argument("--specimen", default="specimen", help="specimen ID recorded in the log")
     r.add_argument("--operator", default="", help="operator name recorded in the log")
     r.add_argument("--notes", default="", help="free text recorded in the log")
@@ -449,12 +453,12 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Validate a protocol against the rig's limits and show the plan: "
                                    "duration, depths, speeds and the excitation order of the motion.")
     r.add_argument("protocol")
-    r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
+    _rig_config(r)
     r.add_argument("--json", action="store_true")
     r.set_defaults(func=cmd_check)
 
     r = sub.add_parser("position", help="read the slider position, status and force")
-    r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
+    _rig_config(r)
     r.add_argument("--json", action="store_true")
     r.set_defaults(func=cmd_position)
 
@@ -463,19 +467,19 @@ def build_parser() -> argparse.ArgumentParser:
                                    "speed and drive alarms as a trial does. Ctrl-C stops.")
     r.add_argument("--to-mm", type=float, required=True, help="target position, mm (slider coordinates)")
     r.add_argument("--speed-mm-s", type=float, default=2.0, help="speed, mm/s (default 2)")
-    r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
+    _rig_config(r)
     r.set_defaults(func=cmd_move)
 
     r = sub.add_parser("reset-alarm", help="clear the drive's alarm once its cause is gone",
                        description="Reset the drive's alarm (the alarm-reset command of its register "
                                    "map) and read the status back: fails if the drive still reports an "
                                    "alarm. With --socket, asks the daemon (which owns the devices).")
-    r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
+    _rig_config(r)
     r.add_argument("--socket", help="ask the daemon on this control socket instead")
     r.set_defaults(func=cmd_reset_alarm)
 
     r = sub.add_parser("home", help="run the drive's return-to-home operation")
-    r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
+    _rig_config(r)
     r.set_defaults(func=cmd_home)
 
     r = sub.add_parser("daemon", help="run the control service (owns the devices; one trial at a time)",
@@ -483,7 +487,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "(mode 0660: owner and the config's daemon.group). Recovers logs left "
                                    "unfinished by a crash at start. Speaks sd_notify when NOTIFY_SOCKET "
                                    "is set.")
-    r.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
+    _rig_config(r)
     r.add_argument("--socket", help="control socket path (default: daemon.socket, $RIG_SOCKET, "
                                     "/run/rig/rigd.sock as root, else $XDG_RUNTIME_DIR/rig/rigd.sock)")
     r.add_argument("--spy", metavar="FILE", help="write every Modbus frame and load-cell line to FILE "

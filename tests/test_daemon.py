@@ -22,7 +22,7 @@ from rig.sim.server import ALARM_COMM_TIMEOUT, WireSim
 from rig.errors import RigError
 from rig.recording.logs import read_log
 from rig.service.client import request, stream
-from rig.service.daemon import peer_allowed
+from rig.service.peers import peer_allowed
 from rig.service.sdnotify import healthy
 from tests.conftest import PROTOCOLS, ROOT
 

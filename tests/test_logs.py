@@ -17,8 +17,9 @@ import pytest
 from mcap.reader import make_reader
 
 from rig.errors import RigError
-from rig.recording.logs import export_csv, read_csv_trial, read_log
+from rig.recording.logs import export_csv, read_log
 from rig.recording.messages import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC
+from rig.records.csvfile import read_csv_trial
 from rig.views.replay import summarize
 from tests.conftest import PROTOCOLS, ROOT, run_sim
 

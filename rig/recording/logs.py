@@ -16,7 +16,7 @@ import numpy as np
 from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
-from rig.errors import RigError, SpecError
+from rig.errors import RigError
 from rig.recording.messages import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE, SAMPLE_TOPIC
 
 
@@ -121,60 +121,3 @@ def export_csv(log: TrialLog, out: str | Path) -> int:
                    for name, col in zip(order, cols, strict=True)]
             w.writerow([*row, int(log.contact[i]), log.step_kind[i]])
     return log.n
-
-
-def read_csv_trial(path: str | Path) -> dict[str, np.ndarray]:
-    """Read a CSV with header t_s,position_mm,force_N (other columns ignored); clear errors."""
-    path = str(path)
-    try:
-        fh = open(path, newline="")  # noqa: SIM115
-    except OSError as exc:
-        raise SpecError(f"cannot open CSV: {exc.strerror or exc}", path=path) from None
-    with fh:
-        reader = csv.reader(fh)
-        try:
-            header = next(reader)
-        except StopIteration:
-            raise SpecError("file is empty", path=path, line=1) from None
-        header = [h.strip() for h in header]
-        missing = [c for c in ("t_s", "position_mm", "force_N") if c not in header]
-        if missing:
-            raise SpecError(f"missing column(s) {', '.join(missing)} (header must include "
-                            "t_s,position_mm,force_N)", path=path, line=1)
-        idx = [header.index(c) for c in ("t_s", "position_mm", "force_N")]
-        data: list[list[float]] = []
-        for line_no, row in enumerate(reader, start=2):
-            if not row or all(not c.strip() for c in row):
-                continue
-            try:
-                values = [float(row[i]) for i in idx]
-            except IndexError:
-                raise SpecError(f"row has {len(row)} fields, header has {len(header)}",
-                                path=path, line=line_no) from None
-            except ValueError:
-                bad = next(header[i] for i in idx if not _is_float(row[i]))
-                raise SpecError(f"column {bad}: '{row[header.index(bad)]}' is not a number",
-                                path=path, line=line_no) from None
-            if not all(np.isfinite(values)):
-                col = header[idx[[np.isfinite(v) for v in values].index(False)]]
-                raise SpecError(f"column {col} is NaN or infinite", path=path, line=line_no)
-            data.append(values)
-    if len(data) < 2:
-        raise SpecError("fewer than two data rows", path=path)
-    arr = np.array(data)
-    t = arr[:, 0]
-    d = np.diff(t)
-    if np.any(d <= 0):
-        k = int(np.argmax(d <= 0))
-        what = "duplicated" if d[k] == 0 else "decreasing (unsorted)"
-        raise SpecError(f"t_s is {what} at row {k + 3} (t_s = {t[k + 1]:g} after {t[k]:g})",
-                        path=path, line=k + 3)
-    return {"t_s": t, "position_mm": arr[:, 1], "force_N": arr[:, 2]}
-
-
-def _is_float(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True

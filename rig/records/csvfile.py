@@ -116,6 +116,12 @@ def read_csv_record(path: str | Path) -> Record:
     return Record(Path(path).name, "csv", t, x, f, zero_is_surface=surface, **units)
 
 
+def read_csv_trial(path: str | Path) -> dict[str, np.ndarray]:
+    """A trial CSV's time, position and force in the rig's units (s, mm, N)."""
+    rec = read_csv_record(path)
+    return {"t_s": rec.t_s, "position_mm": rec.position_m * 1e3, "force_N": rec.force_N}
+
+
 def _fast_rows(fh, idx: list[int], i_kind: int | None):
     """The three columns (and the step kinds) through numpy's parser, or None if any row is
     not plain: the row-by-row reader then names the line."""

@@ -1,9 +1,9 @@
 """`rig daemon`: owns the slider and load cell and runs one trial at a time for its clients.
 
-Control is a Unix-domain socket (mode 0660: the owner and the configured group), no
-network listener. The protocol is JSON lines: one request, one reply; `watch` streams
-status lines until the trial ends. Every request's peer user (SO_PEERCRED) is checked
-against the socket's owner and group and recorded with the starts and stops it makes.
+Control is a Unix-domain socket (`control_socket.py`: mode 0660, the peer checked by
+`peers.py`), no network listener. The protocol is JSON lines: one request, one reply; `watch`
+streams status lines until the trial ends. The peer user is recorded with the starts and
+stops it makes.
 
 Requests: {"cmd": "ping"}, {"cmd": "status"}, {"cmd": "logs"},
 {"cmd": "start", "protocol_text": ..., "protocol_path": ..., "specimen": ..., "operator": ..., "notes": ...},
@@ -17,12 +17,9 @@ from __future__ import annotations
 
 import contextlib
 import grp
-import json
 import os
-import pwd
 import signal
 import socket
-import struct
 import sys
 import threading
 import time
@@ -37,6 +34,7 @@ from rig.control.trial import Snapshot, Trial, TrialResult, default_log_path
 from rig.errors import RigError
 from rig.recording.recorder import TrialInfo
 from rig.recording.recovery import find_unfinished, list_trials, recover
+from rig.service.control_socket import ControlSocket, send
 from rig.service.sdnotify import Watchdog, healthy, notify, watchdog_interval_s
 from rig.specs.config import RigConfig
 from rig.specs.protocol import check_limits, parse_protocol
@@ -51,37 +49,6 @@ def default_socket_path(config: RigConfig | None = None) -> Path:
         return Path("/run/rig/rigd.sock")
     runtime = os.environ.get("XDG_RUNTIME_DIR") or f"/tmp/rig-{os.geteuid()}"
     return Path(runtime) / "rig" / "rigd.sock"
-
-
-def peer_credentials(conn: socket.socket) -> tuple[int, int, int]:
-    """(pid, uid, gid) of the process at the other end (Linux SO_PEERCRED)."""
-    data = conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
-    return struct.unpack("3i", data)
-
-
-def peer_groups(pid: int) -> set[int]:
-    """The peer's supplementary groups, from /proc (empty if it cannot be read)."""
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("Groups:"):
-                return {int(g) for g in line.split()[1:]}
-    except OSError:
-        pass
-    return set()
-
-
-def peer_allowed(uid: int, gid: int, groups: set[int], owner_uid: int, group_gid: int | None) -> bool:
-    """Root, the socket's owner, or a member of its group (primary or supplementary)."""
-    if uid in (0, owner_uid):
-        return True
-    return group_gid is not None and (gid == group_gid or group_gid in groups)
-
-
-def user_name(uid: int) -> str:
-    try:
-        return pwd.getpwuid(uid).pw_name
-    except KeyError:
-        return f"uid {uid}"
 
 
 class RequestError(Exception):
@@ -107,8 +74,8 @@ class Daemon:
         self.beat: float | None = None
         self.recovered: list[str] = []
         self._stop = threading.Event()
-        self._listener: socket.socket | None = None
-        self._conn_threads: list[threading.Thread] = []
+        self.server = ControlSocket(self.socket_path, self._dispatch, group_gid=self.group_gid,
+                                    max_request_bytes=config.daemon.max_request_bytes, say=self.say)
         self.watchdog: Watchdog | None = None
         self.live = None  # rig.service.live.LiveView when daemon.live is configured
 
@@ -126,12 +93,12 @@ class Daemon:
                 self.say(f"recovered interrupted trial log {path}")
             except RigError as exc:
                 self.say(f"could not recover {path}: {exc}")
-        self._listen()
+        self.server.listen()
         try:
             self.devices = open_devices(self.config, RealClock(self.config.loop.spin_ms / 1000.0), speed=1.0,
                                         spy_path=self.spy_path)
         except BaseException:
-            self._close_listener()
+            self.server.close()
             raise
         self.say(f"devices: {self.devices.description}")
         if self.config.daemon.live is not None:
@@ -142,7 +109,7 @@ class Daemon:
                 self.live = LiveView(lv.host, lv.port, max_queue=lv.max_queue)
             except BaseException:
                 self.devices.close()
-                self._close_listener()
+                self.server.close()
                 raise
             self.say(f"live view: {self.live.url} (Foxglove: open connection, Foxglove WebSocket)")
         self.say(f"listening on {self.socket_path}")
@@ -159,46 +126,9 @@ class Daemon:
         running = t is not None and t.snapshot.state in ("running", "stopping")
         return healthy(time.monotonic(), self.beat, running, self.config.daemon.stall_s)
 
-    def _listen(self) -> None:
-        path = self.socket_path
-        path.parent.mkdir(parents=True, exist_ok=True)
-        if path.exists():
-            probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-            try:
-                probe.connect(str(path))
-                probe.close()
-                raise RigError(f"another daemon is serving {path}")
-            except (ConnectionRefusedError, FileNotFoundError):
-                path.unlink()  # stale socket from a daemon that died
-            finally:
-                probe.close()
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        old_umask = os.umask(0o117)  # the socket is born 0660: no window with wider access
-        try:
-            sock.bind(str(path))
-        finally:
-            os.umask(old_umask)
-        os.chmod(path, 0o660)
-        if self.group_gid is not None:
-            os.chown(path, -1, self.group_gid)
-        sock.listen(16)
-        sock.settimeout(0.2)
-        self._listener = sock
-
     def serve_forever(self) -> None:
         try:
-            while not self._stop.is_set():
-                try:
-                    conn, _ = self._listener.accept()
-                except TimeoutError:
-                    continue
-                except OSError:
-                    if self._stop.is_set():
-                        break
-                    raise
-                t = threading.Thread(target=self._serve_conn, args=(conn,), name="rigd-conn", daemon=True)
-                self._conn_threads = [c for c in self._conn_threads if c.is_alive()] + [t]
-                t.start()
+            self.server.serve(self._stop)
         finally:
             self.shutdown()
 
@@ -214,9 +144,7 @@ class Daemon:
             self.trial_thread.join(120.0)
         if self.watchdog:
             self.watchdog.stop()
-        self._close_listener()
-        for c in self._conn_threads:
-            c.join(1.0)
+        self.server.close()
         if self.devices:
             self.devices.close()
             self.devices = None
@@ -224,75 +152,13 @@ class Daemon:
             self.live.close()
             self.live = None
 
-    def _close_listener(self) -> None:
-        if self._listener is not None:
-            self._listener.close()
-            self._listener = None
-            with contextlib.suppress(FileNotFoundError):
-                self.socket_path.unlink()
-
-    # ------------------------------------------------------------------ connections
-    def _serve_conn(self, conn: socket.socket) -> None:
-        with conn:
-            try:
-                pid, uid, gid = peer_credentials(conn)
-            except OSError:
-                return
-            owner = os.stat(self.socket_path).st_uid if self.socket_path.exists() else os.geteuid()
-            if not peer_allowed(uid, gid, peer_groups(pid), owner, self.group_gid):
-                self._send(conn, {"ok": False, "error": f"user {user_name(uid)} is not allowed here"})
-                self.say(f"refused a connection from {user_name(uid)} (pid {pid})")
-                return
-            user = user_name(uid)
-            conn.settimeout(None)
-            limit = self.config.daemon.max_request_bytes
-            buf = b""
-            discarding = False
-            while not self._stop.is_set():
-                try:
-                    chunk = conn.recv(65536)
-                except OSError:
-                    return
-                if not chunk:
-                    return
-                buf += chunk
-                while b"\n" in buf:
-                    line, buf = buf.split(b"\n", 1)
-                    if discarding:  # the tail of an oversized request
-                        discarding = False
-                        continue
-                    if len(line) > limit:
-                        self._send(conn, {"ok": False, "error": f"request too long ({len(line)} bytes; "
-                                                                f"limit {limit})"})
-                        continue
-                    if line.strip() and not self._handle_line(conn, line, user):
-                        return
-                if len(buf) > limit:
-                    self._send(conn, {"ok": False, "error": f"request too long (over {limit} bytes)"})
-                    buf = b""
-                    discarding = True
-
-    def _send(self, conn: socket.socket, obj: dict) -> bool:
-        try:
-            conn.sendall((json.dumps(obj, default=str) + "\n").encode())
-            return True
-        except OSError:
-            return False
-
-    def _handle_line(self, conn: socket.socket, line: bytes, user: str) -> bool:
-        received = time.monotonic()
-        try:
-            req = json.loads(line)
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            return self._send(conn, {"ok": False, "error": f"not JSON: {exc}"})
-        if not isinstance(req, dict) or not isinstance(req.get("cmd"), str):
-            return self._send(conn, {"ok": False, "error": 'expected a JSON object with "cmd"'})
+    # ------------------------------------------------------------------ dispatch
+    def _dispatch(self, conn: socket.socket, req: dict, user: str, received: float) -> bool:
         cmd = req["cmd"]
         handler = getattr(self, f"cmd_{cmd}", None)
         if handler is None:
             known = sorted(n[4:] for n in dir(self) if n.startswith("cmd_"))
-            return self._send(conn, {"ok": False, "error": f"unknown command '{cmd}' "
-                                                           f"(known: {', '.join(known)})"})
+            return send(conn, {"ok": False, "error": f"unknown command '{cmd}' (known: {', '.join(known)})"})
         if cmd == "watch":
             return self.cmd_watch(conn, req)
         try:
@@ -301,7 +167,7 @@ class Daemon:
             reply = {"ok": False, "error": str(exc)}
         except RigError as exc:
             reply = {"ok": False, "error": str(exc)}
-        return self._send(conn, reply)
+        return send(conn, reply)
 
     # ------------------------------------------------------------------ commands
     def cmd_ping(self, req: dict, user: str, received: float) -> dict:
@@ -486,10 +352,10 @@ class Daemon:
         period = 1.0 / min(max(rate, 0.5), 100.0)
         t = self.trial
         while self._busy():
-            if not self._send(conn, {"ok": True, "snapshot": asdict(t.snapshot), "trial": self.trial_meta}):
+            if not send(conn, {"ok": True, "snapshot": asdict(t.snapshot), "trial": self.trial_meta}):
                 return False
             time.sleep(period)
-        self._send(conn, {"ok": True, "end": True, "last": self.last})
+        send(conn, {"ok": True, "end": True, "last": self.last})
         return False  # a watch ends its connection
 
 
