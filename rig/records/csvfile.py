@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import io
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +50,38 @@ def pick_columns(header: list[str], where: str) -> dict[str, tuple[int, float, s
     return found
 
 
+@dataclass
+class CsvColumns:
+    """A CSV's time, length and force columns in SI, as written (checked, not yet interpreted)."""
+
+    t_s: np.ndarray
+    length_m: np.ndarray
+    force_N: np.ndarray
+    kinds: np.ndarray | None  # the rig's own step_kind column, when there is one
+    length_header: str
+    units: dict[str, str]
+
+
 def read_csv_record(path: str | Path) -> Record:
+    c = read_csv_columns(path)
+    if c.kinds is not None:
+        # the rig's own samples (`rig replay --csv`): its zero is the surface and its steps are the phases
+        keep = ~np.isin(c.kinds, ["tare", "fault", "done"])
+        return Record(Path(path).name, "csv", c.t_s[keep], c.length_m[keep], c.force_N[keep],
+                      zero_is_surface=True, steps=c.kinds[keep], baseline_force_N=c.force_N[c.kinds == "tare"],
+                      **c.units)
+    # an indentation is counted from the surface; a position may start anywhere (contact is found)
+    surface = split_header(c.length_header)[0].lower().startswith("indentation")
+    return Record(Path(path).name, "csv", c.t_s, c.length_m, c.force_N, zero_is_surface=surface, **c.units)
+
+
+def read_csv_trial(path: str | Path) -> dict[str, np.ndarray]:
+    """A trial CSV's time, position and force in the rig's units (s, mm, N), every row."""
+    c = read_csv_columns(path)
+    return {"t_s": c.t_s, "position_mm": c.length_m * 1e3, "force_N": c.force_N}
+
+
+def read_csv_columns(path: str | Path) -> CsvColumns:
     where = str(path)
     try:
         fh = open(path, newline="", encoding="utf-8-sig")  # noqa: SIM115
@@ -105,21 +137,7 @@ def read_csv_record(path: str | Path) -> Record:
     x = arr[:, 1] * cols["length"][1]
     f = arr[:, 2] * cols["force"][1]
     units = {"length_unit": cols["length"][2] or "1", "force_unit": cols["force"][2]}
-    if i_kind is not None:
-        # the rig's own samples (`rig replay --csv`): its zero is the surface and its steps are the phases
-        k = np.array(kinds)
-        keep = ~np.isin(k, ["tare", "fault", "done"])
-        return Record(Path(path).name, "csv", t[keep], x[keep], f[keep], zero_is_surface=True, steps=k[keep],
-                      baseline_force_N=f[k == "tare"], **units)
-    # an indentation is counted from the surface; a position may start anywhere (contact is found)
-    surface = split_header(header[idx[1]])[0].lower().startswith("indentation")
-    return Record(Path(path).name, "csv", t, x, f, zero_is_surface=surface, **units)
-
-
-def read_csv_trial(path: str | Path) -> dict[str, np.ndarray]:
-    """A trial CSV's time, position and force in the rig's units (s, mm, N)."""
-    rec = read_csv_record(path)
-    return {"t_s": rec.t_s, "position_mm": rec.position_m * 1e3, "force_N": rec.force_N}
+    return CsvColumns(t, x, f, np.array(kinds) if i_kind is not None else None, header[idx[1]], units)
 
 
 def _fast_rows(fh, idx: list[int], i_kind: int | None):
