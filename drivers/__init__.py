@@ -1,1 +1,1 @@
-"""Hardware drivers: the slider (Modbus) and the load cell (serial), behind `drivers.base`."""
+"""Hardware drivers: the slider (Modbus) and the load cell (serial), behind `rig.drivers.base`."""

@@ -1,4 +1,4 @@
-"""Slider driver: Modbus RTU (serial) or Modbus TCP, register map from `drivers.registers`.
+"""Slider driver: Modbus RTU (serial) or Modbus TCP, register map from `rig.drivers.registers`.
 
 Bus budget per loop tick: one FC03 read of the feedback position; status and alarm
 together in one FC03 read when the loop asks (about 10 Hz); a move is one FC16 write of
@@ -58,7 +58,7 @@ class ModbusLink:
 
 
 def open_client(link: ModbusLink, tap=None) -> ModbusSerialClient | ModbusTcpClient:
-    """A connected client; with a `tap` (drivers.spy), every frame each way goes to it too."""
+    """A connected client; with a `tap` (rig.drivers.spy), every frame each way goes to it too."""
     serial_cls, tcp_cls = ModbusSerialClient, ModbusTcpClient
     if tap is not None:
         from rig.drivers.spy import SpiedSerialClient, SpiedTcpClient

@@ -1,7 +1,7 @@
 """The simulated rig on real wires: a Modbus drive (TCP on loopback, RTU on a pseudo-terminal)
 and an ASCII load cell on a pseudo-terminal, all in front of one `SimRig`.
 
-The drive implements the register map of `drivers.registers` (Oriental AZ style):
+The drive implements the register map of `rig.drivers.registers` (Oriental AZ style):
 direct-data moves executed with the slider physics, STOP (level-sensitive, as on the
 real drive: while the bit stays set, motion stops and every move is ignored), return-to-home, READY /
 MOVE / IN-POS / ALM-A status bits, alarm codes and reset, and the communication
