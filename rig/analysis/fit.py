@@ -182,8 +182,6 @@ def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0
         # Jacobian (its own error ~ sqrt of machine precision) would otherwise decide the last
         # digits, and a record in other units (the same problem up to rounding) must land on the
         # same parameters
-        # candidates' refits inside --explain and --auto too: three steps left the gel record's
-        # hidden delay ranked below a second relaxation branch
         best = _newton_polish(_residual_fn(model, ps, trials, scales), best, lo, hi)
     return _result(model, ps, trials, scales, best, lo, hi, nfev, t0)
 
@@ -273,7 +271,10 @@ def _newton_polish(resid, sol, lo, hi, steps: int = 30):
             w = y_sharp - A @ step
             A = A + (np.outer(w, y) + np.outer(y, w)) / ys - float(w @ step) * np.outer(y, y) / ys ** 2
         z, r, cost, J, g = trial, r_new, cost_new, J_new, g_new
-        if np.max(np.abs(step) / np.maximum(1.0, np.abs(z[idx]))) < 1e-9:  # far below what a fit resolves
+        # a looser stop (1e-9) left the gel record's hidden delay ranked below a second
+        # relaxation branch (tests/bench/test_bench_realdata_explain.py): the fits behind a
+        # verdict still move at that size
+        if np.max(np.abs(step) / np.maximum(1.0, np.abs(z[idx]))) < 1e-12:
             break
     if cost <= sol.cost * (1.0 + 1e-12):
         sol.x, sol.cost, sol.fun = z, cost, r
