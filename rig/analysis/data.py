@@ -293,13 +293,10 @@ def savgol_slope(x: np.ndarray, w: int, dt: float) -> np.ndarray:
     j = np.arange(-h, h + 1, dtype=float)
     out = np.empty(len(x))
     out[h:len(x) - h] = np.convolve(x, j[::-1] / (float(j @ j) * dt), mode="valid")
-    for edge, at in ((x[:w], np.arange(h)), (x[-w:], np.arange(w - h, w))):
-        c2, c1, _ = np.polyfit(np.arange(w, dtype=float), edge, 2)
-        slope = (2.0 * c2 * at + c1) / dt
-        if at[0] == 0:
-            out[:h] = slope
-        else:
-            out[len(x) - h:] = slope
+    k = np.arange(w, dtype=float)
+    for edge, first, at in ((x[:w], 0, k[:h]), (x[-w:], len(x) - h, k[w - h:])):
+        c2, c1, _ = np.polyfit(k, edge, 2)
+        out[first:first + h] = (2.0 * c2 * at + c1) / dt
     return out
 
 

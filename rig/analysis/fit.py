@@ -178,7 +178,7 @@ def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0
     best, n = _best_start(model, ps, trials, scales, candidates, lo, hi, tol, max_nfev)
     nfev += n
     if polish and tol <= 1e-8:
-        # Gauss-Newton steps with a central-difference Jacobian: the solver's forward-difference
+        # Newton steps on a central-difference Jacobian: the solver's forward-difference
         # Jacobian (its own error ~ sqrt of machine precision) would otherwise decide the last
         # digits, and a record in other units (the same problem up to rounding) must land on the
         # same parameters

@@ -426,11 +426,11 @@ class Trial:
                         seq.done = True
 
             # ---- a STOP stands until a fresh status says the drive stands still
-            sent_t, resends = (ending.stop.sent_t, ending.stop.resends) if ending.stop else (t, 0)
+            stop = ending.stop
             match ending.on_status(t, moving, lim.stop_confirm_s, self.resend_stop_s):
                 case ("confirmed", _):
                     self._event(rec, t, "stop_confirmed", "the drive reports standing still",
-                                {"after_s": round(t - sent_t, 4), "resends": resends})
+                                {"after_s": round(t - stop.sent_t, 4), "resends": stop.resends})
                 case ("gave_up", why):
                     self._event(rec, t, "fault", why, {"kind": "stop_unconfirmed", "seq": self._seq})
                 case ("resend", _):

@@ -163,9 +163,7 @@ class Daemon:
             return self.cmd_watch(conn, req)
         try:
             reply = handler(req, user, received)
-        except RequestError as exc:
-            reply = {"ok": False, "error": str(exc)}
-        except RigError as exc:
+        except (RequestError, RigError) as exc:
             reply = {"ok": False, "error": str(exc)}
         return send(conn, reply)
 
