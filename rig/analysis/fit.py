@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from warnings import catch_warnings, simplefilter
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -31,6 +32,7 @@ from rig.analysis.scaling import ParamScaling
 from rig.analysis.uncertainty import bic as effective_bic
 from rig.analysis.uncertainty import correlation, effective_samples, hac_covariance, notable_correlations
 from rig.models.core import Effect, Model
+from rig.models.frame import NotConverged
 
 ADEQUATE_RMSE = 1.2
 ADEQUATE_PHASE = 1.5
@@ -158,7 +160,16 @@ def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0
         scales: Scales | None = None, polish: bool = True) -> FitResult:
     """Fit `model` to all `trials` jointly (one parameter set). `polish`: a last pass with
     central differences (the fit a user reads; a screen can skip it)."""
+    with catch_warnings():
+        # a frame solve that stalls while the fit explores is judged once, at the result
+        simplefilter("ignore", NotConverged)
+        return _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish)
+
+
+def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) -> FitResult:
     t0 = time.perf_counter()
+    for t in trials:
+        t.motion.forget_solutions()
     scales = scales or Scales.joint(trials)
     ps = ParamScaling(model, scales)
     init, lo, hi = ps.start_and_bounds(initial)
@@ -285,7 +296,9 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     z = best.x
     si = ps.to_si(z)
     values = {k: float(v) for k, v in zip(model.param_names, si, strict=True)}
-    predictions = evaluate(model, values, trials)
+    with catch_warnings(record=True) as caught:
+        simplefilter("always", NotConverged)
+        predictions = evaluate(model, values, trials)
     residuals = [t.force_N - p for t, p in zip(trials, predictions, strict=True)]
     overall, phases = error_table(trials, residuals)
     noise = noise_of(trials, residuals)
@@ -293,6 +306,10 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     stderr = _stderr(cov, model.param_names)
     warnings = (_warnings(model, values, ps.at_bound(z, lo, hi, AT_BOUND), ps.integrator(z))
                 + _undetermined(model, values, stderr))
+    unsolved = [w.message.residual_N for w in caught if isinstance(w.message, NotConverged)]
+    if unsolved:
+        warnings.append(f"frame compliance: the force equation holds only to {max(unsolved):.3g} N "
+                        f"({max(unsolved) / noise.std_N:.2g} of the noise) where the solve stalled")
     per_trial = []
     for t, r in zip(trials, residuals, strict=True):
         o, ph = error_table([t], [r])

@@ -72,6 +72,11 @@ class Motion:
         v = self.v_m_s[(self.x_m > 0) & (self.v_m_s > 0)]
         return float(np.percentile(v, 95)) if len(v) else 0.0
 
+    def forget_solutions(self) -> None:
+        """Drop the frame solutions kept from earlier predictions on this motion: they are only
+        starting points, but a fit must not depend on what was computed before it."""
+        self.__dict__.pop("_frame_force", None)
+
 
 @dataclass(frozen=True)
 class Effect:
