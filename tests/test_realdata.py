@@ -14,6 +14,8 @@ from rig.analysis.data import decimate, load_trial, prepare
 from rig.analysis.fit import fit
 from rig.cli import main
 from rig.models import CATALOGUE, NAMED_MODELS, build_model
+from rig.models.catalogue import P
+from rig.models.core import Model
 from rig.records import read_record
 
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
@@ -129,3 +131,25 @@ def test_a_fit_with_a_frame_does_not_depend_on_what_was_fitted_before_it():
     fit(model, [trial], starts=1, initial=fresh.values)  # leaves its solutions on the motion
     again = fit(model, [shifted], starts=1, initial=start)
     assert again.values == fresh.values
+
+
+@pytest.mark.parametrize("name", ["kelvin", "proposed"])
+def test_the_integrator_limit_on_the_brain_record_is_the_optimum_and_the_report_says_so(name):
+    # The two fits of the shared records that end at a bound: the lag's rate 1/tau1 at zero.
+    # With tau1 held at any finite value the best fit is worse (the cost rises from the limit,
+    # so the limit is the least-squares optimum, not where the optimizer gave up), and the
+    # report gives what the record determines there: each amplitude over tau1.
+    trial = load_trial(REALDATA / "brain-creep.jpk-force")
+    limit = fit(build_model(name), [trial])
+    assert any("acts as an integrator" in w for w in limit.warnings), limit.warnings
+    rates = next(w for w in limit.warnings if w.startswith("at this limit"))
+    assert rates.count("/tau1_s = ") == len(limit.values) - 1
+    relax = CATALOGUE["relaxation"]
+    T = trial.scales.time_s
+    costs = []
+    for tau in (30 * T, 3 * T, 0.3 * T):  # held: bounds a millionth apart, in loading times
+        z = tau / T
+        held = dataclasses.replace(relax, params=(P("tau1_s", "s", z, z * (1 - 1e-6), z * (1 + 1e-6)),))
+        model = Model([held if e.name == "relaxation" else e for e in build_model(name).effects], name=name)
+        costs.append(fit(model, [trial]).overall.rmse_N)
+    assert limit.overall.rmse_N < costs[0] < costs[1] < costs[2], (limit.overall.rmse_N, costs)

@@ -304,8 +304,16 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     noise = noise_of(trials, residuals)
     cov = _covariance(best, ps.jacobian(z), [t.n for t in trials])
     stderr = _stderr(cov, model.param_names)
-    warnings = (_warnings(model, values, ps.at_bound(z, lo, hi, AT_BOUND), ps.integrator(z))
-                + _undetermined(model, values, stderr))
+    warnings = _warnings(model, values, ps.at_bound(z, lo, hi, AT_BOUND), ps.integrator(z))
+    if ps.integrator(z):
+        # the lag's time constant and the amplitudes over it run off together; their ratios
+        # are the model at this limit, and what the record determines
+        lag, drive = ps.rate_form
+        warnings.append(_integrator_rates(model, ps, best, [t.n for t in trials]))
+        stderr_named = {k: e for i, (k, e) in enumerate(stderr.items()) if i != lag and i not in drive}
+        warnings += _undetermined(model, values, stderr_named)
+    else:
+        warnings += _undetermined(model, values, stderr)
     unsolved = [w.message.residual_N for w in caught if isinstance(w.message, NotConverged)]
     if unsolved:
         warnings.append(f"frame compliance: the force equation holds only to {max(unsolved):.3g} N "
@@ -353,6 +361,34 @@ def _stderr(cov: np.ndarray | None, names: list[str]) -> dict[str, float | None]
 
 def _owner(model: Model, p) -> Effect:
     return next(e for e in model.effects if p in e.params)
+
+
+def _integrator_rates(model: Model, ps: ParamScaling, sol, lengths: list[int]) -> str:
+    """The model at the integrator limit, df/dt = sum of (amplitude / tau) x term: those ratios
+    with their standard errors (the sandwich covariance in the fit variables, carried through)."""
+    lag, drive = ps.rate_form
+    params = model.params
+
+    def ratios(z: np.ndarray) -> np.ndarray:
+        si = ps.to_si(z)
+        return si[drive] / si[lag]
+
+    z = sol.x
+    value = ratios(z)
+    try:
+        cov_z = hac_covariance(sol.jac, sol.fun, lengths)
+        h = 1e-6 * np.maximum(1.0, np.abs(z))
+        J = np.array([(ratios(z + h[j] * e) - ratios(z - h[j] * e)) / (2 * h[j])
+                      for j, e in enumerate(np.eye(len(z)))]).T
+        err = np.sqrt(np.clip(np.diag(J @ cov_z @ J.T), 0.0, None))
+    except (np.linalg.LinAlgError, ValueError):
+        err = np.full(len(drive), np.nan)
+    tau = params[lag].name
+    parts = [f"{params[i].name}/{tau} = {v:.4g} +/- {e:.2g} {params[i].unit} per s"
+             + (" (not determined either)" if not e <= abs(v) else "")
+             for i, v, e in zip(drive, value, err, strict=True)]
+    return (f"at this limit the model reads df/dt = drive / {tau}, and the record can determine only "
+            f"each amplitude over {tau}: " + ", ".join(parts))
 
 
 def _undetermined(model: Model, values: dict[str, float], stderr: dict[str, float | None]) -> list[str]:

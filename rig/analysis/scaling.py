@@ -150,6 +150,11 @@ class ParamScaling:
             return ((np.isfinite(lo) & (z - lo <= tol * ref_lo))
                     | (np.isfinite(hi) & (hi - z <= tol * ref_hi)))
 
+    @property
+    def rate_form(self) -> tuple[int | None, list[int]]:
+        """Index of the lag's time constant and of the drive amplitudes fitted over it."""
+        return self._lag, list(self._drive)
+
     def integrator(self, z: np.ndarray) -> bool:
         """The lag's rate is at its lower bound: the fit turned the lag into an integrator."""
         return self._lag is not None and float(z[self._lag]) < 0.5  # the upper bound is 1e4
