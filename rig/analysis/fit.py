@@ -375,11 +375,12 @@ def _integrator_rates(model: Model, ps: ParamScaling, sol, lengths: list[int]) -
 
     z = sol.x
     value = ratios(z)
+    free = [j for j in range(len(z)) if j != lag]  # the rate sits at its bound: held there
     try:
-        cov_z = hac_covariance(sol.jac, sol.fun, lengths)
+        cov_z = hac_covariance(sol.jac[:, free], sol.fun, lengths)
         h = 1e-6 * np.maximum(1.0, np.abs(z))
-        J = np.array([(ratios(z + h[j] * e) - ratios(z - h[j] * e)) / (2 * h[j])
-                      for j, e in enumerate(np.eye(len(z)))]).T
+        eye = np.eye(len(z))
+        J = np.array([(ratios(z + h[j] * eye[j]) - ratios(z - h[j] * eye[j])) / (2 * h[j]) for j in free]).T
         err = np.sqrt(np.clip(np.diag(J @ cov_z @ J.T), 0.0, None))
     except (np.linalg.LinAlgError, ValueError):
         err = np.full(len(drive), np.nan)

@@ -26,11 +26,6 @@ from scipy.linalg import lapack
 
 FRAME_RTOL = 1e-10  # of the force's own peak: far below any sensor's resolution
 FRAME_MAX_ITER = 60
-# Near a solution (error below this share of the force) an iteration that three times running
-# does not halve the best error yet is stuck, not slow: the equation has no exact root where a
-# rate term switches on at contact (see `solve`), and the best iterate is returned.
-STALL_RTOL = 1e-3
-STALL_ITER = 3
 WARM_RTOL = 1e-3  # a last solution this close is kept as the start without trying a cold one
 CHORD_CONTRACTION = 0.25  # a kept matrix whose step shrinks the error less than this is rebuilt
 KEEP_CONTRACTION = 1e-3  # kept for the next call if its last step shrank the error this much
@@ -43,7 +38,7 @@ Drive = Callable[[np.ndarray, np.ndarray], np.ndarray]  # indentation, rate -> d
 class NotConverged(RuntimeWarning):
     """The force equation holds only to `residual_N` (the largest error, in newtons)."""
 
-    def __init__(self, message: str, residual_N: float) -> None:
+    def __init__(self, message: str, residual_N: float = float("nan")) -> None:
         super().__init__(message)
         self.residual_N = residual_N
 
@@ -164,16 +159,12 @@ def solve(give: Give, tissue: Tissue, drive: Drive, lag: tuple[float, float, flo
     a y[i-1] + b0 u[i] + b1 u[i-1] ((1, 0, 0) without one); `branch` the same for a parallel
     branch driven by the rate of indentation (None: none, or not of that form, and left out
     of the step). The start is `last` (the solution at nearby parameters) when the equation
-    nearly holds there, else the tissue's force with a rigid frame.
-
-    The tissue sees the indentation's rate through `contact_rate`. Should the iterates still
-    cycle (a kink the step does not know), the best is returned with a `NotConverged` warning
-    carrying its error (`rig.analysis.fit` reports it against the record's noise)."""
+    nearly holds there, else the tissue's force with a rigid frame."""
     n = len(x)
 
     def residual(f: np.ndarray):
         xc, vc = give(f)
-        out = tissue(xc, contact_rate(xc, vc, dt))
+        out = tissue(xc, vc)
         return f - out, out, xc, vc
 
     def start(f0: np.ndarray):
@@ -184,7 +175,7 @@ def solve(give: Give, tissue: Tissue, drive: Drive, lag: tuple[float, float, flo
     best = start(last.force_N) if warm else None
     newton = last.newton if warm else None
     if best is None or not best[0] <= WARM_RTOL * max(float(np.max(np.abs(last.force_N))), 1e-300):
-        cold = start(tissue(x, contact_rate(x, v, dt)))
+        cold = start(tissue(x, v))
         if best is None or not best[0] <= cold[0]:
             best, newton = cold, None
     norm, (f, r, out, xc, vc) = best
@@ -192,20 +183,11 @@ def solve(give: Give, tissue: Tissue, drive: Drive, lag: tuple[float, float, flo
     v_scale = max(float(np.max(np.abs(v))), x_scale / max(n * dt, dt))
     fresh = False
     contraction = 1.0  # of the last step taken
-    best_norm, best_out, stalled = norm, f - r, 0
     for _ in range(FRAME_MAX_ITER):
         scale = max(float(np.max(np.abs(f))), 1e-300)
         if norm <= FRAME_RTOL * scale:
             # the matrix is kept for the next call only if it was still close to the solution's
             return Solution(f - r, newton if contraction <= KEEP_CONTRACTION else None)
-        if norm < 0.5 * best_norm:
-            stalled = 0
-        elif best_norm <= STALL_RTOL * scale:
-            stalled += 1
-            if stalled >= STALL_ITER:
-                break
-        if norm < best_norm:
-            best_norm, best_out = norm, f - r
         if newton is None:
             newton = _build(give, drive, lag, branch, f, xc, vc, out, x_scale, v_scale, scale, dt)
             fresh = True
@@ -231,49 +213,24 @@ def solve(give: Give, tissue: Tissue, drive: Drive, lag: tuple[float, float, flo
             fresh = False
         contraction = norm_new / norm
         f, r, out, xc, vc, norm = f + step, r_new, out_new, xc_new, vc_new, norm_new
-    if norm < best_norm:
-        best_norm, best_out = norm, f - r
-    warnings.warn(NotConverged(f"frame compliance: the force did not converge (residual {best_norm:.3g} N)",
-                               best_norm), stacklevel=4)
-    return Solution(best_out, None)
-
-
-def contact_rate(xc: np.ndarray, vc: np.ndarray, dt: float) -> np.ndarray:
-    """The indentation's rate as the tissue sees it: no larger than the indentation over one
-    sample, zero out of contact.
-
-    Contact starts somewhere inside a sample. Taken at full speed there, a rate term (a
-    dashpot, a branch driven by the rate) makes the force jump at that sample, and through
-    the frame the force decides whether there is contact at all: with no force the tip is in
-    and pushed back, with the jump's force it is pushed out, and no force satisfies that
-    sample. Held to the indentation's own rate, the force grows from zero with the
-    indentation, the equation has one root, and for a dashpot far stiffer than the frame it
-    is the frame's spring taking all the travel of that sample, as a spring and a dashpot in
-    series do."""
-    lim = np.maximum(xc, 0.0) / dt
-    return np.clip(vc, -lim, lim)
+    warnings.warn(NotConverged(f"frame compliance: the force did not converge (residual {norm:.3g} N)", norm),
+                  stacklevel=4)
+    return Solution(f - r, None)
 
 
 def _build(give: Give, drive: Drive, lag, branch, f, xc, vc, out, x_scale, v_scale, scale, dt) -> _Step | None:
     """Newton's matrix at f: the drive's slopes in x and v (zero out of contact), the frame's
-    give (1/k) by differences; where `contact_rate` holds the rate to the indentation's, the
-    rate follows the indentation (1/dt) instead of its difference."""
+    give (1/k) by differences."""
     contact = xc > 0
     xp = np.maximum(xc, 0.0)
-    lim = xp / dt
-    vg = np.clip(vc, -lim, lim)
-    held = contact & (np.abs(vc) > lim)
-    d0 = drive(xp, vg)
+    d0 = drive(xp, vc)
     hx, hv = 1e-6 * x_scale, 1e-6 * v_scale
-    alpha = np.where(contact, (drive(xp + hx, vg) - d0) / hx, 0.0)
-    beta = np.where(contact, (drive(xp, vg + hv) - d0) / hv, 0.0)
-    follows = np.where(held, np.sign(vc) / dt, 0.0)
-    alpha = alpha + beta * follows
-    beta = np.where(held, 0.0, beta)
+    alpha = np.where(contact, (drive(xp + hx, vc) - d0) / hx, 0.0)
+    beta = np.where(contact, (drive(xp, vc + hv) - d0) / hv, 0.0)
     hf = 1e-6 * scale
     gv = -(give(f + hf)[0] - xc) / hf
     m = _slope_bands(alpha, beta, gv, dt)
-    nb = _slope_bands(follows, (contact & ~held).astype(float), gv, dt) if branch else None
+    nb = _slope_bands(np.zeros_like(gv), contact.astype(float), gv, dt) if branch else None
     return _Step.build(m, nb, (out > 0).astype(float), lag, branch)
 
 
