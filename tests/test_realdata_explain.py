@@ -27,8 +27,8 @@ REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
 RECORDS = ["polymergel-creep.jpk-force", "brain-creep.jpk-force"]
 SIZES = {"drift": 0.1, "offset": 0.1, "friction": 0.05, "delay": 0.05}
 # the default run hides a delay (the case a force-following effect most easily mimics) in the
-# brain record; every other case, eight in all, runs with the benchmarks (a minute or two
-# each): tests/bench/test_bench_realdata_explain.py
+# brain record; the other seven cases run with the benchmarks (a minute or two each):
+# tests/bench/test_bench_realdata_explain.py
 DEFAULT_RECORDS = ["brain-creep.jpk-force"]
 DEFAULT_EFFECTS = ["delay"]
 

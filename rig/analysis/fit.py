@@ -302,22 +302,26 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     residuals = [t.force_N - p for t, p in zip(trials, predictions, strict=True)]
     overall, phases = error_table(trials, residuals)
     noise = noise_of(trials, residuals)
-    cov = _covariance(best, ps.jacobian(z), [t.n for t in trials])
+    lengths = [t.n for t in trials]
+    to_si = ps.jacobian(z)
+    cov = _covariance(best, to_si, lengths)
     stderr = _stderr(cov, model.param_names)
-    warnings = _warnings(model, values, ps.at_bound(z, lo, hi, AT_BOUND), ps.integrator(z))
-    if ps.integrator(z):
+    integrator = ps.integrator(z)
+    warnings = _warnings(model, values, ps.at_bound(z, lo, hi, AT_BOUND), integrator)
+    if integrator:
         # the lag's time constant and the amplitudes over it run off together; their ratios
         # are the model at this limit, and what the record determines
         lag, drive = ps.rate_form
-        warnings.append(_integrator_rates(model, ps, best, [t.n for t in trials]))
+        warnings.append(_integrator_rates(model, ps, best, si, to_si, lengths))
         stderr_named = {k: e for i, (k, e) in enumerate(stderr.items()) if i != lag and i not in drive}
         warnings += _undetermined(model, values, stderr_named)
     else:
         warnings += _undetermined(model, values, stderr)
     unsolved = [w.message.residual_N for w in caught if isinstance(w.message, NotConverged)]
     if unsolved:
-        warnings.append(f"frame compliance: the force equation holds only to {max(unsolved):.3g} N "
-                        f"({max(unsolved) / noise.std_N:.2g} of the noise) where the solve stalled")
+        worst = max(unsolved)
+        warnings.append(f"frame compliance: the force equation holds only to {worst:.3g} N "
+                        f"({worst / max(noise.std_N, 1e-300):.2g} of the noise) where the solve stalled")
     per_trial = []
     for t, r in zip(trials, residuals, strict=True):
         o, ph = error_table([t], [r])
@@ -363,24 +367,18 @@ def _owner(model: Model, p) -> Effect:
     return next(e for e in model.effects if p in e.params)
 
 
-def _integrator_rates(model: Model, ps: ParamScaling, sol, lengths: list[int]) -> str:
+def _integrator_rates(model: Model, ps: ParamScaling, sol, si: np.ndarray, to_si: np.ndarray,
+                      lengths: list[int]) -> str:
     """The model at the integrator limit, df/dt = sum of (amplitude / tau) x term: those ratios
-    with their standard errors (the sandwich covariance in the fit variables, carried through)."""
+    with their standard errors (the sandwich covariance in the fit variables, carried through
+    `to_si` = d(SI)/dz by the quotient rule, the rate held at its bound)."""
     lag, drive = ps.rate_form
     params = model.params
-
-    def ratios(z: np.ndarray) -> np.ndarray:
-        si = ps.to_si(z)
-        return si[drive] / si[lag]
-
-    z = sol.x
-    value = ratios(z)
-    free = [j for j in range(len(z)) if j != lag]  # the rate sits at its bound: held there
+    value = si[drive] / si[lag]
+    free = [j for j in range(len(si)) if j != lag]
     try:
         cov_z = hac_covariance(sol.jac[:, free], sol.fun, lengths)
-        h = 1e-6 * np.maximum(1.0, np.abs(z))
-        eye = np.eye(len(z))
-        J = np.array([(ratios(z + h[j] * eye[j]) - ratios(z - h[j] * eye[j])) / (2 * h[j]) for j in free]).T
+        J = (to_si[drive][:, free] * si[lag] - np.outer(si[drive], to_si[lag, free])) / si[lag] ** 2
         err = np.sqrt(np.clip(np.diag(J @ cov_z @ J.T), 0.0, None))
     except (np.linalg.LinAlgError, ValueError):
         err = np.full(len(drive), np.nan)

@@ -4,6 +4,8 @@ takes a minute, each explain up to one more): `python -m pytest tests/bench/test
 
 from __future__ import annotations
 
+import functools
+
 import pytest
 
 from tests.test_realdata_explain import DEFAULT_EFFECTS, SIZES, explain_cleanly, pytestmark  # noqa: F401
@@ -25,14 +27,7 @@ CASES = [_case("polymergel-creep.jpk-force", e) for e in sorted(SIZES)] + [
 @pytest.fixture(scope="module")
 def cleanly():
     """Each record explained once (its `--auto` model), for all its cases."""
-    cache: dict[str, tuple] = {}
-
-    def get(record: str) -> tuple:
-        if record not in cache:
-            cache[record] = explain_cleanly(record)
-        return cache[record]
-
-    return get
+    return functools.cache(explain_cleanly)
 
 
 @pytest.mark.parametrize(("record", "effect"), CASES)
