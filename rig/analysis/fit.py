@@ -306,12 +306,14 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     to_si = ps.jacobian(z)
     cov = _covariance(best, to_si, lengths)
     stderr = _stderr(cov, model.param_names)
-    integrator = ps.integrator(z)
-    warnings = _warnings(model, values, ps.at_bound(z, lo, hi, AT_BOUND), integrator)
+    bound = ps.at_bound(z, lo, hi, AT_BOUND)
+    lag, drive = ps.rate_form
+    # a rate below half a loading time's is only slow; at its bound the lag has become an integrator
+    integrator = ps.integrator(z) and bool(bound[lag])
+    warnings = _warnings(model, values, bound, integrator)
     if integrator:
         # the lag's time constant and the amplitudes over it run off together; their ratios
         # are the model at this limit, and what the record determines
-        lag, drive = ps.rate_form
         warnings.append(_integrator_rates(model, ps, best, si, to_si, lengths))
         stderr_named = {k: e for i, (k, e) in enumerate(stderr.items()) if i != lag and i not in drive}
         warnings += _undetermined(model, values, stderr_named)
