@@ -110,3 +110,66 @@ def test_an_ordinary_alias_still_works():
             "  - ramp: *r\n")
     proto = parse_protocol(text, "x.yaml")
     assert [s.kind for s in proto.steps] == ["ramp", "return", "ramp"]
+
+
+# ---------------------------------------------------------------- a parameter the data cannot determine
+
+def _inert(m, force, inert_N):
+    """A sensor effect whose parameter the force does not depend on: its Jacobian column is zero."""
+    return 0.0 * inert_N * force
+
+
+def test_a_parameter_the_data_cannot_determine_is_reported_so_not_as_exact(paper_075_log):
+    import math
+
+    from rig.analysis.analyze import result_json
+    from rig.analysis.data import load_trial
+    from rig.analysis.fit import fit
+    from rig.models.catalogue import CATALOGUE
+    from rig.models.core import Effect, Model, Param
+
+    inert = Effect("inert", "sensor", (Param("inert_N", "N", 0.5),), _inert, "no force at all", "-",
+                   source="plugin")
+    res = fit(Model([CATALOGUE["linear_elastic"], inert]), [load_trial(paper_075_log.log_path)])
+    assert res.stderr["inert_N"] == math.inf
+    assert 0 < res.stderr["k_N_per_m"] < math.inf
+    text = res.report()
+    line = next(ln for ln in text.splitlines() if ln.strip().startswith("inert_N"))
+    assert "+/-" not in line and "(not determined)" in line
+    assert any("inert.inert_N" in w and "not determined" in w for w in res.warnings)
+    js = result_json(res, ["x"])["parameters"]
+    assert js["inert_N"]["stderr"] is None and js["inert_N"]["determined"] is False
+    assert js["k_N_per_m"]["determined"] is True and js["k_N_per_m"]["stderr"] > 0
+    json.dumps(js, allow_nan=False)  # valid JSON: no Infinity
+
+
+# ---------------------------------------------------------------- replay's stored config
+
+def test_replay_says_when_the_stored_config_does_not_parse(paper_075_log, tmp_path):
+    """A log whose config.yaml does not parse is replayed with the defaults, and says so."""
+    from mcap.writer import Writer
+
+    from rig.recording.logs import read_log
+    from rig.views.replay import format_summary, summarize
+
+    log = read_log(paper_075_log.log_path, keep_raw=True)
+    path = tmp_path / "broken-config.mcap"
+    with open(path, "wb") as fh:
+        w = Writer(fh)
+        w.start()
+        ids = {}
+        for topic, rows in log.raw_messages.items():
+            sid = w.register_schema(topic, "jsonschema", json.dumps(log.schemas.get(topic, {})).encode())
+            ids[topic] = w.register_channel(topic, "json", sid)
+            for row in rows:
+                w.add_message(ids[topic], 0, json.dumps(row).encode(), 0)
+        for name, kv in log.metadata.items():
+            w.add_metadata(name, kv)
+        w.add_attachment(0, 0, "config.yaml", "application/yaml", b"loop:\n  rate_Hz: fast\n")
+        w.finish()
+    d = summarize(read_log(path))
+    assert "reproduced" not in d["estimator"]
+    (warning,) = d["warnings"]
+    assert "config.yaml does not parse" in warning and "rate_Hz" in warning
+    assert "defaults (100 Hz, 5 ms late)" in warning and "estimator not re-run" in warning
+    assert f"WARNING    {warning}" in format_summary(d)

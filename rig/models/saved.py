@@ -63,7 +63,8 @@ def from_fit(res, trials: list[str]) -> SavedModel:
     if unknown:
         raise RigError(f"--save: effect(s) {', '.join(unknown)} come from a plugin; only catalogue effects "
                        "can be saved")
-    return SavedModel(res.model, dict(res.values), dict(res.stderr), trials, res.noise_N,
+    stderr = {k: (e if e is not None and math.isfinite(e) else None) for k, e in res.stderr.items()}
+    return SavedModel(res.model, dict(res.values), stderr, trials, res.noise_N,
                       res.overall.rmse_N)
 
 
