@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,13 +38,18 @@ def load_inputs(paths: list[str], holdout: list[str], plugins: list[str], block:
     return Inputs(trials, held, registry)
 
 
+def _finite(x: float | None) -> float | None:
+    return x if x is not None and math.isfinite(x) else None
+
+
 def result_json(res: FitResult, paths: list[str]) -> dict:
     units = {p.name: p.unit for p in res.model.params}
     return {
         "model": res.model.name,
         "effects": res.model.effect_names,
         "trials": paths,
-        "parameters": {k: {"value": v, "stderr": res.stderr.get(k), "unit": units[k]}
+        "parameters": {k: {"value": v, "stderr": _finite(res.stderr.get(k)), "unit": units[k],
+                           "determined": res.stderr.get(k) != math.inf}
                        for k, v in res.values.items()},
         "correlations": correlations_json(res),
         "fit": {"rmse_N": res.overall.rmse_N, "mean_N": res.overall.mean_N, "std_N": res.overall.std_N,

@@ -22,6 +22,7 @@ from rig.errors import SpecError
 from rig.models.core import Motion
 from rig.records import Record, read_record
 from rig.records.units import FORCE_DISPLAY, LENGTH_DISPLAY, display_unit
+from rig.specs.frames import Frame
 
 PHASES = ("ramp", "hold_early", "hold_late", "return")
 HOLD_EARLY_FRACTION = 1.0 / 6.0  # the paper's 10 s of a 60 s hold
@@ -92,7 +93,7 @@ def prepare(rec: Record, where: str = "") -> TrialData:
     t, pos, f, steps = _uniform(rec.t_s, rec.position_m, rec.force_N, rec.steps)
     dt = float(np.median(np.diff(t)))
     notes = list(rec.notes)
-    if rec.zero_is_surface:
+    if rec.frame is Frame.SURFACE:
         x = pos
         if np.max(x) <= 0.0:
             raise SpecError("no contact: the position never goes past its zero (the surface)", path=where)
@@ -110,6 +111,7 @@ def prepare(rec: Record, where: str = "") -> TrialData:
             notes.append(f"analysed up to t = {t[end - 1] - t[0]:.4g} s, where the probe leaves the specimen "
                          "on the way out")
             t, x, f = t[:end], x[:end], f[:end]
+            steps = steps[:end] if steps is not None else None
     v = _velocity(x, dt)
     phase = _phases_from_steps(t, steps) if steps is not None else _phases_from_motion(t, x, v)
     base = np.asarray(baseline, dtype=float)

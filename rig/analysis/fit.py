@@ -19,6 +19,7 @@ uses, on the effective number of independent residuals.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from warnings import catch_warnings, simplefilter
@@ -126,7 +127,8 @@ class FitResult:
                  "parameters (SI)"]
         for p in self.model.params:
             err = self.stderr.get(p.name)
-            e = f" +/- {err:.4g}" if err is not None else ""
+            e = f" +/- {err:.4g}" if err is not None and math.isfinite(err) else ""
+            e = "  (not determined)" if err == math.inf else e
             lines.append(f"  {p.name:<18} {self.values[p.name]:>12.5g}{e}  {p.unit}")
         pairs = self.correlations(CORRELATION_FLOOR)
         if pairs:
@@ -355,14 +357,23 @@ def _covariance(sol, to_si: np.ndarray, lengths: list[int]) -> np.ndarray | None
         cov = hac_covariance(sol.jac, sol.fun, lengths)
     except (np.linalg.LinAlgError, ValueError):
         return None
-    return to_si @ cov @ to_si.T
+    # a direction the data do not determine (infinite variance) leaves every SI parameter
+    # built on it undetermined; carried through the product it would make all of them NaN
+    dead = np.isinf(np.diag(cov))
+    cov = to_si @ np.where(dead[:, None] | dead[None, :], 0.0, cov) @ to_si.T
+    lost = np.any(to_si[:, dead] != 0.0, axis=1)
+    cov[lost, :] = np.nan
+    cov[:, lost] = np.nan
+    cov[lost, lost] = np.inf
+    return cov
 
 
 def _stderr(cov: np.ndarray | None, names: list[str]) -> dict[str, float | None]:
     if cov is None:
         return dict.fromkeys(names)
     err = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    return {n: (float(e) if np.isfinite(e) else None) for n, e in zip(names, err, strict=True)}
+    # inf: the data do not determine it (kept, so it is never read as exact); NaN: unknown
+    return {n: (None if np.isnan(e) else float(e)) for n, e in zip(names, err, strict=True)}
 
 
 def _owner(model: Model, p) -> Effect:
@@ -397,7 +408,10 @@ def _undetermined(model: Model, values: dict[str, float], stderr: dict[str, floa
     out = []
     for p in model.params:
         err, v = stderr.get(p.name), values[p.name]
-        if err is not None and err > abs(v):
+        if err == math.inf:
+            out.append(f"{_owner(model, p).name}.{p.name} = {v:.4g} {p.unit}: not determined by these "
+                       "trials (the fit's error does not depend on it)")
+        elif err is not None and err > abs(v):
             out.append(f"{_owner(model, p).name}.{p.name} = {v:.4g} +/- {err:.3g} {p.unit}: not determined "
                        "by these trials (its standard error exceeds its value)")
     return out

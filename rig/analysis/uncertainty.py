@@ -77,13 +77,29 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int]) -> np.ndarr
     meat *= n / max(n - p, 1)
     bread = np.linalg.pinv(J.T @ J)
     cov = bread @ meat @ bread
-    return 0.5 * (cov + cov.T)
+    return _undetermined(0.5 * (cov + cov.T), J)
 
 
 def white_covariance(J: np.ndarray, r: np.ndarray) -> np.ndarray:
     """The textbook s^2 (J^T J)^-1: right only for an uncorrelated residual."""
     n, p = J.shape
-    return np.linalg.pinv(J.T @ J) * float(r @ r) / max(n - p, 1)
+    return _undetermined(np.linalg.pinv(J.T @ J) * float(r @ r) / max(n - p, 1), J)
+
+
+def _undetermined(cov: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """`cov` with an infinite variance for every parameter the residual does not depend on.
+
+    The pseudo-inverse gives such a parameter (a zero column of J) a variance of zero, which
+    reads as exact where the truth is the opposite: the data say nothing about it.
+    """
+    norms = np.linalg.norm(J, axis=0)
+    dead = ~(norms > np.finfo(float).eps * max(float(np.max(norms, initial=0.0)), np.finfo(float).tiny))
+    if np.any(dead):
+        cov = cov.copy()
+        cov[dead, :] = np.nan
+        cov[:, dead] = np.nan
+        cov[dead, dead] = np.inf
+    return cov
 
 
 def correlation(cov: np.ndarray) -> np.ndarray:

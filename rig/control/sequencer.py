@@ -2,7 +2,8 @@
 
 Pure logic, no I/O: the loop feeds it each tick's measurements and carries out the
 `Move`/`Stop` commands it returns. Positions here are absolute (slider coordinates);
-`zero_mm` is the trial's zero (start position, or the contact point of an approach).
+`frames` holds the trial's zeros (`rig.specs.frames`): protocol targets are in its working
+frame, the trial's start until an approach finds the surface, the surface from then on.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+from rig.specs.frames import Frames
 from rig.specs.motion import move_time, position_at
 from rig.specs.protocol import Approach, Hold, Protocol, Ramp, Return, Step
 
@@ -34,8 +36,7 @@ class Sequencer:
     def __init__(self, proto: Protocol, *, start_mm: float, accel_mm_s2: float, tare_s: float,
                  tolerance_mm: float, rate_Hz: float) -> None:
         self.steps: list[tuple[int, Step]] = proto.run_steps()
-        self.start_mm = start_mm
-        self.zero_mm = start_mm
+        self.frames = Frames(start_mm)
         self.accel = accel_mm_s2
         self.tare_s = tare_s
         self.tol = tolerance_mm
@@ -64,6 +65,15 @@ class Sequencer:
     @property
     def step(self) -> Step | None:
         return self.steps[self.index][1] if 0 <= self.index < len(self.steps) else None
+
+    @property
+    def start_mm(self) -> float:
+        return self.frames.start_mm
+
+    @property
+    def zero_mm(self) -> float:
+        """The working frame's zero in slider coordinates: protocol targets are measured from it."""
+        return self.frames.zero_mm(self.frames.working)
 
     @property
     def target_mm(self) -> float:
@@ -152,7 +162,7 @@ class Sequencer:
                        moving: bool | None) -> list[Command]:
         if self._approach_stopping:
             if moving is False:
-                self.zero_mm = position_mm
+                self.frames = self.frames.at_contact(position_mm)
                 self._target_mm = position_mm
                 return self._next(t)
             return []

@@ -473,7 +473,7 @@ class Trial:
                 if cell is not None:
                     model["model_error_N"] = force - force_model
             sample = SAMPLE.record(
-                seq=self._seq, t_s=t_log, position_mm=x_rel_mm,
+                seq=self._seq, t_s=t_log, position_mm=x_rel_mm, slider_mm=pos,
                 position_cmd_mm=round(seq.position_cmd_mm(t), 6), force_N=force,
                 stiffness_N_per_m=est.stiffness_N_per_m, force_pred_N=est.force_pred_N,
                 error_N=est.error_N, forgetting=est.forgetting, contact=est.updated,

@@ -8,13 +8,14 @@ and the software version. Only catalogue effects are saved: a plugin's code is n
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from rig import __version__
 from rig.errors import RigError
 from rig.models.catalogue import CATALOGUE
-from rig.models.core import Model
+from rig.models.core import Model, Param
 
 FORMAT = "indentation-rig model 1"
 
@@ -62,7 +63,8 @@ def from_fit(res, trials: list[str]) -> SavedModel:
     if unknown:
         raise RigError(f"--save: effect(s) {', '.join(unknown)} come from a plugin; only catalogue effects "
                        "can be saved")
-    return SavedModel(res.model, dict(res.values), dict(res.stderr), trials, res.noise_N,
+    stderr = {k: (e if e is not None and math.isfinite(e) else None) for k, e in res.stderr.items()}
+    return SavedModel(res.model, dict(res.values), stderr, trials, res.noise_N,
                       res.overall.rmse_N)
 
 
@@ -106,11 +108,37 @@ def loads(text: str, source: str = "<model>") -> SavedModel:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise bad(f"parameter '{name}' needs a numeric \"value\"")
         values[name] = float(value)
+        problem = _out_of_bounds(next(p for p in model.params if p.name == name), float(value))
+        if problem:
+            raise bad(f"parameter '{name}' {problem}")
         err = entry.get("stderr")
         stderr[name] = float(err) if isinstance(err, int | float) and not isinstance(err, bool) else None
     fitted = data.get("fitted_on") or {}
     return SavedModel(model, values, stderr, list(fitted.get("trials") or []), fitted.get("noise_N"),
                       fitted.get("rmse_N"), str(data.get("software_version", "?")), source)
+
+
+def _out_of_bounds(p: Param, value: float) -> str | None:
+    """What is wrong with a saved value against its parameter's bounds, or None.
+
+    Catalogue bounds are in the fitted record's own scales, which a saved model does not keep:
+    what holds at any scale is checked (the sign a bound of zero or beyond sets, and every bound
+    of a dimensionless parameter); a parameter in SI is checked against its bounds as written.
+    """
+    unit = "" if p.unit == "1" else f" {p.unit}"
+    if not math.isfinite(value):
+        return f"= {value}{unit}: not a finite number"
+    lo, hi = p.lo, p.hi
+    if p.relative and p.unit != "1":
+        lo = 0.0 if lo >= 0 else -math.inf
+        hi = 0.0 if hi <= 0 else math.inf
+    strict_lo = p.relative and p.unit != "1" and p.lo > 0
+    strict_hi = p.relative and p.unit != "1" and p.hi < 0
+    if value < lo or value > hi or (strict_lo and value <= lo) or (strict_hi and value >= hi):
+        low = f"{'>' if strict_lo else '>='} {lo:g}" if lo > -math.inf else ""
+        high = f"{'<' if strict_hi else '<='} {hi:g}" if hi < math.inf else ""
+        return f"= {value:g}{unit} is outside its bounds ({', '.join(filter(None, (low, high)))}{unit})"
+    return None
 
 
 def runnable(saved: SavedModel) -> SavedModel:

@@ -89,8 +89,11 @@ def _int(name: str, description: str = "", required: bool = True) -> Field:
 SAMPLE = MessageType("/rig/sample", "rig.Sample", "One loop tick.", (
     Field("seq", "integer", "tick number", minimum=0),
     _num("t_s", "time since trial start, s"),
-    _num("position_mm", "feedback position from the trial zero, mm"),
-    _num("position_cmd_mm", "commanded (ideal profile) position from the trial zero, mm"),
+    _num("position_mm", "feedback position from the working zero (the trial's start; the surface once "
+         "an approach found it) as it stood at the start of the tick, mm"),
+    _num("position_cmd_mm", "commanded (ideal profile) position from the working zero after the tick, mm"),
+    _num("slider_mm", "feedback position in the slider's own coordinates, mm (logs before it derive it "
+         "from the step_start events' zero_mm)", required=False),
     _num("force_N", "load cell force after tare, N"),
     _num("stiffness_N_per_m", "online RLS estimate k in f(t) = k x(t-1)"),
     _num("force_pred_N", "a-priori prediction k(t-1) x(t-1), N"),

@@ -10,6 +10,7 @@ import numpy as np
 
 from rig.errors import RigError, SpecError
 from rig.records.record import Record
+from rig.specs.frames import Frame
 
 MCAP_MAGIC = b"\x89MCAP"
 LOOKED_FOR = ("an MCAP log, a CSV with t_s,position_mm,force_N (or units in the column names), a JPK "
@@ -65,6 +66,8 @@ def _read_mcap(path: Path) -> Record:
     kinds = np.array(log.step_kind)
     keep = ~np.isin(kinds, ["tare", "fault", "done"])
     tare = kinds == "tare"
-    return Record(path.name, "mcap", s["t_s"][keep], s["position_mm"][keep] / 1000.0, s["force_N"][keep],
-                  zero_is_surface=True, steps=kinds[keep], baseline_force_N=s["force_N"][tare],
+    # from the surface throughout: an approach's travel out of contact is negative indentation
+    x_mm = log.position_mm(Frame.SURFACE)
+    return Record(path.name, "mcap", s["t_s"][keep], x_mm[keep] / 1000.0, s["force_N"][keep],
+                  frame=Frame.SURFACE, steps=kinds[keep], baseline_force_N=s["force_N"][tare],
                   length_unit="mm", force_unit="N")

@@ -14,6 +14,7 @@ import numpy as np
 from rig.errors import SpecError
 from rig.records.record import Record
 from rig.records.units import quantity, split_header, to_si
+from rig.specs.frames import Frame
 
 CANONICAL = ("t_s", "position_mm", "force_N")
 
@@ -68,11 +69,12 @@ def read_csv_record(path: str | Path) -> Record:
         # the rig's own samples (`rig replay --csv`): its zero is the surface and its steps are the phases
         keep = ~np.isin(c.kinds, ["tare", "fault", "done"])
         return Record(Path(path).name, "csv", c.t_s[keep], c.length_m[keep], c.force_N[keep],
-                      zero_is_surface=True, steps=c.kinds[keep], baseline_force_N=c.force_N[c.kinds == "tare"],
+                      frame=Frame.SURFACE, steps=c.kinds[keep], baseline_force_N=c.force_N[c.kinds == "tare"],
                       **c.units)
     # an indentation is counted from the surface; a position may start anywhere (contact is found)
     surface = split_header(c.length_header)[0].lower().startswith("indentation")
-    return Record(Path(path).name, "csv", c.t_s, c.length_m, c.force_N, zero_is_surface=surface, **c.units)
+    return Record(Path(path).name, "csv", c.t_s, c.length_m, c.force_N,
+                  frame=Frame.SURFACE if surface else None, **c.units)
 
 
 def read_csv_trial(path: str | Path) -> dict[str, np.ndarray]:

@@ -39,9 +39,37 @@ class Marked:
         return self.value
 
 
-def _from_node(node: yaml.Node, path: str) -> Marked:
+# A YAML alias repeats a node without copying it: nested aliases grow exponentially as they
+# are expanded ("billion laughs"), and an alias inside its own anchor never ends. No rig file
+# comes near these limits; a file past them is refused before any time is spent on it.
+MAX_NODES = 10_000  # values after every alias is expanded
+MAX_DEPTH = 64  # mappings and lists nested in each other
+
+
+class _Expansion:
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.nodes = 0
+        self.open: set[int] = set()  # ids of the nodes being expanded (a cycle revisits one)
+
+    def fail(self, node: yaml.Node, message: str) -> SpecError:
+        return SpecError(message, path=self.path, line=node.start_mark.line + 1,
+                         column=node.start_mark.column + 1)
+
+
+def _from_node(node: yaml.Node, path: str, ex: _Expansion | None = None, depth: int = 0) -> Marked:
+    ex = ex or _Expansion(path)
+    ex.nodes += 1
+    if ex.nodes > MAX_NODES:
+        raise ex.fail(node, f"more than {MAX_NODES} values once its aliases (*name) are expanded: "
+                            "too many repeats of an anchor (&name)")
+    if depth > MAX_DEPTH:
+        raise ex.fail(node, f"nested more than {MAX_DEPTH} levels deep")
+    if id(node) in ex.open:
+        raise ex.fail(node, "an alias (*name) inside its own anchor (&name): the value would never end")
     line, col = node.start_mark.line + 1, node.start_mark.column + 1
     if isinstance(node, yaml.MappingNode):
+        ex.open.add(id(node))
         out: dict[str, Marked] = {}
         for knode, vnode in node.value:
             if not isinstance(knode, yaml.ScalarNode):
@@ -51,13 +79,17 @@ def _from_node(node: yaml.Node, path: str) -> Marked:
             if key in out:
                 raise SpecError(f"key '{key}' appears twice", path=path,
                                 line=knode.start_mark.line + 1, column=knode.start_mark.column + 1)
-            child = _from_node(vnode, path)
+            child = _from_node(vnode, path, ex, depth + 1)
             child.key_line = knode.start_mark.line + 1
             child.key_column = knode.start_mark.column + 1
             out[key] = child
+        ex.open.discard(id(node))
         return Marked(out, line, col)
     if isinstance(node, yaml.SequenceNode):
-        return Marked([_from_node(n, path) for n in node.value], line, col)
+        ex.open.add(id(node))
+        items = [_from_node(n, path, ex, depth + 1) for n in node.value]
+        ex.open.discard(id(node))
+        return Marked(items, line, col)
     # Scalars: let SafeLoader resolve the tag (int, float, bool, null, str) exactly as safe_load would.
     loader = yaml.SafeLoader("")
     try:

@@ -11,6 +11,7 @@ from rig.control.estimator import StiffnessRLS
 from rig.errors import RigError, SpecError
 from rig.recording.logs import TrialLog
 from rig.specs.config import RigConfig, parse_config
+from rig.specs.frames import Frame
 from rig.views.plots import pyplot, shade_spans
 
 
@@ -26,22 +27,34 @@ class HoldCheck:
         return (self.stiffness_N_per_m - self.measured_N_per_m) / self.measured_N_per_m
 
 
+DEFAULT_RATE_HZ = 100.0
+DEFAULT_LATE_TOLERANCE_MS = 5.0
+
+
 def config_of(log: TrialLog) -> RigConfig | None:
     """The config the trial ran with (attached to the log), or None if it cannot be read."""
+    return stored_config(log)[0]
+
+
+def stored_config(log: TrialLog) -> tuple[RigConfig | None, str]:
+    """The config the trial ran with, or None and why it cannot be used."""
     text = log.attachments.get("config.yaml")
     if text is None:
-        return None
+        return None, "the log carries no config.yaml"
     try:
-        return parse_config(text.decode(), f"{log.path}!config.yaml")
-    except (SpecError, UnicodeDecodeError):
-        return None
+        return parse_config(text.decode(), f"{log.path}!config.yaml"), ""
+    except SpecError as exc:
+        return None, f"its config.yaml does not parse ({exc})"
+    except UnicodeDecodeError as exc:
+        return None, f"its config.yaml is not UTF-8 text ({exc.reason} at byte {exc.start})"
 
 
 def rerun_estimator(log: TrialLog, config: RigConfig) -> np.ndarray:
-    """Run the online estimator again over the logged positions and forces."""
+    """Run the online estimator again over the logged positions and forces, each position
+    measured from the zero the loop's estimator used (the working zero after that tick)."""
     est = config.estimator
     rls = StiffnessRLS.from_config(est, config.loop.rate_Hz)
-    x = log.samples["position_mm"] / 1000.0
+    x = log.frames.estimator_x_mm / 1000.0
     f = log.samples["force_N"]
     out = np.empty(log.n)
     x_prev = 0.0
@@ -62,7 +75,7 @@ def hold_check(log: TrialLog, window_s: float = 1.0) -> HoldCheck | None:
     seg = idx[step[idx] == step[end]]
     t = log.samples["t_s"]
     sel = seg[t[seg] >= t[end] - window_s]
-    x = float(np.mean(log.samples["position_mm"][sel])) / 1000.0
+    x = float(np.mean(log.position_mm(Frame.SURFACE)[sel])) / 1000.0
     if x <= 0:
         return None
     measured = float(np.mean(log.samples["force_N"][sel])) / x
@@ -74,8 +87,9 @@ def summarize(log: TrialLog) -> dict:
         raise RigError(f"{log.path}: the log holds no samples")
     s = log.samples
     meta = log.trial
-    config = config_of(log)
-    tol_ms = config.loop.late_tolerance_ms if config else 5.0
+    config, why = stored_config(log)
+    tol_ms = config.loop.late_tolerance_ms if config else DEFAULT_LATE_TOLERANCE_MS
+    rate_Hz = config.loop.rate_Hz if config else DEFAULT_RATE_HZ
     contact = log.contact
     err = s["error_N"][contact] if contact.any() else np.zeros(0)
     faults = [e for e in log.events if e.get("kind") == "fault"]
@@ -90,7 +104,7 @@ def summarize(log: TrialLog) -> dict:
         "duration_s": float(s["t_s"][-1]),
         "samples": log.n,
         "late_ticks": int(np.sum(s["late_ms"] > tol_ms)),
-        "missed_ticks": _missed(s, config.loop.rate_Hz if config else 100.0),
+        "missed_ticks": _missed(s, rate_Hz),
         "faults": [{"t_s": f["t_s"], "message": f["message"]} for f in faults],
         "estimator": {
             "contact_samples": int(contact.sum()),
@@ -103,13 +117,16 @@ def summarize(log: TrialLog) -> dict:
     }
     if log.read_error and not log.complete:
         out["truncated"] = log.read_error
+    if config is None:
+        out["warnings"] = [f"{why}: late and missed ticks counted at the defaults ({DEFAULT_RATE_HZ:g} Hz, "
+                           f"{DEFAULT_LATE_TOLERANCE_MS:g} ms late), the estimator not re-run"]
     hc = hold_check(log)
     if hc:
         out["estimator"]["hold_end"] = {"stiffness_N_per_m": hc.stiffness_N_per_m,
                                         "measured_N_per_m": hc.measured_N_per_m,
                                         "rel_diff": hc.rel_diff}
     if "model.json" in log.attachments and "force_model_N" in s:
-        out["model"] = model_check(log, config.loop.rate_Hz if config else 100.0)
+        out["model"] = model_check(log, rate_Hz)
     if config is not None:
         again = rerun_estimator(log, config)
         diff = float(np.max(np.abs(again - s["stiffness_N_per_m"])))
@@ -174,6 +191,8 @@ def format_summary(d: dict) -> str:
     ]
     for f in d["faults"]:
         lines.append(f"FAULT      t={f['t_s']:.2f} s: {f['message']}")
+    for w in d.get("warnings", ()):
+        lines.append(f"WARNING    {w}")
     if e["error_mean_N"] is not None:
         lines.append(f"estimator  error mean {e['error_mean_N']:+.4f} N, std {e['error_std_N']:.4f} N, "
                      f"max |e| {e['error_max_abs_N']:.3f} N over {e['contact_samples']} contact samples")
@@ -228,9 +247,9 @@ def plot_log(log: TrialLog, out: str | Path) -> None:
                  f"{Path(log.path).name}", fontsize=9)
     ax = axes[1]
     shade_steps(ax, t, log.step_kind)
-    ax.plot(t, s["position_mm"], lw=1.0, label="feedback")
-    ax.plot(t, s["position_cmd_mm"], lw=0.8, ls="--", label="commanded")
-    ax.set_ylabel("position (mm)")
+    ax.plot(t, log.position_mm(Frame.SURFACE), lw=1.0, label="feedback")
+    ax.plot(t, log.position_cmd_mm(Frame.SURFACE), lw=0.8, ls="--", label="commanded")
+    ax.set_ylabel("indentation (mm)")
     ax.legend(loc="upper right", fontsize=8)
     ax = axes[2]
     shade_steps(ax, t, log.step_kind)
