@@ -17,8 +17,10 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import getpass
+import json
 import os
 import re
+import shlex
 import socket
 import sys
 import tempfile
@@ -101,16 +103,11 @@ def _open_lock_file(path: Path) -> int:
 
 def read_holder(path: Path) -> Holder:
     try:
-        text = path.read_text(errors="replace")
-    except OSError:
-        text = ""
-    lines = text.split("\n")
-    try:
-        pid = int(lines[0])
-    except (ValueError, IndexError):
+        data = json.loads(path.read_text(errors="replace"))
+        return Holder(int(data["pid"]), str(data.get("user", "")), str(data.get("command", "")),
+                      str(data.get("note", "")))
+    except (OSError, ValueError, KeyError, TypeError):  # empty: taken a moment ago, not yet named
         return Holder(None, "", "")
-    get = lambda i: lines[i] if len(lines) > i else ""  # noqa: E731
-    return Holder(pid, get(1), get(2), get(3))
 
 
 def _me() -> str:
@@ -123,9 +120,12 @@ def _me() -> str:
 def _command_line() -> str:
     try:
         raw = Path(f"/proc/{os.getpid()}/cmdline").read_bytes()
-        return " ".join(a.decode(errors="replace") for a in raw.split(b"\0") if a)
+        args = [a.decode(errors="replace") for a in raw.split(b"\0") if a]
     except OSError:
-        return " ".join([sys.executable, *sys.argv])
+        args = [sys.executable, *sys.argv]
+    # one line in the error message, whatever the arguments hold
+    text = " ".join(shlex.quote(a) if a.isprintable() else repr(a) for a in args)
+    return text if len(text) <= 300 else text[:297] + "..."
 
 
 class DeviceLock:
@@ -172,7 +172,8 @@ def acquire(what: str, key: str, *, note: str = "") -> DeviceLock:
         raise DeviceError(f"cannot lock {what} ({path}): {exc}") from None
     with contextlib.suppress(OSError):  # a read-only lock file: we hold it, only unnamed
         os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n{_me()}\n{_command_line()}\n{note}\n".encode(), 0)
+        os.pwrite(fd, json.dumps({"pid": os.getpid(), "user": _me(), "command": _command_line(),
+                                  "note": note}).encode() + b"\n", 0)
     return DeviceLock(what, key, path, fd)
 
 
