@@ -108,7 +108,8 @@ class SerialLoadCell:
         return self.clock.now() if self.clock is not None else time.monotonic()
 
     def _connect(self) -> serial.SerialBase:
-        return serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.05)
+        # exclusive: flock on the device (POSIX), so a second reader is refused, not interleaved
+        return serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.05, exclusive=True)
 
     def _open(self) -> serial.SerialBase:
         from rig.errors import DeviceError

@@ -131,6 +131,8 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_position(args: argparse.Namespace) -> int:
+    if args.socket:
+        return _position_from_daemon(args)
     from rig.control.manual import position
     from rig.specs.config import load_config
 
@@ -143,6 +145,26 @@ def cmd_position(args: argparse.Namespace) -> int:
         alarm = f", ALARM 0x{info['alarm_code']:02X}" if info["alarm_code"] else ""
         print(f"position {info['position_mm']:.3f} mm, {state}{alarm}; force {force}\n"
               f"devices  {info['devices']}")
+    return 0
+
+
+def _position_from_daemon(args: argparse.Namespace) -> int:
+    """The daemon owns the devices: its status carries the position (read now while idle,
+    the loop's latest during a trial)."""
+    from rig.service.client import request
+
+    st = _reply(request(Path(args.socket), {"cmd": "status"}))
+    snap = st.get("snapshot") or {}
+    if "error" in snap or "position_mm" not in snap:
+        raise RigError(f"the daemon could not read the position: {snap.get('error', 'devices busy')}")
+    info = {"position_mm": snap["position_mm"], "force_N": snap.get("force_N"), "state": st["state"],
+            "alarm_code": snap.get("alarm_code", 0)}
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0
+    force = "-" if info["force_N"] is None else f"{info['force_N']:.3f} N"
+    alarm = f", ALARM 0x{info['alarm_code']:02X}" if info["alarm_code"] else ""
+    print(f"position {info['position_mm']:.3f} mm, daemon {st['state']}{alarm}; force {force}")
     return 0
 
 
@@ -457,9 +479,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--json", action="store_true")
     r.set_defaults(func=cmd_check)
 
-    r = sub.add_parser("position", help="read the slider position, status and force")
+    r = sub.add_parser("position", help="read the slider position, status and force",
+                       description="Read the slider's position, status and force. With --socket, asks "
+                                   "the daemon (which owns the devices).")
     _rig_config(r)
     r.add_argument("--json", action="store_true")
+    r.add_argument("--socket", help="ask the daemon on this control socket instead")
     r.set_defaults(func=cmd_position)
 
     r = sub.add_parser("move", help="move the probe to a position (under the rig's limits)",

@@ -12,6 +12,7 @@ import re
 from dataclasses import dataclass, field
 
 from rig.clock import Clock
+from rig.control.ownership import acquire, hold_with, serial_key, tcp_key, tty_exclusive
 from rig.drivers.base import LoadCell, Slider
 from rig.errors import RigError
 from rig.specs.config import RigConfig
@@ -49,10 +50,12 @@ def uses_wire(config: RigConfig, speed: float) -> bool:
 
 
 def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0,
-                 spy_path: str | None = None) -> Devices:
+                 spy_path: str | None = None, holder_note: str = "") -> Devices:
     """Devices for a run at `speed` (1 = real time; the simulated rig goes on the wire then).
 
     `spy_path`: write every Modbus frame and load-cell line to this file (`rig spy` reads it).
+    Devices on a wire are locked to this process until `close` (`DeviceInUse` names another
+    holder); `holder_note` tells a second user how to reach this one instead (a daemon's socket).
     """
     sb, lb = config.slider.backend, config.loadcell.backend
     if (sb == "sim") != (lb == "sim") and lb != "none":
@@ -83,9 +86,9 @@ def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0,
     try:
         if spy_path:
             spy = open_spy(spy_path, cfg)
-        slider, backstop, warnings = open_slider(cfg, clock, tap=spy)
+        slider, backstop, warnings = open_slider(cfg, clock, tap=spy, holder_note=holder_note)
         try:
-            loadcell = open_loadcell(cfg, clock, tap=spy) if lb != "none" else None
+            loadcell = open_loadcell(cfg, clock, tap=spy, holder_note=holder_note) if lb != "none" else None
         except BaseException:
             slider.close()
             raise
@@ -139,10 +142,19 @@ def wire_config(config: RigConfig, endpoints: dict) -> RigConfig:
     return cfg
 
 
+def slider_lock_key(config: RigConfig) -> tuple[str, str]:
+    """(what, key) of the slider's lock: its serial device, or its TCP host and port."""
+    s = config.slider
+    if s.backend == "modbus-tcp":
+        return f"the slider at {s.host}:{s.tcp_port}", tcp_key(s.host, s.tcp_port)
+    return f"the slider on {s.port}", serial_key(s.port)
+
+
 def make_slider(config: RigConfig, clock: Clock | None = None, *, tap=None, timeout_s: float | None = None,
-                max_consecutive_errors: int | None = None):
+                max_consecutive_errors: int | None = None, holder_note: str = ""):
     """The slider driver with its link open, nothing written yet (`DeviceError` if the port
-    cannot be opened). `timeout_s` overrides the config's per-transaction timeout."""
+    cannot be opened, `DeviceInUse` naming the process that owns the drive). `timeout_s`
+    overrides the config's per-transaction timeout. Its close() releases the drive."""
     from rig.drivers.modbus_slider import ModbusLink, ModbusSlider, open_client
     from rig.drivers.registers import PROFILES
 
@@ -158,20 +170,29 @@ def make_slider(config: RigConfig, clock: Clock | None = None, *, tap=None, time
                       device_id=s.device_id, timeout_s=timeout_s or s.timeout_s, retries=s.retries)
     if link.transport == "rtu" and not s.port:
         raise RigError("slider.port is empty: name the serial device of the drive")
-    return ModbusSlider(link, regs, s.steps_per_mm, current_percent=s.current_percent,
-                        max_consecutive_errors=max_consecutive_errors or s.max_consecutive_errors,
-                        client=open_client(link, tap) if tap is not None else None,
-                        **({"clock": clock.now} if clock is not None else {}))
+    # The lock before the port: a second master must not put a byte on the bus or the link.
+    lock = acquire(*slider_lock_key(config), note=holder_note)
+    try:
+        slider = ModbusSlider(link, regs, s.steps_per_mm, current_percent=s.current_percent,
+                              max_consecutive_errors=max_consecutive_errors or s.max_consecutive_errors,
+                              client=open_client(link, tap) if tap is not None else None,
+                              **({"clock": clock.now} if clock is not None else {}))
+    except BaseException:
+        lock.release()
+        raise
+    if link.transport == "rtu":
+        tty_exclusive(getattr(slider.client, "socket", None))
+    return hold_with(slider, lock)
 
 
-def open_slider(config: RigConfig, clock: Clock | None = None, *, tap=None):
+def open_slider(config: RigConfig, clock: Clock | None = None, *, tap=None, holder_note: str = ""):
     """The slider driver, connected: STOP released and verified, the comm timeout set.
 
     Returns (slider, backstop description, warnings). Refuses a drive whose communication
     timeout cannot be set unless `slider.allow_no_comm_timeout` says the rig runs without it.
     """
     s = config.slider
-    slider = make_slider(config, clock, tap=tap)
+    slider = make_slider(config, clock, tap=tap, holder_note=holder_note)
     warnings: list[str] = []
     try:
         slider.read_position_mm()
@@ -189,14 +210,15 @@ def open_slider(config: RigConfig, clock: Clock | None = None, *, tap=None):
             warnings.append(f"WARNING: {why}; running without the drive's communication timeout "
                             "(allowed by slider.allow_no_comm_timeout): if this controller dies "
                             "mid-move, nothing stops the drive")
-    except RigError:
+    except BaseException:
         slider.close()
         raise
     return slider, backstop, warnings
 
 
-def open_loadcell(config: RigConfig, clock: Clock, *, tap=None):
-    """The load-cell driver, reading; with a `tap`, every line each way goes to it too."""
+def open_loadcell(config: RigConfig, clock: Clock, *, tap=None, holder_note: str = ""):
+    """The load-cell driver, reading; with a `tap`, every line each way goes to it too.
+    Locked to this process until its close() (`DeviceInUse` names another holder)."""
     from rig.drivers.serial_loadcell import DEFAULT_PATTERN, LineFormat, SerialLoadCell
 
     lc = config.loadcell
@@ -211,8 +233,16 @@ def open_loadcell(config: RigConfig, clock: Clock, *, tap=None):
         raise RigError(f"loadcell.pattern: {exc}") from None
     kwargs = {"baudrate": lc.baudrate, "mode": lc.mode, "request": lc.request.encode(), "fmt": fmt,
               "clock": clock}
-    if tap is not None:
-        from rig.drivers.spy import SpiedSerialLoadCell
+    lock = acquire(f"the load cell on {lc.port}", serial_key(lc.port), note=holder_note)
+    try:
+        if tap is not None:
+            from rig.drivers.spy import SpiedSerialLoadCell
 
-        return SpiedSerialLoadCell(lc.port, tap=tap, **kwargs)
-    return SerialLoadCell(lc.port, **kwargs)
+            cell = SpiedSerialLoadCell(lc.port, tap=tap, **kwargs)
+        else:
+            cell = SerialLoadCell(lc.port, **kwargs)
+    except BaseException:
+        lock.release()
+        raise
+    tty_exclusive(getattr(cell, "_serial", None))
+    return hold_with(cell, lock)

@@ -55,6 +55,7 @@ def move(config: RigConfig, to_mm: float, speed_mm_s: float, *, home: bool = Fal
         print(w, file=out, flush=True)
     slider = dev.slider
     tol = config.slider.position_tolerance_mm
+    commanded = stop_sent = False
     try:
         first = slider.position()
         if not first.fresh:
@@ -64,6 +65,7 @@ def move(config: RigConfig, to_mm: float, speed_mm_s: float, *, home: bool = Fal
             raise DeviceError("rig move needs a load cell to watch the force (loadcell.backend is none)")
         reading = dev.loadcell.latest()
         tare = reading.force_N if reading else 0.0
+        commanded = True  # from here the drive may be moving (even if the write's reply is lost)
         if home:
             slider.home()
         else:
@@ -86,6 +88,7 @@ def move(config: RigConfig, to_mm: float, speed_mm_s: float, *, home: bool = Fal
                                     bool(r and r.over_range), r.force_N if r else 0.0), lim)
             why = fault.message if fault else watch.check(now, pos if pr.fresh else None, moving)
             if why is not None:
+                stop_sent = True
                 stopped = slider.stop()
                 raise DeviceError(f"stopped: {why}" + ("" if stopped else
                                                        "; the drive did not acknowledge STOP"))
@@ -98,11 +101,25 @@ def move(config: RigConfig, to_mm: float, speed_mm_s: float, *, home: bool = Fal
             out.write("\n")
         return {"from_mm": start, "position_mm": pos, "alarm_code": sr.value.alarm_code,
                 "seconds": round(now, 3)}
-    except KeyboardInterrupt:
-        slider.stop()
+    except (KeyboardInterrupt, Exception) as exc:
+        # Whatever ended the watch (Ctrl-C, a lost bus, a bug), the drive must not go on moving.
+        if commanded and not stop_sent:
+            _stop_after(slider, exc)
         raise
     finally:
         dev.close()
+
+
+def _stop_after(slider, exc: BaseException) -> None:
+    """STOP before the error goes up; if it is not acknowledged, the error says so."""
+    try:
+        stopped = slider.stop()
+    except Exception as stop_exc:  # noqa: BLE001 - the original error is what the operator needs
+        stopped, why = False, str(stop_exc)
+    else:
+        why = getattr(slider, "last_error", "")
+    if not stopped and isinstance(exc, Exception) and exc.args:
+        exc.args = (f"{exc.args[0]}; STOP not acknowledged by the drive ({why})", *exc.args[1:])
 
 
 def reset_alarm(config: RigConfig) -> dict:

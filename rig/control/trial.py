@@ -99,6 +99,7 @@ class Trial:
     post_fault_s = 0.5
     return_speed_mm_s = 5.0
     resend_stop_s = 0.1  # re-send an unconfirmed STOP this often
+    close_timeout_s = 30.0  # a log not finished by then is reported so, not as "completed"
 
     def __init__(self, proto: Protocol, config: RigConfig, slider: Slider, loadcell: LoadCell,
                  clock: Clock, log_path: Path, info: TrialInfo | None = None,
@@ -178,6 +179,7 @@ class Trial:
         rec = Recorder(self.log_path, flush_s=cfg.recorder.flush_s,
                        compression=cfg.recorder.compression, max_queue=cfg.recorder.max_queue)
         self.recorder = rec
+        self.log_path = rec.path  # the name the recorder could take (another run may have had ours)
         # After the recorder's thread exists, so only the loop thread runs at real-time priority.
         rt = Realtime(cfg.loop.realtime, cfg.loop.realtime_priority) if isinstance(self.clock, RealClock) \
             else None
@@ -225,9 +227,12 @@ class Trial:
             rec.close({"outcome": outcome, "samples": str(self._seq),
                        "late_ticks": str(self._late), "missed_ticks": str(self._missed),
                        "duration_s": f"{t_end:.3f}", "fault": fault_msg or "",
-                       "end_time": datetime.now(UTC).isoformat()})
+                       "end_time": datetime.now(UTC).isoformat()}, timeout_s=self.close_timeout_s)
             if rec.failure and fault_msg and "recording" not in fault_msg:
                 fault_msg = f"{fault_msg}; {rec.failure}"
+            if rec.unfinished:
+                fault_msg = f"{fault_msg}; {rec.unfinished}" if fault_msg else rec.unfinished
+                outcome = "fault"
             if rec.error is not None:
                 fault_msg = (fault_msg or rec.failure) + (
                     f"; the log holds what was flushed before the failure ({rec.flushed_messages} "
@@ -540,9 +545,6 @@ def default_log_path(out_dir: str | Path, proto: Protocol, specimen: str) -> Pat
     slug = "".join(c if c.isalnum() else "-" for c in proto.name.lower()).strip("-")
     slug = "-".join(filter(None, slug.split("-")))[:40]
     spec = "".join(c if c.isalnum() or c in "-_" else "-" for c in specimen)[:20] or "specimen"
-    path = out / f"{stamp}_{spec}_{slug}.mcap"
-    n = 1
-    while path.exists():
-        n += 1
-        path = out / f"{stamp}_{spec}_{slug}_{n}.mcap"
-    return path
+    # The name wanted: the recorder opens it exclusively, or the next free `_2`, `_3`... (a
+    # check here would race with another run starting in the same second).
+    return out / f"{stamp}_{spec}_{slug}.mcap"

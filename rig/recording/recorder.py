@@ -13,6 +13,7 @@ tick and ends the trial as a fault, and what was flushed before stays readable.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import os
 import queue
@@ -20,7 +21,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from mcap.writer import CompressionType, Writer
 
@@ -40,8 +41,46 @@ class TrialInfo:
     extra: dict[str, str] = field(default_factory=dict)
 
 
+def open_new_log(path: str | Path, attempts: int = 1000) -> tuple[BinaryIO, Path]:
+    """A new log file at `path`, or at `<stem>_2`, `<stem>_3`... if that name is taken, and the
+    name used. Opened exclusively (O_EXCL): two runs starting in the same second never share
+    a file. Held with an flock until closed, so recovery leaves a log being written alone.
+    """
+    path = Path(path)
+    for n in range(1, attempts + 1):
+        candidate = path if n == 1 else path.with_name(f"{path.stem}_{n}{path.suffix}")
+        try:
+            fh = open(candidate, "xb")  # noqa: SIM115 - the recorder's writer thread closes it
+        except FileExistsError:
+            continue
+        # A file system without flock: the log is still ours alone (O_EXCL).
+        with contextlib.suppress(OSError):
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return fh, candidate
+    raise FileExistsError(f"{path}: no free name among {attempts} tried")
+
+
+def is_being_written(path: str | Path) -> bool:
+    """True while a live recorder holds `path` (its flock); a crashed writer's lock is gone."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+    return False
+
+
 class Recorder:
-    """Owns one MCAP file. `put` is the only call the loop makes per tick."""
+    """Owns one MCAP file. `put` is the only call the loop makes per tick.
+
+    `path` is the name wanted; `self.path` the name used (see `open_new_log`)."""
 
     def __init__(self, path: str | Path, *, flush_s: float = 1.0, compression: str = "zstd",
                  max_queue: int = 20000) -> None:
@@ -51,7 +90,7 @@ class Recorder:
         self._q: queue.SimpleQueue = queue.SimpleQueue()
         self.overflowed = False
         self.flushed_messages = 0  # messages known to be on disk (fsynced)
-        self._file = open(self.path, "wb")  # noqa: SIM115 - closed by the writer thread
+        self._file, self.path = open_new_log(self.path)
         self._writer = Writer(self._file, chunk_size=256 * 1024, compression=_COMPRESSION[compression])
         self._writer.start(profile="", library=f"indentation-rig/{__version__}")
         self._channels: dict[str, int] = {}
@@ -63,6 +102,7 @@ class Recorder:
         self.flushes = 0
         self.error: BaseException | None = None
         self._closed = False
+        self.unfinished = ""  # why close() returned before the log was finished
         self._busy = False
         self.thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
         self.thread.start()
@@ -104,15 +144,22 @@ class Recorder:
     def attach(self, name: str, media_type: str, data: bytes, log_time_ns: int) -> None:
         self._q.put(("__attachment__", (name, media_type, log_time_ns), data))
 
-    def close(self, outcome: dict[str, str] | None = None, timeout_s: float = 30.0) -> None:
-        """Write the outcome, finish the file (summary, footer) and fsync. Safe to call twice."""
-        if self._closed:
-            return
-        self._closed = True
-        if outcome is not None:
-            self.write_metadata("outcome", outcome)
-        self._q.put(_STOP)
-        self.thread.join(timeout_s if self.error is None else 1.0)
+    def close(self, outcome: dict[str, str] | None = None, timeout_s: float = 30.0) -> bool:
+        """Write the outcome, finish the file (summary, footer) and fsync. Safe to call twice.
+
+        False when the log is not finished: the writer failed, or is still writing after
+        `timeout_s` (then `unfinished` says so and the log stays locked until it is done)."""
+        if not self._closed:
+            self._closed = True
+            if outcome is not None:
+                self.write_metadata("outcome", outcome)
+            self._q.put(_STOP)
+            self.thread.join(timeout_s if self.error is None else 1.0)
+            if self.thread.is_alive():
+                self.unfinished = (f"the log was not finished within {timeout_s:g} s (the disk is slow or "
+                                   f"blocked; {self.depth()} messages still queued): {self.path} may end "
+                                   "without its outcome")
+        return self.error is None and not self.unfinished
 
     # --------------------------------------------------------------- writer
     def _run(self) -> None:

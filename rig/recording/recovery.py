@@ -3,10 +3,16 @@
 A crashed writer leaves an MCAP file without summary or footer. `recover` copies every
 record that can still be read into a new, finished file with an `outcome` record
 marked `interrupted`, checks the copy, and only then replaces the original.
+
+A log without a footer may also be one a live process is writing right now (a trial of
+another daemon or of `rig run` in the same folder): its recorder holds an flock on it, and
+such a file is never touched here.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 from dataclasses import dataclass
@@ -19,6 +25,7 @@ from mcap.writer import CompressionType, Writer
 from rig.errors import RigError
 from rig.recording.logs import read_log
 from rig.recording.messages import SCHEMAS
+from rig.recording.recorder import is_being_written
 
 
 @dataclass
@@ -52,16 +59,54 @@ def is_finished(path: Path) -> bool:
         return False
 
 
-def find_unfinished(out_dir: str | Path) -> list[Path]:
+def find_unfinished(out_dir: str | Path, *, in_use: list[Path] | None = None) -> list[Path]:
+    """Logs left unfinished by a writer that is gone. Those a live process is still writing
+    are left out (and appended to `in_use` when given, so the caller can say so)."""
     out = Path(out_dir)
     if not out.is_dir():
         return []
-    return sorted(p for p in out.glob("*.mcap") if not is_finished(p))
+    found = []
+    for p in sorted(out.glob("*.mcap")):
+        if is_finished(p):
+            continue
+        if is_being_written(p):
+            if in_use is not None:
+                in_use.append(p)
+            continue
+        found.append(p)
+    return found
+
+
+class LogInUse(RigError):
+    """The log is being written by a live process: recovery leaves it alone."""
 
 
 def recover(path: str | Path) -> Path:
-    """Rewrite an unfinished log as a finished one; the original stays until the copy verifies."""
+    """Rewrite an unfinished log as a finished one; the original stays until the copy verifies.
+    `LogInUse` if a live process is writing it (its lock is held); the file is not touched."""
     path = Path(path)
+    with _recovering(path):
+        return _recover(path)
+
+
+@contextlib.contextmanager
+def _recovering(path: Path):
+    """The log's lock for the whole rewrite: a live writer, or a second recovery, keeps it out."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError as exc:
+        raise RigError(f"{path}: cannot open: {exc.strerror}") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise LogInUse(f"{path} is being written by a live process: left as it is") from None
+        yield
+    finally:
+        os.close(fd)
+
+
+def _recover(path: Path) -> Path:
     log = read_log(path, keep_raw=True)
     tmp = path.with_suffix(".mcap.recovering")
     with open(tmp, "wb") as fh:
@@ -121,7 +166,8 @@ def list_trials(out_dir: str | Path) -> list[TrialEntry]:
         entries.append(TrialEntry(
             path=path, start_time=trial.get("start_time", ""), specimen=trial.get("specimen", ""),
             protocol=trial.get("protocol_name", ""), duration_s=duration,
-            outcome=outcome.get("outcome", "?") if outcome else "interrupted",
+            outcome=outcome.get("outcome", "?") if outcome else
+            "running" if is_being_written(path) else "interrupted",
             recovered=bool(outcome and outcome.get("recovered") == "true"),
             requested_by=trial.get("requested_by", "")))
     entries.sort(key=lambda e: (e.start_time, str(e.path)), reverse=True)

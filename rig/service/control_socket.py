@@ -13,6 +13,7 @@ import contextlib
 import json
 import os
 import socket
+import stat
 import threading
 import time
 from collections.abc import Callable
@@ -31,6 +32,27 @@ def send(conn: socket.socket, obj: dict) -> bool:
         return True
     except OSError:
         return False
+
+
+def private_dir(path: Path) -> Path:
+    """`path`, a directory owned by this user and closed to group and others (made 0700 if
+    absent); `RigError` saying what is wrong otherwise."""
+    with contextlib.suppress(FileExistsError):
+        os.mkdir(path, 0o700)
+    try:
+        st = os.lstat(path)
+    except OSError as exc:
+        raise RigError(f"socket directory {path}: {exc.strerror}") from None
+    if not stat.S_ISDIR(st.st_mode):
+        raise RigError(f"socket directory {path} is not a directory (a symlink or file is in its place); "
+                       "remove it, or set XDG_RUNTIME_DIR or --socket")
+    if st.st_uid != os.geteuid():
+        raise RigError(f"socket directory {path} belongs to user {user_name(st.st_uid)}, not to you: another "
+                       "user could serve a socket there; remove it, or set XDG_RUNTIME_DIR or --socket")
+    if st.st_mode & 0o022:
+        raise RigError(f"socket directory {path} is writable by group or others (mode "
+                       f"{stat.S_IMODE(st.st_mode):04o}); chmod 700 it, or set XDG_RUNTIME_DIR or --socket")
+    return path
 
 
 class ControlSocket:

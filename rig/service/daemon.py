@@ -21,6 +21,7 @@ import os
 import signal
 import socket
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import asdict
@@ -34,7 +35,7 @@ from rig.control.trial import Snapshot, Trial, TrialResult, default_log_path
 from rig.errors import RigError
 from rig.recording.recorder import TrialInfo
 from rig.recording.recovery import find_unfinished, list_trials, recover
-from rig.service.control_socket import ControlSocket, send
+from rig.service.control_socket import ControlSocket, private_dir, send
 from rig.service.sdnotify import Watchdog, healthy, notify, watchdog_interval_s
 from rig.specs.config import RigConfig
 from rig.specs.protocol import check_limits, parse_protocol
@@ -47,8 +48,12 @@ def default_socket_path(config: RigConfig | None = None) -> Path:
         return Path(env)
     if os.geteuid() == 0:
         return Path("/run/rig/rigd.sock")
-    runtime = os.environ.get("XDG_RUNTIME_DIR") or f"/tmp/rig-{os.geteuid()}"
-    return Path(runtime) / "rig" / "rigd.sock"
+    if runtime := os.environ.get("XDG_RUNTIME_DIR"):
+        return Path(runtime) / "rig" / "rigd.sock"
+    # A shared temporary directory: whoever made rig-UID first owns it, so it must be ours and
+    # closed to others, or another user could serve a socket of their own in its place.
+    fallback = private_dir(Path(tempfile.gettempdir()) / f"rig-{os.geteuid()}")
+    return fallback / "rig" / "rigd.sock"
 
 
 class RequestError(Exception):
@@ -84,22 +89,20 @@ class Daemon:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
-        """Recover crashed logs, open the devices, listen; READY=1 for systemd."""
+        """Listen, open the devices, then recover crashed logs; READY=1 for systemd.
+
+        In this order: a second daemon finds the socket (or the devices) taken before it
+        touches a log, and the logs left unfinished are recovered only by the owner of both."""
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        for path in find_unfinished(self.out_dir):
-            try:
-                recover(path)
-                self.recovered.append(str(path))
-                self.say(f"recovered interrupted trial log {path}")
-            except RigError as exc:
-                self.say(f"could not recover {path}: {exc}")
         self.server.listen()
         try:
             self.devices = open_devices(self.config, RealClock(self.config.loop.spin_ms / 1000.0), speed=1.0,
-                                        spy_path=self.spy_path)
+                                        spy_path=self.spy_path,
+                                        holder_note=f"a rig daemon serving {self.socket_path}")
         except BaseException:
             self.server.close()
             raise
+        self._recover_logs()
         self.say(f"devices: {self.devices.description}")
         if self.config.daemon.live is not None:
             from rig.service.live import LiveView
@@ -117,6 +120,18 @@ class Daemon:
         if interval:
             self.watchdog = Watchdog(interval, self._healthy).start()
         notify(f"READY=1\nSTATUS=idle; socket {self.socket_path}")
+
+    def _recover_logs(self) -> None:
+        in_use: list[Path] = []
+        for path in find_unfinished(self.out_dir, in_use=in_use):
+            try:
+                recover(path)
+                self.recovered.append(str(path))
+                self.say(f"recovered interrupted trial log {path}")
+            except RigError as exc:
+                self.say(f"could not recover {path}: {exc}")
+        for path in in_use:
+            self.say(f"left {path} alone: another process is writing it")
 
     def _busy(self) -> bool:
         return self.trial is not None and self.trial_thread is not None and self.trial_thread.is_alive()
@@ -178,7 +193,8 @@ class Daemon:
                      "recovered": self.recovered}
         if running:
             snap = t.snapshot
-            out.update(snapshot=asdict(snap), trial=self.trial_meta)
+            # the log's name as the recorder took it (another run may have had the one planned)
+            out.update(snapshot=asdict(snap), trial={**self.trial_meta, "log": str(t.log_path)})
             if snap.fault:
                 out["state"] = "fault"
         else:
