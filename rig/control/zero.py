@@ -116,3 +116,27 @@ def measure_zero(loadcell: LoadCell, duration_s: float) -> tuple[float, int, flo
     mean = sum(values) / len(values)
     std = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1))
     return mean, len(values), std
+
+
+def tare(config: RigConfig, seconds: float = 1.0) -> dict:
+    """`rig tare`: measure the load cell with the probe out of contact and save it as its zero.
+
+    The probe must not touch anything: this is what every later trial counts a preload from.
+    """
+    from rig.clock import RealClock
+    from rig.control.devices import open_devices
+
+    if config.loadcell.backend == "none":
+        raise RigError("rig tare: loadcell.backend is none: there is no load cell to zero")
+    if not seconds > 0:
+        raise RigError(f"rig tare: --seconds must be positive, got {seconds:g}")
+    dev = open_devices(config, RealClock(), speed=1.0)
+    try:
+        mean, n, std = measure_zero(dev.loadcell, seconds)
+        before = saved_zero(config)
+    finally:
+        dev.close()
+    path = save_zero(config, mean, n, std)
+    return {"zero_N": mean, "readings": n, "std_N": std, "path": str(path), "cell": cell_key(config),
+            "previous_N": before.value_N if before else None,
+            "config_zero_N": config.loadcell.zero_N}
