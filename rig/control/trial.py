@@ -188,6 +188,11 @@ class Trial:
             self._stop_now(received)
         return ticket
 
+    @property
+    def phase(self) -> str:
+        """starting, running, closing or ended."""
+        return self._phase
+
     def _stop_now(self, received: float, timeout_s: float = 1.0) -> None:
         """Send STOP from this thread while the loop is not running, and settle every waiting
         ticket with the drive's answer. If the loop starts meanwhile, it has the request."""

@@ -118,7 +118,8 @@ def sigint_handler(trial: Trial) -> Callable:
 
 class CtrlCNotices:
     """Tells the operator what a Ctrl-C does, from a thread of its own (the handler must not
-    print); and once the loop is over, a Ctrl-C it did not see still sends STOP."""
+    print). While the loop ticks, it carries the Ctrl-C out; while the trial starts or closes
+    its log, this thread sends the stop at once; after the trial, the slider gets a STOP."""
 
     def __init__(self, trial: Trial, say: Callable[[str], None]) -> None:
         self.trial = trial
@@ -131,24 +132,29 @@ class CtrlCNotices:
         self._thread.start()
 
     def _run(self) -> None:
-        while not self._done.wait(0.05):
+        while not self._done.wait(0.02):
             self._tell()
 
     def _tell(self) -> None:
         mode = self.trial.signal_stop
-        if mode is not self._told:
-            self._told = mode
-            self.say("\nabort: stopping, then returning to the start position (Ctrl-C again stops the "
-                     "motor at once)" if mode is StopMode.ABORT else "\nemergency stop")
+        if mode is self._told:
+            return
+        self._told = mode
+        self.say("\nabort: stopping, then returning to the start position (Ctrl-C again stops the "
+                 "motor at once)" if mode is StopMode.ABORT else "\nemergency stop")
+        if self.trial.phase != "running":  # no tick to read the flag: stop from here
+            ticket = self.trial.request_stop(mode, user="console")
+            if ticket.trial_over:
+                try:
+                    self.trial.slider.stop()
+                except RigError as exc:  # the drive's communication timeout is the backstop
+                    self.say(f"STOP not sent: {exc}")
 
     def stop(self) -> None:
         self._done.set()
         if self._thread.is_alive():
             self._thread.join(1.0)
-        trial = self.trial
         self._tell()
-        if trial.signal_stop is not None and trial.signal_stop is not trial.signal_handled:
-            trial.request_stop(trial.signal_stop, user="console")  # the loop had ended: at once
 
 
 def _stderr(text: str) -> None:
