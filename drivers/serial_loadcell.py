@@ -5,8 +5,9 @@ the loop asks; the reply arrives before the next tick). A reader thread parses e
 line; the loop only ever takes the newest reading and its age, so it never blocks on
 the port. Garbage, partial and out-of-range lines are counted and skipped; a port that
 disappears is reopened, and the readings' age tells the loop the sensor is silent.
-A line beyond the cell's range (`max_abs_N`) is not skipped: it becomes the newest
-reading, flagged `over_range`, so the loop stops on an overload at once.
+A line beyond the cell's range (`max_abs_N`) is not skipped: it is kept, flagged
+`over_range`, until the loop has taken it (a good line right after it does not hide it), so
+the loop stops on an overload at once.
 """
 
 from __future__ import annotations
@@ -98,6 +99,8 @@ class SerialLoadCell:
         self.stats = LinkStats()
         self.last_rejected = ""
         self._latest: ForceReading | None = None
+        self._over_range: ForceReading | None = None  # kept until the loop has seen it
+        self._latest_lock = threading.Lock()  # the reader and the loop, for a few bytecodes
         self._stop = threading.Event()
         self._serial = self._open()
         self._write_lock = threading.Lock()
@@ -123,7 +126,8 @@ class SerialLoadCell:
     def latest(self) -> ForceReading | None:
         if self.mode == "poll":
             self._send_request()
-        r = self._latest
+        with self._latest_lock:
+            r, self._over_range = self._over_range or self._latest, None
         if r is None:
             return None
         return ForceReading(r.force_N, r.t_s, self._now() - r.t_s, r.over_range)
@@ -177,12 +181,16 @@ class SerialLoadCell:
             if exc.out_of_range:
                 self.stats.out_of_range += 1
                 self.last_rejected = str(exc)
-                self._latest = ForceReading(exc.force_N, self._now(), 0.0, over_range=True)
+                over = ForceReading(exc.force_N, self._now(), 0.0, over_range=True)
+                with self._latest_lock:
+                    self._latest = self._over_range = over
                 return
             self._reject(str(exc))
             return
         self.stats.lines_ok += 1
-        self._latest = ForceReading(force, self._now(), 0.0)
+        reading = ForceReading(force, self._now(), 0.0)
+        with self._latest_lock:
+            self._latest = reading
 
     def _reject(self, why: str) -> None:
         self.stats.lines_bad += 1

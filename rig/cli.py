@@ -192,6 +192,19 @@ def cmd_reset_alarm(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_tare(args: argparse.Namespace) -> int:
+    from rig.control.zero import tare
+    from rig.specs.config import load_config
+
+    r = tare(load_config(args.config), args.seconds)
+    was = "" if r["previous_N"] is None else f"; it was {r['previous_N']:+.4f} N"
+    print(f"load cell {r['cell']}: zero {r['zero_N']:+.4f} N (std {r['std_N']:.4f} N, {r['readings']} "
+          f"readings) saved in {r['path']}{was}")
+    if r["config_zero_N"] is not None:
+        print(f"note: the config's loadcell.zero_N ({r['config_zero_N']:g} N) takes precedence over it")
+    return 0
+
+
 def cmd_home(args: argparse.Namespace) -> int:
     from rig.control.manual import move
     from rig.specs.config import load_config
@@ -502,6 +515,16 @@ def build_parser() -> argparse.ArgumentParser:
     _rig_config(r)
     r.add_argument("--socket", help="ask the daemon on this control socket instead")
     r.set_defaults(func=cmd_reset_alarm)
+
+    r = sub.add_parser("tare", help="measure the load cell's free-air zero (probe out of contact) and save it",
+                       description="Average the load cell with nothing touching the probe and save it as "
+                                   "its free-air zero (in recorder.out_dir, keyed by the load cell). Every "
+                                   "later trial, `rig run` or the daemon's, counts the force the tissue "
+                                   "carries from it: a trial started in contact knows its preload, and a "
+                                   "preload beyond limits.max_preload_share of the force limit is refused.")
+    _rig_config(r)
+    r.add_argument("--seconds", type=float, default=1.0, help="how long to average (default 1 s)")
+    r.set_defaults(func=cmd_tare)
 
     r = sub.add_parser("home", help="run the drive's return-to-home operation")
     _rig_config(r)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from rig.control.safety import TickState, check
@@ -33,3 +35,13 @@ def test_each_limit(change, kind):
 def test_limits_are_inclusive():
     assert check(TickState(**{**OK, "force_N": 10.0, "position_abs_mm": 45.0,
                                "speed_mm_s": 15.0, "loadcell_age_s": 0.1}), LIM) is None
+
+
+@pytest.mark.parametrize("source", ["estimated", "measured"])
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
+def test_a_force_that_is_not_a_number_is_a_fault(source, value):
+    """On a rig without a load cell the force is a model's: a NaN from it compared False with
+    the limit and switched the limit off."""
+    fault = check(TickState(**{**OK, "force_N": value, "force_source": source}), LIM)
+    assert fault is not None and fault.kind == "force_invalid"
+    assert fault.message.endswith("the force limit cannot be checked")

@@ -81,7 +81,6 @@ def test_faulted_refuses_every_request(mode):
 
 
 @pytest.mark.parametrize(("first", "second"), [(StopMode.ABORT, StopMode.ABORT),
-                                               (StopMode.ABORT, StopMode.HALT),
                                                (StopMode.HALT, StopMode.ABORT),
                                                (StopMode.ESTOP, StopMode.HALT)])
 def test_a_second_request_other_than_estop_is_refused(first, second):
@@ -90,6 +89,17 @@ def test_a_second_request_other_than_estop_is_refused(first, second):
     phase = e.phase
     assert e.on_request(second, 2.0) == f"already stopping ({first.value} in progress)"
     assert (e.phase, e.mode, e.since_t) == (phase, first, 1.0)
+
+
+def test_a_hold_during_an_abort_cuts_the_return_short():
+    """It used to be refused inside the machine while the loop answered it 'ok': the operator
+    was told the slider held when it went on returning."""
+    e = Ending()
+    e.on_request(StopMode.ABORT, 1.0)
+    assert e.on_request(StopMode.HALT, 2.0) is None
+    stopped(e, 2.0)
+    assert (e.phase, e.mode, e.since_t) == (Phase.STOPPING, StopMode.HALT, 2.0)
+    assert e.result(2.5, SETTLE_S, protocol_done=False) == ("stopped", None)
 
 
 @pytest.mark.parametrize("mode", [None, StopMode.HALT, StopMode.ABORT])

@@ -8,6 +8,7 @@ every path that moves the slider goes through (protocol steps, the abort return,
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -17,7 +18,7 @@ from rig.specs.config import LimitsConfig
 
 @dataclass(frozen=True)
 class TickState:
-    force_N: float
+    force_N: float  # what the limit applies to: the force the tissue carries (from the free-air zero)
     position_abs_mm: float  # slider coordinates (the travel window is in these)
     speed_mm_s: float | None  # from the last two fresh positions; None: not measurable this tick
     loadcell_age_s: float | None  # None: no reading yet
@@ -25,6 +26,7 @@ class TickState:
     force_over_range: bool = False  # the load cell reported a force beyond its range
     raw_force_N: float = 0.0  # the untared value the cell reported
     force_source: str = "measured"  # or "estimated": the model's force on a rig without a load cell
+    preload_N: float = 0.0  # of force_N, what the probe already carried when the trial was tared
 
 
 @dataclass(frozen=True)
@@ -43,10 +45,15 @@ def check(state: TickState, limits: LimitsConfig) -> Fault | None:
     if state.loadcell_age_s is None or state.loadcell_age_s > stale_s:
         age = "no reading" if state.loadcell_age_s is None else f"{state.loadcell_age_s * 1000:.0f} ms"
         return Fault("loadcell_stale", f"load cell silent ({age}; limit {limits.loadcell_stale_ms:g} ms)")
+    if not math.isfinite(state.force_N):  # NaN compares False with any limit: it would switch it off
+        what = "measured" if state.force_source == "measured" else "estimated (the model's)"
+        return Fault("force_invalid", f"{what} force is {state.force_N}: the force limit cannot be checked")
     if state.force_N > limits.max_force_N:
         what = "force" if state.force_source == "measured" else \
             f"estimated force x (1 + margin {limits.model_force_margin:g})"
-        return Fault("force_limit", f"{what} {state.force_N:.3f} N above the limit of {limits.max_force_N:g} N")
+        pre = f" ({state.preload_N:.3f} N of it preload at the start)" if state.preload_N else ""
+        return Fault("force_limit", f"{what} {state.force_N:.3f} N above the limit of {limits.max_force_N:g} N"
+                                    + pre)
     lo, hi = limits.travel_mm
     if not lo <= state.position_abs_mm <= hi:
         return Fault("travel", f"position {state.position_abs_mm:.3f} mm outside the travel "

@@ -3,11 +3,15 @@
     RUNNING   --fault-->                 FAULTED
     RUNNING   --abort-->                 RETURNING   (back to the start at a safe speed)
     RUNNING   --estop | halt-->          STOPPING
-    RETURNING --estop-->                 STOPPING    (an estop may cut a return short)
+    RETURNING --estop | halt-->          STOPPING    (either cuts a return short: stop and stay)
     RETURNING | STOPPING --fault-->      FAULTED
     any       --STOP unconfirmed-->      FAULTED     (the drive's comm timeout is the backstop)
     FAULTED   --any request-->           refused: already stopped by a fault
-    RETURNING | STOPPING --abort|halt--> refused: already stopping
+    RETURNING --abort-->                 refused: already returning
+    STOPPING  --abort | halt-->          refused: already stopping
+
+A refused request is answered as refused, with the reason: the operator is never told that
+something was done that was not.
 
 It ends FAULTED or STOPPING once `settle_s` has passed since the fault or the request and the
 drive has confirmed the STOP (or the wait for that ran out); RUNNING or RETURNING once the
@@ -76,7 +80,8 @@ class Ending:
         """Take an operator's request; the reason when it is refused."""
         if self.phase is Phase.FAULTED:
             return f"already stopped by a fault: {self.fault.message}"
-        if self.mode is not None and mode is not StopMode.ESTOP:
+        cuts_return = self.phase is Phase.RETURNING and mode is StopMode.HALT
+        if self.mode is not None and mode is not StopMode.ESTOP and not cuts_return:
             return f"already stopping ({self.mode.value} in progress)"
         self.mode, self.since_t = mode, t
         self.phase = Phase.RETURNING if mode is StopMode.ABORT else Phase.STOPPING

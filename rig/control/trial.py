@@ -36,6 +36,7 @@ from rig.control.movewatch import MoveWatch
 from rig.control.safety import Fault, SpeedMeter, TickState, check, check_move
 from rig.control.sequencer import Move, Sequencer, Stop
 from rig.control.stopping import Ending, StopMode
+from rig.control.zero import Zero, known_zero
 from rig.drivers.base import LinkStats, LoadCell, Slider, SliderStatus
 from rig.errors import DeviceError, RigError
 from rig.models.online import OnlineModel
@@ -63,6 +64,7 @@ class Snapshot:
     log_path: str = ""
     fault: str = ""
     force_model_N: float | None = None  # the loaded model's force, when one runs in the loop
+    preload_N: float = 0.0  # force the probe carried at the tare: force_N + preload_N is absolute
 
 
 @dataclass
@@ -79,15 +81,18 @@ class TrialResult:
 
 
 class StopTicket:
-    """The answer to a stop request: set by the loop once the STOP was sent (or could not be)."""
+    """The answer to a stop request: set once the STOP was sent (or could not be, or was refused)."""
 
     def __init__(self, mode: StopMode) -> None:
         self.mode = mode
         self.done = threading.Event()
         self.acknowledged = False  # the drive acknowledged the STOP write
         self.message = ""
+        self.trial_over = False  # the trial had ended: nothing was done, the caller stops it itself
 
     def settle(self, acknowledged: bool, message: str) -> None:
+        if self.done.is_set():  # the first answer is the one the caller may already have read
+            return
         self.acknowledged, self.message = acknowledged, message
         self.done.set()
 
@@ -103,7 +108,10 @@ class Trial:
 
     def __init__(self, proto: Protocol, config: RigConfig, slider: Slider, loadcell: LoadCell,
                  clock: Clock, log_path: Path, info: TrialInfo | None = None,
-                 *, start_mm: float | None = None, model: SavedModel | None = None) -> None:
+                 *, start_mm: float | None = None, model: SavedModel | None = None,
+                 zero: Zero | None = None) -> None:
+        """`zero`: the load cell's free-air zero an earlier trial used (a daemon remembers it);
+        a configured or `rig tare`-saved zero takes precedence (`rig.control.zero`)."""
         self.proto = proto
         self.config = config
         self.limits = proto.effective_limits(config.limits)
@@ -118,6 +126,16 @@ class Trial:
         self._stop_request: tuple[StopMode, str, float, StopTicket] | None = None
         self._tickets: list[StopTicket] = []
         self._lock = threading.Lock()
+        # starting -> running -> closing -> ended. While running, the loop thread owns the bus
+        # and carries out stops on its next tick; at any other time a stop goes out at once from
+        # the requesting thread, under this lock (the trial thread holds it for its own bus use).
+        self._phase = "starting"
+        self._bus_lock = threading.Lock()
+        # Set by a signal handler (plain assignment, no lock): the loop turns it into a request.
+        self.signal_stop: StopMode | None = None
+        self.signal_handled: StopMode | None = None
+        self.zero: Zero | None = (known_zero(config) if loadcell is not None else None) or zero
+        self.preload_N: float | None = None  # known once the tare is done
         self.snapshot = Snapshot(steps_total=len(proto.run_steps()), log_path=str(log_path))
         est = config.estimator
         self.rls = StiffnessRLS.from_config(est, self.rate)
@@ -134,25 +152,71 @@ class Trial:
             raise RigError(f"{proto.source_path}: an approach step finds contact by force: it needs a "
                            "load cell")
         self.live = None  # a rig.service.live.LiveView publishing the same messages, if any
+        self.warnings: list[str] = []
+        if loadcell is not None and self.zero is None:
+            self.warnings.append(
+                "no free-air zero known for the load cell: this trial's tare is assumed to be taken "
+                "out of contact, so a preload at the start would not count against the force limit "
+                "(`rig tare` with the probe out of contact, or loadcell.zero_N, fixes that)")
         self._seq = self._late = self._missed = 0
         self._tick_times: list[float] = []
 
     # ------------------------------------------------------------- control
     def request_stop(self, mode: StopMode = StopMode.ABORT, user: str = "",
                      received_s: float | None = None) -> StopTicket:
-        """Thread-safe; the loop carries it out on its next tick (the loop thread owns the bus).
+        """Thread-safe, at any moment of the trial's life. While the loop runs, it carries the
+        request out on its next tick (it owns the bus); while the trial starts or closes, the
+        STOP goes out at once from here (and a trial that has not ticked yet also honours the
+        request on its first tick, so nothing moves). Not from a signal handler: it takes locks
+        (set `signal_stop` instead).
 
         `received_s` is when the request arrived (time.monotonic()); the stop event records the
         latency from then to the stop command acknowledged on the bus. The ticket tells the
         caller when the STOP went out and whether the drive acknowledged it.
         """
         ticket = StopTicket(mode)
+        received = received_s if received_s is not None else time.monotonic()
         with self._lock:
+            phase = self._phase
+            if phase == "ended":
+                ticket.trial_over = True
+                ticket.settle(False, "the trial has ended")
+                return ticket
             self._tickets.append(ticket)
             if self._stop_request is None or mode == StopMode.ESTOP:
-                self._stop_request = (mode, user, received_s if received_s is not None else time.monotonic(),
-                                      ticket)
+                self._stop_request = (mode, user, received, ticket)
+        if phase != "running":
+            self._stop_now(received)
         return ticket
+
+    @property
+    def phase(self) -> str:
+        """starting, running, closing or ended."""
+        return self._phase
+
+    def _stop_now(self, received: float, timeout_s: float = 1.0) -> None:
+        """Send STOP from this thread while the loop is not running, and settle every waiting
+        ticket with the drive's answer. If the loop starts meanwhile, it has the request."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            if self._bus_lock.acquire(timeout=0.005):
+                try:  # holding the bus lock, the loop cannot be running
+                    phase = self._phase
+                    ok = self._safe_stop()
+                finally:
+                    self._bus_lock.release()
+                latency_ms = round((time.monotonic() - received) * 1000.0, 3)
+                when = "before its first tick" if phase == "starting" else "while it closed its log"
+                self._settle_tickets(ok, f"STOP sent in {latency_ms:g} ms ({when}), acknowledged by the drive"
+                                     if ok else f"STOP sent ({when}) but not acknowledged by the drive (the "
+                                     "drive's communication timeout is the backstop)")
+                return
+            with self._lock:
+                if self._phase == "running":
+                    return  # the loop took the bus: it carries the request out on its next tick
+            if time.monotonic() > deadline:
+                self._settle_tickets(False, f"STOP not sent: the bus stayed busy for {timeout_s:g} s")
+                return
 
     def _take_stop_request(self) -> tuple[StopMode, str, float, StopTicket] | None:
         with self._lock:
@@ -169,8 +233,16 @@ class Trial:
     # ------------------------------------------------------------- the run
     def run(self) -> TrialResult:
         """Check the limits from where the slider is, then run; `LimitError` before anything moves."""
+        try:
+            return self._run()
+        finally:
+            with self._lock:  # the caller may hand the devices to others now: no more bus use here
+                self._phase = "ended"
+
+    def _run(self) -> TrialResult:
         cfg = self.config
-        start = self.slider.position()
+        with self._bus_lock:
+            start = self.slider.position()
         if not start.fresh:
             raise DeviceError("cannot read the slider's position: not starting")
         if self._start_mm is None:
@@ -206,6 +278,9 @@ class Trial:
             self._prime_loadcell()
         t0 = self._t0 = self.clock.now()
         outcome, fault_msg = "completed", None
+        self._bus_lock.acquire()
+        with self._lock:
+            self._phase = "running"
         try:
             outcome, fault_msg = self._loop(rec, t0)
         except BaseException as exc:  # a bug or a lost device: stop first, then record it
@@ -216,9 +291,9 @@ class Trial:
             if not isinstance(exc, Exception):
                 raise
         finally:
+            self._leave_loop()
             if rt is not None:
                 rt.leave()
-            self._settle_tickets(False, f"the trial ended ({outcome}) before the stop was carried out")
             t_end = self.clock.now() - t0
             if rec.failure and outcome != "fault":
                 outcome, fault_msg = "fault", rec.failure
@@ -247,6 +322,16 @@ class Trial:
                            np.abs(periods - self.period) * 1000.0,
                            self.slider.stats.transactions)
 
+    def _leave_loop(self) -> None:
+        """From now on stops go out at once; one that came after the loop's last tick goes now."""
+        with self._lock:
+            self._phase = "closing"
+            waiting = any(not t.done.is_set() for t in self._tickets)
+            req = self._stop_request
+        self._bus_lock.release()
+        if waiting:
+            self._stop_now(req[2] if req is not None else time.monotonic())
+
     def _prime_loadcell(self, timeout_s: float = 3.0) -> None:
         """Wait (real time) for a reading taken after now: a polled cell answers only after a
         request, and a reading left over from an earlier trial must not pass as fresh."""
@@ -272,7 +357,10 @@ class Trial:
             "python": sys.version.split()[0], "start_mm": f"{self._start_mm:.4f}",
             "realtime": self.realtime.describe() if self.realtime else "",
             "force_source": "load cell" if self.loadcell is not None else "model (no load cell)",
-            "model": self.model.model.name if self.model is not None else "", **info.extra,
+            "model": self.model.model.name if self.model is not None else "",
+            "loadcell_zero_N": "" if self.zero is None else f"{self.zero.value_N:.6g}",
+            "loadcell_zero_source": "" if self.loadcell is None else self.zero.source if self.zero else
+            "none known: the tare is assumed to be taken out of contact", **info.extra,
         })
         rec.attach("protocol.yaml", "application/yaml", self.proto.source_text.encode(), now_ns)
         rec.attach("config.yaml", "application/yaml", self.config.text().encode(), now_ns)
@@ -318,6 +406,10 @@ class Trial:
             online.reset()
         status = SliderStatus(True, False, True, False)
         tare_sum, tare_n, tare_N = 0.0, 0, 0.0
+        taring = cell is not None  # averaging the tare until tare_s, then judging its preload once
+        zero_N = self.zero.value_N if self.zero is not None else None
+        preload_N = 0.0
+        tol_mm = cfg.slider.position_tolerance_mm
         speedometer = SpeedMeter(2.0 * self.period)
         x_prev_m = 0.0
         ending = Ending()
@@ -369,8 +461,10 @@ class Trial:
             t_log = round(t, 6)
             force_model = online.step(t_log, x_rel_mm / 1000.0) if online is not None else None
             status_fresh = False
+            # A move's arrival needs a fresh "standing still": near its target, read it every tick.
             confirming = ((ending.stop is not None and not ending.stop.confirmed)
-                          or (seq.done and watch is not None))
+                          or (seq.done and watch is not None)
+                          or (watch is not None and pr.fresh and abs(pos - watch.to_mm) <= tol_mm))
             if self._seq % status_every == 0 or confirming:
                 sr = slider.status()
                 status, status_fresh = sr.value, sr.fresh
@@ -381,18 +475,23 @@ class Trial:
             if cell is None:  # no load cell: the model's estimate stands in, and is what is checked
                 raw, age = force_model, 0.0
             self._last_age = age
-            if seq.index < 0 and reading is not None and not reading.over_range and cell is not None:
+            if taring and reading is not None and not reading.over_range:
                 tare_sum += raw  # taring: zero the load cell on the mean of the first tare_s
                 tare_n += 1
                 tare_N = tare_sum / tare_n
-            force = raw - tare_N
+            force = raw - tare_N  # logged and sequenced relative to the tare, as analysis expects
+            if cell is None:
+                checked = force * (1.0 + lim.model_force_margin)
+            elif zero_N is None:
+                checked = force
+            else:  # the force the tissue carries, preload included (never less than the tared one)
+                checked = max(raw - zero_N, force)
 
             # ---- safety first: stop, then explain
             if ending.fault is None:
-                checked = force if cell is not None else force * (1.0 + lim.model_force_margin)
                 found = check(TickState(checked, pos, speed, age, status.alarm_code if status.alarm else 0,
                                         bool(reading and reading.over_range), raw,
-                                        "measured" if cell is not None else "estimated"), lim)
+                                        "measured" if cell is not None else "estimated", preload_N), lim)
                 if found is None and rec.failure:
                     found = Fault("recording", rec.failure)
                 if found is None and seq.fault:
@@ -403,16 +502,41 @@ class Trial:
                         found = Fault("move", why)
                     elif pr.fresh and watch.arrived(pos, moving):
                         watch = None
+                tare_done = found is None and taring and t >= cfg.loop.tare_s
+                if tare_done:  # before the sequencer's first move: a refused preload moves nothing
+                    taring = False
+                    if zero_N is None:
+                        self.zero = Zero(tare_N, assumed=True, source=f"the tare of trial "
+                                         f"'{self.proto.name}' ({self.log_path.name}), assumed out of contact")
+                        zero_N = tare_N
+                    preload_N = self.preload_N = tare_N - zero_N
+                    max_pre = lim.max_preload_share * lim.max_force_N
+                    if abs(preload_N) > max_pre:
+                        found = Fault("preload", (
+                            f"preload {preload_N:.3f} N at the start (tare {tare_N:.3f} N, free-air zero "
+                            f"{zero_N:.3f} N from {self.zero.source}) is beyond {lim.max_preload_share:g} of "
+                            f"the force limit {lim.max_force_N:g} N (limits.max_preload_share): refused "
+                            "before anything moved; retract the probe (or `rig tare` out of contact if "
+                            "the zero is wrong)"))
                 if found is not None:
                     raise_fault(found, t, force, pos)
+                if tare_done:
+                    self._tare_logged(rec, t, tare_N, tare_n, zero_N, preload_N)
 
             # ---- operator stop requests (an estop may follow an abort that is returning)
+            sig = self.signal_stop  # Ctrl-C: the handler only set this
+            if sig is not None and sig is not self.signal_handled:
+                self.signal_handled = sig
+                self.request_stop(sig, user="console")
             req = self._take_stop_request()
             if req is not None:
                 mode, user, received, ticket = req
                 refused = ending.on_request(mode, t)
-                if refused:
-                    ticket.settle(True, refused)
+                if refused and mode is StopMode.ESTOP:  # whatever else is going on, STOP again
+                    ok = send_stop(t)
+                    ticket.settle(ok, f"{refused}; STOP sent again" + ("" if ok else ", not acknowledged"))
+                elif refused:
+                    ticket.settle(False, f"refused: {refused}")
                 else:
                     ok = send_stop(t)
                     sent = time.monotonic()
@@ -443,8 +567,10 @@ class Trial:
 
             # ---- sequence
             if ending.fault is None:
-                was_tare = seq.index < 0
-                for cmd in seq.tick(t, pos, force, moving):
+                # Step decisions only on a fresh position, and a move counts as under way until
+                # its watch saw it arrive on fresh readings: a stale position is no arrival.
+                seq_moving = True if watch is not None else moving
+                for cmd in seq.tick(t, pos, force, seq_moving) if pr.fresh else ():
                     if isinstance(cmd, Move):
                         why = check_move(cmd.to_mm, cmd.speed_mm_s, lim)
                         if why is not None:
@@ -457,9 +583,6 @@ class Trial:
                     elif isinstance(cmd, Stop):
                         watch = None
                         send_stop(t)
-                if was_tare and seq.index >= 0:
-                    self._event(rec, t, "tare", f"tare {tare_N:+.4f} N from {tare_n} readings",
-                                {"tare_N": tare_N, "readings": tare_n})
                 if seq.index != last_step and seq.index >= 0 and not seq.done:
                     step = seq.step
                     self._event(rec, t, "step_start", f"step {seq.index}: {step.kind}",
@@ -495,7 +618,8 @@ class Trial:
                 state=self.snapshot.state, t_s=t, step=seq.index, step_kind=kind,
                 steps_total=len(seq.steps), time_left_s=seq.time_left_s(t), force_N=force,
                 position_mm=x_rel_mm, stiffness_N_per_m=est.stiffness_N_per_m,
-                log_path=str(self.log_path), fault=self.snapshot.fault, force_model_N=force_model)
+                log_path=str(self.log_path), fault=self.snapshot.fault, force_model_N=force_model,
+                preload_N=preload_N)
             if self.on_tick is not None:
                 self.on_tick(self.snapshot)
 
@@ -504,6 +628,18 @@ class Trial:
             done = ending.result(t, self.post_fault_s, seq.done and watch is None)
             if done is not None:
                 return done
+
+    def _tare_logged(self, rec: Recorder, t: float, tare_N: float, readings: int, zero_N: float,
+                     preload_N: float) -> None:
+        """The tare, the zero it was measured against and the preload: force_N + preload_N is
+        the force the tissue carried."""
+        z = self.zero
+        how = ("no free-air zero known: assumed out of contact (preload 0)" if z.assumed and preload_N == 0
+               else f"preload {preload_N:+.4f} N against the zero {zero_N:+.4f} N from {z.source}")
+        data = {"tare_N": tare_N, "readings": readings, "zero_N": zero_N, "preload_N": preload_N,
+                "zero_source": z.source, "zero_assumed": z.assumed}
+        self._event(rec, t, "tare", f"tare {tare_N:+.4f} N from {readings} readings; {how}", data)
+        rec.write_metadata("tare", {k: f"{v:.6g}" if isinstance(v, float) else v for k, v in data.items()})
 
     def _health(self, rec: Recorder, t: float, now: float, mark: int) -> None:
         times = np.asarray(self._tick_times[max(mark - 1, 0):])

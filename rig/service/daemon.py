@@ -75,6 +75,7 @@ class Daemon:
         self.trial: Trial | None = None
         self.trial_thread: threading.Thread | None = None
         self.trial_meta: dict = {}
+        self.zero = None  # the load cell's free-air zero the last trial used: the next one counts from it
         self.last: dict | None = None
         self.beat: float | None = None
         self.recovered: list[str] = []
@@ -243,7 +244,9 @@ class Daemon:
                                                   "warnings": " | ".join(warnings)})
             model = self._model(req)
             trial = Trial(proto, self.config, self.devices.slider, self.devices.loadcell,
-                          RealClock(self.config.loop.spin_ms / 1000.0), log_path, info, model=model)
+                          RealClock(self.config.loop.spin_ms / 1000.0), log_path, info, model=model,
+                          zero=self.zero)
+            warnings = [*warnings, *trial.warnings]
             trial.on_tick = self._on_tick
             trial.live = self.live
             self.trial = trial
@@ -300,6 +303,7 @@ class Daemon:
         sys.setswitchinterval(0.0005)
         try:
             result: TrialResult = trial.run()
+            self.zero = trial.zero or self.zero
             self.last = {"outcome": result.outcome, "log": str(result.log_path), "samples": result.samples,
                          "duration_s": round(result.duration_s, 3), "fault": result.fault,
                          **{k: self.trial_meta[k] for k in ("protocol", "specimen", "user")}}
@@ -323,10 +327,13 @@ class Daemon:
             raise RequestError('stop "mode" must be "abort" (stop, then return) or "hold" (stop and stay)')
         ticket = self._running_trial().request_stop(StopMode(mode), user=user, received_s=received)
         self.say(f"{user} requested stop ({mode})")
+        if ticket.trial_over:
+            raise RequestError("no trial is running (it has just ended)")
         return self._stop_reply(ticket, mode)
 
     def _stop_reply(self, ticket, mode: str) -> dict:
-        """Answer once the loop has sent the STOP: the truth about whether the drive took it."""
+        """Answer once the STOP went out (from the loop's next tick, or at once while the trial
+        starts or closes): the truth about whether the drive took it, or why it was refused."""
         if not ticket.wait(1.0):
             raise RequestError(f"{mode}: the trial's loop did not send the STOP within 1 s")
         if not ticket.acknowledged:
@@ -335,14 +342,26 @@ class Daemon:
 
     def cmd_estop(self, req: dict, user: str, received: float) -> dict:
         self.say(f"{user} requested an emergency stop")
-        t = self.trial
-        if self._busy():
-            return self._stop_reply(t.request_stop(StopMode.ESTOP, user=user, received_s=received), "estop")
-        with self._idle_devices("estop: could not reach the drive (the devices stayed busy for 1 s)") as dev:
-            try:
-                ok = dev.slider.stop()
-            except RigError as exc:
-                raise RequestError(f"estop: STOP not sent: {exc}") from None
+        # A trial owns the bus from its thread's start to its end: ask it (it sends at once when
+        # its loop is not ticking); otherwise take the idle devices. Re-checked until one of the
+        # two answers, so an estop that meets a trial starting or ending is never turned away.
+        deadline = time.monotonic() + 1.0
+        while True:
+            t = self.trial
+            if self._busy():
+                ticket = t.request_stop(StopMode.ESTOP, user=user, received_s=received)
+                if not ticket.trial_over:
+                    return self._stop_reply(ticket, "estop")
+            if self.dev_lock.acquire(timeout=0.01):
+                break
+            if time.monotonic() > deadline:
+                raise RequestError("estop: could not reach the drive (the devices stayed busy for 1 s)")
+        try:
+            ok = self.devices.slider.stop()
+        except RigError as exc:
+            raise RequestError(f"estop: STOP not sent: {exc}") from None
+        finally:
+            self.dev_lock.release()
         if not ok:
             raise RequestError(f"estop: the drive did not acknowledge STOP "
                                f"({getattr(self.devices.slider, 'last_error', '')})")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import signal
 import sys
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -76,38 +77,84 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None
             raise
         trial.live = live
         (warn or _stderr)(f"live view: {live.url} (Foxglove: open connection, Foxglove WebSocket)")
+    for w in trial.warnings:
+        (warn or _stderr)(w)
     if opts.on_start is not None:
         opts.on_start(trial, devices)
-    presses = 0
-
-    def on_sigint(signum, frame):  # first Ctrl-C: abort and retract; second: stop the motor now
-        nonlocal presses
-        presses += 1
-        mode = StopMode.ABORT if presses == 1 else StopMode.ESTOP
-        if presses == 1:
-            print("\nabort: stopping, then returning to the start position "
-                  "(Ctrl-C again stops the motor at once)", file=sys.stderr)
-        else:
-            print("\nemergency stop", file=sys.stderr)
-        trial.request_stop(mode, user="console")
-
-    old = signal.signal(signal.SIGINT, on_sigint) if _main_thread() else None
+    notices = CtrlCNotices(trial, warn or _stderr)
+    old = signal.signal(signal.SIGINT, sigint_handler(trial)) if _main_thread() else None
     old_switch = sys.getswitchinterval()
     # The writer thread must not hold the GIL for the default 5 ms while a tick waits.
     sys.setswitchinterval(0.0005)
     try:
         if bar:
             bar.start()
+        notices.start()
         return trial.run()
     finally:
         sys.setswitchinterval(old_switch)
         if old is not None:
             signal.signal(signal.SIGINT, old)
+        notices.stop()
         if bar:
             bar.close()
         if live is not None:
             live.close()
         devices.close()
+
+
+def sigint_handler(trial: Trial) -> Callable:
+    """First Ctrl-C: abort and retract; second: stop the motor now.
+
+    The handler runs on the main thread between two bytecodes, possibly while the loop (the
+    same thread) holds a lock or a stream's buffer: it only assigns an attribute, which the
+    loop reads on its next tick. No lock, no Event, no print.
+    """
+    def on_sigint(signum, frame) -> None:
+        trial.signal_stop = StopMode.ABORT if trial.signal_stop is None else StopMode.ESTOP
+
+    return on_sigint
+
+
+class CtrlCNotices:
+    """Tells the operator what a Ctrl-C does, from a thread of its own (the handler must not
+    print). While the loop ticks, it carries the Ctrl-C out; while the trial starts or closes
+    its log, this thread sends the stop at once; after the trial, the slider gets a STOP."""
+
+    def __init__(self, trial: Trial, say: Callable[[str], None]) -> None:
+        self.trial = trial
+        self.say = say
+        self._told: StopMode | None = None
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="ctrl-c notices", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._done.wait(0.02):
+            self._tell()
+
+    def _tell(self) -> None:
+        mode = self.trial.signal_stop
+        if mode is self._told:
+            return
+        self._told = mode
+        self.say("\nabort: stopping, then returning to the start position (Ctrl-C again stops the "
+                 "motor at once)" if mode is StopMode.ABORT else "\nemergency stop")
+        if self.trial.phase != "running":  # no tick to read the flag: stop from here
+            ticket = self.trial.request_stop(mode, user="console")
+            if ticket.trial_over:
+                try:
+                    self.trial.slider.stop()
+                except RigError as exc:  # the drive's communication timeout is the backstop
+                    self.say(f"STOP not sent: {exc}")
+
+    def stop(self) -> None:
+        self._done.set()
+        if self._thread.is_alive():
+            self._thread.join(1.0)
+        self._tell()
 
 
 def _stderr(text: str) -> None:

@@ -52,6 +52,10 @@ class LimitsConfig:
     stop_confirm_s: float = field(default=2.0, metadata={"gt": 0})
     # Without a load cell the force limit applies to the model's estimate times (1 + margin).
     model_force_margin: float = field(default=0.25, metadata={"ge": 0})
+    # A trial tared in contact starts with a preload (its tare minus the load cell's free-air
+    # zero); the limit counts it. A preload above this share of max_force_N is refused before
+    # anything moves: the probe is pressed in, retract it first.
+    max_preload_share: float = field(default=0.5, metadata={"ge": 0, "le": 1})
 
     def __post_init__(self) -> None:
         lo, hi = self.travel_mm
@@ -123,6 +127,15 @@ class LoadCellConfig:
     gain_N_per_count: float = 1.0
     offset_counts: float = 0.0
     max_abs_N: float = field(default=500.0, metadata={"gt": 0})
+    # What the cell reads with nothing touching the probe (N, as converted). Unset: the zero
+    # `rig tare` measured and saved for this cell, else the tare of the daemon's earlier trial,
+    # else each trial's own tare is assumed to be taken out of contact (and the log says so).
+    zero_N: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.zero_N is not None and not abs(self.zero_N) <= self.max_abs_N:
+            raise ValueError(f"zero_N must be a finite force within max_abs_N ({self.max_abs_N:g} N), "
+                             f"got {self.zero_N}")
 
 
 @dataclass
