@@ -653,14 +653,17 @@ class SoakMachine(RuleBasedStateMachine):
         "fault": (lambda m: m.running, {"kind": st.sampled_from(["alarm", "vanish", "disk_full"])}),
         "line_fault": (lambda m: m.running,
                        {"kind": st.sampled_from(["drop_replies", "corrupt_replies", "garble_replies"])}),
-        "clock_step": (lambda m: m.soak.proc is not None and m.soak.last_start_wall > 0, {}),
+        "clock_step": (lambda m: m.soak.proc is not None and m.soak.last_start_wall > 0,
+                       {}),
         "second_daemon": (lambda m: m.soak.proc is not None, {}),
-        "second_cli": (lambda m: m.soak.proc is not None, {"kind": st.sampled_from(["position", "move", "run"])}),
+        "second_cli": (lambda m: m.soak.proc is not None,
+                       {"kind": st.sampled_from(["position", "move", "run"])}),
         "sigint_daemon": (lambda m: m.soak.proc is not None, {}),
         "sigint_rig_run": (lambda m: True, {}),
     }
     # starts and trial-time events more often than the slow process-level ones
-    WEIGHTS: ClassVar[dict] = {"start": 4, "finish": 2, "stop": 3, "fault": 3, "line_fault": 2, "sigint_rig_run": 1}
+    WEIGHTS: ClassVar[dict] = {"start": 4, "finish": 2, "stop": 3, "fault": 3, "line_fault": 2,
+                               "sigint_rig_run": 1}
 
     @rule(data=st.data())
     def act(self, data) -> None:

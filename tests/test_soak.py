@@ -25,7 +25,7 @@ def run_soak(seed_value: int, examples: int, steps: int) -> list:
 
 
 def test_soak_short():
-    soaks = run_soak(seed_value=20, examples=3, steps=10)
+    soaks = run_soak(seed_value=20, examples=4, steps=14)
     steps = sum(len(s.trace) for s in soaks)
     assert steps >= 10, f"only {steps} steps ran"
     for soak in soaks:
