@@ -65,6 +65,7 @@ class FaultParams:
 
     drop_replies: int = field(default=0, **_pos(ge=0))  # the next N Modbus replies are lost
     corrupt_replies: int = field(default=0, **_pos(ge=0))  # the next N RTU replies have a bad CRC
+    garble_replies: int = field(default=0, **_pos(ge=0))  # the next N replies are replaced by line noise
     reply_delay_ms: float = field(default=0.0, **_pos(ge=0))  # every reply is this late
     alarm_code: int = field(default=0, **_pos(ge=0))  # raise this drive alarm now
     loadcell_silent: bool = False  # the load cell stops sending

@@ -96,6 +96,7 @@ class SimRig:
         self.f1_N = 0.0  # proposed-model branch (first-order lag state)
         self.f2_N = 0.0  # second Maxwell branch
         self.tissue_force_N = 0.0
+        self.peak_tissue_force_N = 0.0  # the most the tissue carried since take_peak_force_N()
         self.indentation_m = 0.0
         self.probe_velocity_mm_s = 0.0
         self.sensor_force_N = 0.0  # what the bridge outputs before noise (delayed if configured)
@@ -148,6 +149,7 @@ class SimRig:
             state["peak_rate_m_s"] = 0.0
         self.indentation_m = x
         self.f1_N, self.f2_N, self.tissue_force_N = f1, f2, total
+        self.peak_tissue_force_N = max(self.peak_tissue_force_N, total)
         self._peak_rate_m_s = state["peak_rate_m_s"]
         if state["frac_N"] is not None:
             self._frac_N = state["frac_N"]
@@ -167,6 +169,13 @@ class SimRig:
             self._delay_line.append(sensed)
             sensed = self._delay_line[0]
         self.sensor_force_N = sensed
+
+    def take_peak_force_N(self) -> float:
+        """The most the tissue carried since the last call (the truth a force limit is about:
+        a tare or an offset may hide part of it from the load cell)."""
+        with self.lock:
+            peak, self.peak_tissue_force_N = self.peak_tissue_force_N, self.tissue_force_N
+        return peak
 
     def _soften(self) -> None:
         pc = self.params.effects.preconditioning

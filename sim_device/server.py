@@ -180,6 +180,9 @@ def reply_faults(faults, data: bytes, *, corrupt: bool) -> bytes | None:
     if faults.drop_replies > 0:
         faults.drop_replies -= 1
         return None
+    if faults.garble_replies > 0:  # line noise: no frame at all, of any length
+        faults.garble_replies -= 1
+        return os.urandom(1 + data[-1] % 11)
     if corrupt and faults.corrupt_replies > 0:
         faults.corrupt_replies -= 1
         data = data[:-1] + bytes([data[-1] ^ 0xFF])  # the CRC no longer matches
@@ -253,40 +256,92 @@ def _raw_pty() -> tuple[int, int, str]:
 
 
 class RtuBridge:
-    """Copies bytes between the server's and the client's pseudo-terminals, injecting line faults."""
+    """Copies bytes between the server's and the client's pseudo-terminals, injecting line faults.
 
-    def __init__(self, faults) -> None:
+    The client's side can vanish (`vanish()`: its pseudo-terminal closed under the master, like a
+    USB adapter pulled mid-trial) and come back (`restore()`: a new one, its path behind the
+    same `link_path` when one was given, as udev's by-id names do).
+    """
+
+    def __init__(self, faults, link_path: str | None = None) -> None:
         self.faults = faults
+        self.link_path = link_path
+        self._lock = threading.Lock()
         self.server_master, self._server_slave, self.server_path = _raw_pty()
         self.client_master, self._client_slave, self.client_path = _raw_pty()
+        self._link()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="rtu-bridge", daemon=True)
         self._thread.start()
 
+    @property
+    def path(self) -> str:
+        """Where the master opens the port: the stable link if there is one."""
+        return self.link_path or self.client_path
+
+    def _link(self) -> None:
+        if self.link_path:
+            tmp = f"{self.link_path}.new"
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            os.symlink(self.client_path, tmp)
+            os.replace(tmp, self.link_path)
+
+    def vanish(self) -> None:
+        """The port goes away under whoever has it open: both ends of its pseudo-terminal closed."""
+        with self._lock:
+            for fd in (self.client_master, self._client_slave):
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+            self.client_master = self._client_slave = -1
+            if self.link_path:
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(self.link_path)
+
+    def restore(self) -> str:
+        """The port is back (a new pseudo-terminal); returns the path to open."""
+        with self._lock:
+            if self.client_master < 0:
+                self.client_master, self._client_slave, self.client_path = _raw_pty()
+                self._link()
+        return self.path
+
     def _run(self) -> None:
-        sm, cm = self.server_master, self.client_master
+        sm = self.server_master
         while not self._stop.is_set():
+            cm = self.client_master
+            fds = [sm] if cm < 0 else [sm, cm]
             try:
-                ready, _, _ = select.select([sm, cm], [], [], 0.05)
+                ready, _, _ = select.select(fds, [], [], 0.05)
             except (OSError, ValueError):
+                if self.client_master != cm:  # vanished while we waited
+                    continue
                 return
             for fd in ready:
-                data = _read_all(fd)
+                try:
+                    data = _read_all(fd)
+                except OSError:  # the client side closed under us
+                    continue
                 if not data:
                     continue
                 if fd == cm:
                     _write_all(sm, data)
                     continue
                 data = reply_faults(self.faults, data, corrupt=True)
-                if data is not None:
-                    _write_all(cm, data)
+                with self._lock:
+                    if data is not None and self.client_master >= 0:
+                        _write_all(self.client_master, data)
 
     def close(self) -> None:
         self._stop.set()
         self._thread.join(2.0)
         for fd in (self.server_master, self._server_slave, self.client_master, self._client_slave):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        if self.link_path:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.link_path)
 
 
 def _read_all(fd: int) -> bytes:
@@ -397,7 +452,7 @@ class WireSim:
 
     def __init__(self, params: SimParams | None = None, *, tcp: bool = True, rtu: bool = True,
                  loadcell: bool = True, tcp_port: int = 0, profile: str = "oriental_az_sim",
-                 baudrate: int = 115200) -> None:
+                 baudrate: int = 115200, rtu_link: str | None = None) -> None:
         self.params = params or SimParams()
         self.rig = SimRig(self.params)
         self.origin_s = time.monotonic()
@@ -405,6 +460,7 @@ class WireSim:
         self.want = {"tcp": tcp, "rtu": rtu, "loadcell": loadcell}
         self.tcp_port = tcp_port or (free_tcp_port() if tcp else 0)
         self.baudrate = baudrate
+        self.rtu_link = rtu_link  # a stable path (symlink) to the RTU port, kept across vanish/restore
         self.bridge: RtuBridge | None = None
         self.tcp_bridge: TcpBridge | None = None
         self.loadcell: LoadCellPort | None = None
@@ -457,13 +513,13 @@ class WireSim:
             self.tcp_bridge = TcpBridge(self.params.faults, self.tcp_port, inner_port)
             tcp = f"127.0.0.1:{self.tcp_port}"
         if self.want["rtu"]:
-            self.bridge = RtuBridge(self.params.faults)
+            self.bridge = RtuBridge(self.params.faults, self.rtu_link)
             server = ModbusSerialServer(device(self.drive.action), framer=FramerType.RTU,
                                         port=self.bridge.server_path,
                                         baudrate=self.baudrate, bytesize=8, parity="N", stopbits=1)
             await server.serve_forever(background=True)
             servers.append(server)
-            rtu_path = self.bridge.client_path
+            rtu_path = self.bridge.path
         if self.want["loadcell"]:
             self.loadcell = LoadCellPort(self.rig, self.params, self.origin_s)
         self.endpoints = Endpoints(tcp, rtu_path, self.loadcell.path if self.loadcell else None)
