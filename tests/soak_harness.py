@@ -53,8 +53,7 @@ ROOT = Path(__file__).resolve().parent.parent
 # preload_limit: the force limit holds for the force the tissue carries, whatever was tared
 # stop_anytime: a stop or estop is carried out while a trial is starting or closing
 # sigint_flag: Ctrl-C in `rig run` only sets a flag (no deadlock)
-FEATURES_PENDING: set[str] = {"drive_lock", "owner_recovery", "preload_limit", "stop_anytime",
-                              "sigint_flag"}
+FEATURES_PENDING: set[str] = set()
 STRICT = os.environ.get("RIG_SOAK_STRICT") == "1"
 
 TRAVEL_MM = (-5.0, 45.0)
