@@ -1,5 +1,6 @@
-"""JPK (Bruker) AFM force curves: binary `.jpk-force` files through `afmformats` (the
-optional extra `rig[afm]`), and the JPK Data Processing TEXT EXPORT.
+"""JPK (Bruker) AFM force curves: the JPK Data Processing TEXT EXPORT. The binary files
+(`.jpk-force`, force maps, QI data) are read through afmformats in rig.records.afm;
+`read_jpk_force` stays here for the callers that import it.
 
 Heights fall as the tip goes in, so the travel into the sample is -(height - height at the
 start); the tip-sample indentation subtracts the cantilever's deflection (force / spring
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.errors import RigError, SpecError
+from rig.errors import SpecError
 from rig.records.record import Record
 from rig.records.units import FORCE, LENGTH, TIME
 
@@ -29,28 +30,12 @@ def looks_like_jpk_text(head: str) -> bool:
     return "# segment:" in head or head.lstrip().startswith("# TEXT EXPORT") or "# columns:" in head
 
 
-def read_jpk_force(path: Path) -> Record:
-    try:
-        import afmformats
-    except ImportError:
-        raise RigError(f"{path}: a JPK force file: reading it needs the afmformats package "
-                       "(pip install 'indentation-rig[afm]')") from None
-    try:
-        data = afmformats.load_data(path)
-    # the library raises many kinds, and its own derive from BaseException: one line for the user
-    except (Exception, afmformats.errors.AFMFileFormatError) as exc:  # noqa: BLE001
-        raise SpecError(f"not a readable JPK force file ({type(exc).__name__}: {exc})",
-                        path=str(path)) from None
-    if not data:
-        raise SpecError("the JPK file holds no force curve", path=str(path))
-    d = data[0]
-    height_col = "height (measured)" if "height (measured)" in d.columns else "height (piezo)"
-    t = np.asarray(d["time"], dtype=float)
-    h = np.asarray(d[height_col], dtype=float)
-    f = np.asarray(d["force"], dtype=float)
-    k = d.metadata.get("spring constant")
-    notes = [f"JPK {d.modality}, {len(t)} samples"]
-    return _jpk_record(path, "jpk", t, h, f, float(k) if k else None, notes)
+def read_jpk_force(path: str | Path, options=None) -> Record:
+    """A binary JPK force file through afmformats: its first curve, or `options.curve`
+    (a rig.records.afm.ReadOptions)."""
+    from rig.records.afm import JPK, read_afm
+
+    return read_afm(Path(path), options, JPK)
 
 
 def _jpk_record(path: Path, source: str, t, h, f, spring_N_per_m: float | None, notes: list[str]) -> Record:

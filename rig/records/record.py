@@ -19,10 +19,23 @@ class Record:
     columns) means its zero is where the probe meets the specimen, so contact is not searched
     for; None means an instrument's own zero. `steps` holds the rig's step kinds per sample
     when the file knows them.
+
+    AFM force curves (rig.records.afm) also carry `segment`, per sample "approach",
+    "intermediate" (a pause) or "retract", and `meta`: "instrument" ("JPK", "Asylum", "NT-MDT",
+    "AFM Workshop", "Optics11 Chiaro"...), "curve" (its number in the file, as the instrument
+    numbers it), "curves_in_file", "x_m"/"y_m" (position on the sample), "grid_index" and
+    "grid_shape" ((x, y) on a force map), "spring_constant_N_per_m", "sensitivity", "modality"
+    ("force-distance", "stress-relaxation", "creep-compliance"), "indenter" (a spec string such
+    as "sphere:R=27.5um" when the file gives the tip), "instrument_result" (the instrument's own
+    fit, e.g. {"model": "Hertz", "E_Pa": 117.0, "poisson": 0.5}) and a few more
+    ("instrument_model", "format", "curve_id", "position_column", "time_from"); a key the file
+    says nothing about is None.
     """
 
     name: str
-    source: str  # "mcap", "csv", "jpk", "jpk-text", "mach1", "instron"
+    # "mcap", "csv", "jpk", "jpk-text", "mach1", "instron"; AFM: "asylum", "ntmdt", "afm-workshop",
+    # "chiaro", "afmformats"
+    source: str
     t_s: np.ndarray
     position_m: np.ndarray
     force_N: np.ndarray
@@ -32,6 +45,8 @@ class Record:
     length_unit: str = "mm"  # how the file wrote lengths: reports keep it where it reads well
     force_unit: str = "N"
     notes: list[str] = field(default_factory=list)
+    segment: np.ndarray | None = None  # per sample: "approach", "intermediate" or "retract"
+    meta: dict = field(default_factory=dict)
 
     @property
     def zero_is_surface(self) -> bool:
