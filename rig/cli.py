@@ -30,6 +30,13 @@ def _positive_or_zero(text: str) -> float:
     return value
 
 
+def _positive_float(text: str) -> float:
+    value = _positive_or_zero(text)
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
 def _seconds(text: str) -> float:
     value = _positive_or_zero(text)
     if not 0.2 <= value <= 60:
@@ -347,7 +354,8 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         inputs=args.inputs, model=args.model, add=args.add or [], holdout=args.holdout or [],
         plugins=args.plugin or [], block=args.block, compare=args.compare, explain=args.explain,
         auto=args.auto, design=args.design, design_config=design_config, save=args.save,
-        report=args.report))
+        report=args.report, indenter=args.indenter, poisson=args.poisson, segment=args.segment,
+        curve=args.curve, spring_constant_N_per_m=args.spring_constant, sensitivity_m_per_V=args.sensitivity))
     print(json.dumps(done.json, indent=2, default=float) if args.json else done.text)
     return 0
 
@@ -600,7 +608,26 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("inputs", nargs="+", help="records: MCAP, CSV, JPK, Mach-1 or Instron files")
     r.add_argument("--block", type=int, metavar="N",
                    help="Mach-1 files: analyse data block N (default: the longest)")
-    r.add_argument("--model", default="proposed", help="named model or effect (default: proposed)")
+    r.add_argument("--curve", type=int, metavar="N",
+                   help="AFM maps and QI files: analyse curve N, numbered as the instrument numbers it "
+                        "(default: the first)")
+    r.add_argument("--spring-constant", type=_positive_float, metavar="N_PER_M",
+                   help="AFM files: the cantilever's spring constant (N/m), where the file lacks it or to "
+                        "override it")
+    r.add_argument("--sensitivity", type=_positive_float, metavar="M_PER_V",
+                   help="AFM files: the deflection sensitivity in the unit of the file's deflection signal "
+                        "(m/V; nm/nA for NT-MDT text exports), where the file lacks it")
+    r.add_argument("--model", default="proposed",
+                   help="named model or effect (default: proposed; hertz: E in Pa for the indenter)")
+    r.add_argument("--indenter", metavar="SPEC",
+                   help="the indenter's geometry, e.g. paraboloid:R=10um, sphere:R=2.5um, "
+                        "cone:half_angle=35deg, pyramid:half_angle=35deg,sides=4, cylinder:R=1mm "
+                        "(default: what the file's header says)")
+    r.add_argument("--poisson", type=float, default=0.5, metavar="NU",
+                   help="Poisson's ratio for the contact law (default 0.5: incompressible)")
+    r.add_argument("--segment", choices=["all", "approach"], default="all",
+                   help="fit the whole record (default) or the approach alone, as AFM tools fit an elastic "
+                        "contact")
     r.add_argument("--add", action="append", metavar="EFFECT", help="add an effect to the model")
     r.add_argument("--plugin", action="append", metavar="FILE", help="load user effects from a Python file")
     r.add_argument("--holdout", action="append", metavar="FILE",

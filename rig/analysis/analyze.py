@@ -9,10 +9,12 @@ import numpy as np
 
 from rig.analysis.data import PHASES, TrialData, load_trial
 from rig.analysis.fit import FitResult, error_table, evaluate, fit
-from rig.errors import RigError
-from rig.models.catalogue import CATALOGUE, NAMED_MODELS, build_model
+from rig.errors import RigError, SpecError
+from rig.models.catalogue import CATALOGUE, CONTACT, build_model, contact_effect, named_models
+from rig.models.contact import Indenter, parse_indenter
 from rig.models.core import Effect
 from rig.models.plugins import check_plugin_effect, load_plugin
+from rig.records import ReadOptions
 
 
 @dataclass
@@ -20,22 +22,49 @@ class Inputs:
     trials: list[TrialData]
     holdout: list[TrialData]
     registry: dict[str, Effect]
+    indenter: Indenter | None = None
+    indenter_from: str = ""  # where the geometry came from: the command line, a file's header, a config
+    poisson: float = 0.5
 
 
-def load_inputs(paths: list[str], holdout: list[str], plugins: list[str], block: int | None = None) -> Inputs:
+def load_inputs(paths: list[str], holdout: list[str], plugins: list[str],
+                options: ReadOptions | int | None = None, *, indenter: str | None = None,
+                poisson: float = 0.5, segment: str = "all") -> Inputs:
+    """The records prepared, and the catalogue with the user's effects and, when the indenter
+    is known (`indenter`, else the first record that names its own), its elastic contact."""
+    if not (math.isfinite(poisson) and -1.0 < poisson <= 0.5):
+        raise RigError(f"--poisson {poisson:g}: Poisson's ratio lies in (-1, 0.5] (0.5: incompressible, "
+                       "the usual choice for tissue and cells)")
     registry = dict(CATALOGUE)
     for p in plugins:
         for e in load_plugin(p):
             if e.name in CATALOGUE:
                 raise RigError(f"{p}: effect '{e.name}' would replace the catalogue's; rename it")
             registry[e.name] = e
-    trials = [load_trial(p, block) for p in paths]
-    held = [load_trial(p, block) for p in holdout]
+    trials = [load_trial(p, options, segment) for p in paths]
+    held = [load_trial(p, options, segment) for p in holdout]
+    ind, source = None, ""
+    named = next(((t.meta.get("indenter"), t.name) for t in trials if t.meta.get("indenter")), None)
+    if indenter and indenter.strip() in ("paraboloid", "sphere", "cylinder") and named \
+            and parse_indenter(named[0]).R_m:
+        # a shape alone takes its size from the header: `--indenter paraboloid` on a file that
+        # names a sphere fits Hertz's approximation with the sphere's radius
+        ind = parse_indenter(f"{indenter.strip()}:R={parse_indenter(named[0]).R_m}m")
+        source = f"--indenter, its radius from the header of {named[1]}"
+    elif indenter:
+        try:
+            ind, source = parse_indenter(indenter), "--indenter"
+        except SpecError as exc:
+            raise RigError(f"--indenter: {exc.message}") from None
+    elif named:
+        ind, source = parse_indenter(named[0]), f"the header of {named[1]}"
+    if ind is not None:
+        registry[CONTACT] = contact_effect(ind, poisson)
     for e in registry.values():
         if e.source == "plugin":
             m = build_model("linear_elastic", [e.name], registry)
             check_plugin_effect(e, lambda m=m: m.predict({p.name: p.init for p in m.params}, trials[0].motion))
-    return Inputs(trials, held, registry)
+    return Inputs(trials, held, registry, ind, source, poisson)
 
 
 def _finite(x: float | None) -> float | None:
@@ -92,7 +121,7 @@ def holdout_json(res: FitResult, held: list[TrialData]) -> list[dict]:
 
 
 def compare(trials: list[TrialData], registry: dict[str, Effect]) -> list[FitResult]:
-    return [fit(build_model(name, registry=registry), trials) for name in NAMED_MODELS]
+    return [fit(build_model(name, registry=registry), trials) for name in named_models(registry)]
 
 
 def format_compare(results: list[FitResult], noise_N: float) -> str:

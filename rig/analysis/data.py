@@ -20,7 +20,7 @@ import numpy as np
 
 from rig.errors import SpecError
 from rig.models.core import Motion
-from rig.records import Record, read_record
+from rig.records import ReadOptions, Record, read_record
 from rig.records.units import FORCE_DISPLAY, LENGTH_DISPLAY, display_unit
 from rig.specs.frames import Frame
 
@@ -59,6 +59,8 @@ class TrialData:
     force_unit: tuple[float, str] = (1.0, "N")  # how to show forces of this record
     length_unit: tuple[float, str] = (1e-3, "mm")
     notes: list[str] = field(default_factory=list)
+    meta: dict = field(default_factory=dict)  # what the file says beyond its samples (Record.meta)
+    contact_m: float | None = None  # where the analysis put contact, in the record's travel from its start
 
     def __post_init__(self) -> None:
         if self.scales is None:
@@ -78,21 +80,49 @@ def decimate(t: TrialData, stride: int) -> TrialData:
     sl = slice(None, None, stride)
     return TrialData(t.name, Motion(m.t_s[sl], m.x_m[sl], m.v_m_s[sl], m.dt_s * stride), t.force_N[sl],
                      t.phase[sl], t.baseline_noise_N, t.source, t.baseline_n, t.scales, t.baseline_N,
-                     t.force_unit, t.length_unit, t.notes)
+                     t.force_unit, t.length_unit, t.notes, t.meta, t.contact_m)
 
 
-def load_trial(path: str | Path, block: int | None = None) -> TrialData:
-    return prepare(read_record(path, block), str(path))
+SEGMENTS = ("all", "approach")
 
 
-def prepare(rec: Record, where: str = "") -> TrialData:
-    """Contact, sign, baseline, uniform grid, velocity and phases of one record."""
+def load_trial(path: str | Path, options: ReadOptions | int | None = None, segment: str = "all") -> TrialData:
+    return prepare(read_record(path, options), str(path), segment)
+
+
+def approach_only(rec: Record, where: str) -> Record:
+    """The record up to the end of its approach: the instrument's own segment where it says so,
+    else up to the first sample at the deepest point of the travel."""
+    if rec.segment is not None and np.any(rec.segment == "approach"):
+        keep = np.flatnonzero(rec.segment == "approach")
+        end = int(keep[-1]) + 1
+        start = int(keep[0])
+    else:
+        excursion = np.abs(rec.position_m - rec.position_m[0])
+        start, end = 0, int(np.argmax(excursion >= np.max(excursion))) + 1
+    if end - start < 10:
+        raise SpecError(f"the approach holds {end - start} samples: too few to analyse", path=where)
+    sl = slice(start, end)
+    return Record(rec.name, rec.source, rec.t_s[sl], rec.position_m[sl], rec.force_N[sl], rec.frame,
+                  rec.steps[sl] if rec.steps is not None else None, rec.baseline_force_N, rec.length_unit,
+                  rec.force_unit, [*rec.notes, "the approach segment only"],
+                  rec.segment[sl] if rec.segment is not None else None, dict(rec.meta))
+
+
+def prepare(rec: Record, where: str = "", segment: str = "all") -> TrialData:
+    """Contact, sign, baseline, uniform grid, velocity and phases of one record (`segment`
+    "approach": its approach alone, as AFM users fit an elastic contact)."""
     where = where or rec.name
+    if segment not in SEGMENTS:
+        raise SpecError(f"segment '{segment}': expected one of {', '.join(SEGMENTS)}", path=where)
+    if segment == "approach":
+        rec = approach_only(rec, where)
     if rec.n < 10:
         raise SpecError(f"{rec.n} samples: too few to analyse", path=where)
     t, pos, f, steps = _uniform(rec.t_s, rec.position_m, rec.force_N, rec.steps)
     dt = float(np.median(np.diff(t)))
     notes = list(rec.notes)
+    contact_m = None
     if rec.frame is Frame.SURFACE:
         x = pos
         if np.max(x) <= 0.0:
@@ -103,6 +133,7 @@ def prepare(rec: Record, where: str = "") -> TrialData:
     else:
         x, f, baseline, note = _find_contact(t, pos, f, where)
         notes.append(note)
+        contact_m = float(-x[0])  # x counts from contact: its first value is minus the travel to it
         end = _end_of_contact(x, f)
         if end < len(x):
             # once the probe is back out, or the force back at the baseline on the way out, the
@@ -122,7 +153,7 @@ def prepare(rec: Record, where: str = "") -> TrialData:
     fu = display_unit(scales.force_N, FORCE_DISPLAY)
     lu = display_unit(scales.length_m, LENGTH_DISPLAY)
     return TrialData(Path(rec.name).name, m, f, phase, noise, rec.source, len(base), scales,
-                     base_detr if len(base) >= MIN_BASELINE else None, fu, lu, notes)
+                     base_detr if len(base) >= MIN_BASELINE else None, fu, lu, notes, dict(rec.meta), contact_m)
 
 
 def record_scales(m: Motion, f: np.ndarray, phase: np.ndarray) -> Scales:

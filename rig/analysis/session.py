@@ -4,6 +4,7 @@ finds as the JSON document (SI) and as the text a person reads (the record's uni
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -11,8 +12,10 @@ from rig.analysis.analyze import compare, format_compare, format_holdout, holdou
 from rig.analysis.data import PHASES
 from rig.analysis.explain import auto, explain, format_auto, format_explain
 from rig.analysis.fit import FitResult, fit
+from rig.analysis.modulus import format_modulus, format_pa, modulus_vs_depth, plateau_drift
 from rig.analysis.report import write_report
-from rig.models.catalogue import build_model
+from rig.models.catalogue import CONTACT, build_model
+from rig.records import ReadOptions
 
 
 @dataclass
@@ -30,6 +33,12 @@ class AnalyzeRequest:
     design_config: Any = None  # the rig (RigConfig) whose limits it must respect
     save: str | None = None
     report: str | None = None
+    indenter: str | None = None  # spec string; else the record's own header
+    poisson: float = 0.5
+    segment: str = "all"  # or "approach"
+    curve: int | None = None  # an AFM map's curve, as the instrument numbers it
+    spring_constant_N_per_m: float | None = None
+    sensitivity_m_per_V: float | None = None
 
 
 @dataclass
@@ -39,7 +48,10 @@ class Analysis:
 
 
 def analyze(req: AnalyzeRequest) -> Analysis:
-    inputs = load_inputs(req.inputs, req.holdout, req.plugins, req.block)
+    options = ReadOptions(curve=req.curve, spring_constant_N_per_m=req.spring_constant_N_per_m,
+                          sensitivity_m_per_V=req.sensitivity_m_per_V, block=req.block)
+    inputs = load_inputs(req.inputs, req.holdout, req.plugins, options, indenter=req.indenter,
+                         poisson=req.poisson, segment=req.segment)
     model = build_model(req.model, req.add, inputs.registry)
     before = fit(build_model(req.model, [], inputs.registry), inputs.trials) if req.add else None
     res = fit(model, inputs.trials)
@@ -49,6 +61,9 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         warm = fit(model, inputs.trials, starts=1, initial=before.values)
         res = min(res, warm, key=lambda r: r.overall.rmse_N)
     out = result_json(res, req.inputs)
+    material = material_json(res, inputs)
+    if material:
+        out["material"] = material
     if before is not None:
         out["before_add"] = result_json(before, req.inputs)
     results = compare(inputs.trials, inputs.registry) if req.compare else None
@@ -94,6 +109,8 @@ def analyze(req: AnalyzeRequest) -> Analysis:
 
     parts = [format_before_after(before, res) if before is not None
              else f"{res.report()}\nfitted in {res.seconds:.2f} s"]
+    if material:
+        parts.append(format_material(material, res))
     if compare_text:
         parts.append(compare_text)
     if held:
@@ -133,3 +150,53 @@ def format_before_after(before: FitResult, after: FitResult) -> str:
     lines.append("")
     lines.append(after.report())
     return "\n".join(lines)
+
+
+def material_json(res: FitResult, inputs) -> dict:
+    """The indenter, Poisson's ratio, the contact point and the modulus by depth (SI), when the
+    model holds the indenter's elastic contact; the instrument's own result where a file has one."""
+    if not res.model.has(CONTACT) or inputs.indenter is None:
+        return {}
+    out: dict = {"indenter": inputs.indenter.spec(), "indenter_description": inputs.indenter.describe(),
+                 "indenter_from": inputs.indenter_from, "poisson": inputs.poisson,
+                 "E_Pa": res.values["E_Pa"], "E_Pa_stderr": res.stderr.get("E_Pa")}
+    x0 = res.values.get("x0_mm")
+    if x0 is not None:
+        # the contact point in each record's own travel from its first sample
+        out["contact_point_m"] = [(t.contact_m or 0.0) + x0 / 1000.0 for t in res.trials]
+        err = res.stderr.get("x0_mm")
+        out["contact_point_m_stderr"] = err / 1000.0 if err is not None and math.isfinite(err) else None
+    rows = modulus_vs_depth(res)
+    out["modulus_vs_depth"] = rows
+    out["modulus_drift"] = plateau_drift(rows)
+    own = [{"trial": t.name, **t.meta["instrument_result"]} for t in res.trials
+           if t.meta.get("instrument_result")]
+    if own:
+        out["instrument_result"] = own
+    return out
+
+
+def format_material(m: dict, res: FitResult) -> str:
+    err = m["E_Pa_stderr"]
+    e = f" +/- {format_pa(err)}" if err is not None and math.isfinite(err) else ""
+    lines = [f"material   E = {format_pa(m['E_Pa'])}{e}  ({m['indenter_description']}, "
+             f"from {m['indenter_from']}; Poisson's ratio {m['poisson']:g})"]
+    if "contact_point_m" in m:
+        k, u = res.trials[0].length_unit
+        cp = ", ".join(f"{c / k:.4g}" for c in m["contact_point_m"])
+        ce = m.get("contact_point_m_stderr")
+        lines.append(f"contact    at {cp} {u} of travel" + (f" +/- {ce / k:.2g} {u}" if ce is not None else "")
+                     + " (fitted)")
+    depth = format_modulus(m["modulus_vs_depth"], res.trials[0].length_unit)
+    if depth:
+        lines.append(depth)
+    for own in m.get("instrument_result", []):
+        if own.get("E_Pa") is not None:
+            ratio = m["E_Pa"] / own["E_Pa"] - 1.0
+            how = ", ".join(x for x in (own.get("model"), f"Poisson {own['poisson']:g}"
+                                         if own.get("poisson") is not None else None) if x)
+            lines.append(f"instrument {own['trial']}: its own fit gives E = {format_pa(own['E_Pa'])}"
+                         + (f" ({how})" if how else "")
+                         + f"; this fit {ratio * 100:+.1f} %")
+    return "\n".join(lines)
+

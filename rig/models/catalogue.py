@@ -157,6 +157,8 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in [
 ]}
 
 NAMED_MODELS: dict[str, list[str]] = {
+    # elastic contact for the record's indenter, from a fitted contact point over a fitted baseline
+    "hertz": ["elastic_contact", "contact_offset", "offset"],
     "hooke": ["linear_elastic"],
     "maxwell": ["viscous", "relaxation"],
     "voigt": ["linear_elastic", "viscous"],
@@ -166,16 +168,49 @@ NAMED_MODELS: dict[str, list[str]] = {
 }
 
 
+CONTACT = "elastic_contact"  # the effect an indenter brings (rig.models.contact)
+NEEDS_INDENTER = ("needs the indenter's geometry: give --indenter (e.g. paraboloid:R=10um, sphere:R=2.5um, "
+                  "cone:half_angle=35deg, pyramid:half_angle=35deg,sides=4, cylinder:R=1mm) or probe: in the "
+                  "rig config")
+
+
+def contact_effect(indenter, poisson: float = 0.5) -> Effect:
+    """Elastic contact of `indenter` (rig.models.contact.Indenter) with E in Pa: the force is
+    E times the law's geometric factor at the indentation, with Poisson's ratio `poisson`."""
+    from rig.models.contact import geometry_factor
+
+    def _elastic_contact(x, v, E_Pa):
+        return E_Pa * geometry_factor(indenter, x, poisson)
+
+    law = {"paraboloid": "Hertz", "sphere": "Sneddon's exact sphere", "cone": "Sneddon's cone",
+           "pyramid": "Bilodeau's pyramid", "cylinder": "Boussinesq's flat punch"}[indenter.kind]
+    return Effect(CONTACT, "drive", (P("E_Pa", "Pa", 1.0, 0.0, warn_negative=True),), _elastic_contact,
+                  f"F = E g(d): {law}, {indenter.describe()}, Poisson {poisson:g}",
+                  "ramp residual shaped like a power of depth other than the indenter's",
+                  source=f"indenter {indenter.spec()}")
+
+
+def named_models(registry: dict[str, Effect]) -> list[str]:
+    """The named models every part of which `registry` holds (hertz only with an indenter)."""
+    return [n for n, parts in NAMED_MODELS.items() if all(p in registry for p in parts)]
+
+
 def build_model(name: str, extra: list[str] | None = None,
                 registry: dict[str, Effect] | None = None) -> Model:
     from rig.errors import RigError, did_you_mean
 
     reg = registry or CATALOGUE
     if name not in NAMED_MODELS and name not in reg:
+        if name == CONTACT:
+            raise RigError(f"'{name}' {NEEDS_INDENTER}")
         raise RigError(f"unknown model '{name}'{did_you_mean(name, [*NAMED_MODELS, *reg])}; "
                        "`rig models` lists them")
     names = NAMED_MODELS.get(name, [name])
+    if CONTACT in names and CONTACT not in reg:
+        raise RigError(f"the {name} model {NEEDS_INDENTER}")
     for n in extra or []:
+        if n == CONTACT and n not in reg:
+            raise RigError(f"'{n}' {NEEDS_INDENTER}")
         if n not in reg:
             raise RigError(f"unknown effect '{n}'{did_you_mean(n, reg)}; `rig models` lists the catalogue")
     model = Model([reg[n] for n in names], name=name)
@@ -207,4 +242,6 @@ def format_catalogue(effects: dict[str, Effect]) -> str:
                  "its travel and its loading time, combined as the parameter's unit says)")
     lines.append("\nnamed models")
     lines += [f"  {n:<14} {' + '.join(parts)}" for n, parts in NAMED_MODELS.items()]
+    if CONTACT not in effects:
+        lines.append(f"  (hertz: E in Pa for the indenter; it {NEEDS_INDENTER})")
     return "\n".join(lines)

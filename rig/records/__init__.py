@@ -112,4 +112,18 @@ def _read_mcap(path: Path) -> Record:
     x_mm = log.position_mm(Frame.SURFACE)
     return Record(path.name, "mcap", s["t_s"][keep], x_mm[keep] / 1000.0, s["force_N"][keep],
                   frame=Frame.SURFACE, steps=kinds[keep], baseline_force_N=s["force_N"][tare],
-                  length_unit="mm", force_unit="N")
+                  length_unit="mm", force_unit="N", meta={"indenter": _probe(log, path) or None})
+
+
+def _probe(log, path: Path) -> str:
+    """The rig's probe as the log's own config names it ('' when it does not, or is unreadable:
+    replay warns about such a config; here it only means no geometry)."""
+    from rig.specs.config import parse_config
+
+    text = log.attachments.get("config.yaml")
+    if not text:
+        return ""
+    try:
+        return parse_config(text.decode(), f"{path}:config.yaml").probe
+    except (RigError, UnicodeDecodeError):
+        return ""

@@ -180,6 +180,9 @@ class RigConfig:
     # A saved model (`rig analyze ... --save`) run in the loop from the measured position:
     # force_model_N and model_error_N in every sample.
     model: str = ""
+    # The probe's geometry as an indenter (e.g. cylinder:R=2mm, sphere:R=5mm): `rig analyze` reads
+    # it from each log and fits moduli in Pa (the hertz model); "" leaves the models lumped.
+    probe: str = ""
     source_text: str = field(default="", repr=False, compare=False)
     source_path: str = field(default="<built-in simulated rig>", repr=False, compare=False)
 
@@ -216,6 +219,15 @@ def parse_config(text: str, path: str = "<config>") -> RigConfig:
     node = load_marked(path, text)
     _refuse_keys(node, ("source_text", "source_path"), path)
     cfg = bind(RigConfig, node, path)
+    if cfg.probe:
+        from rig.models.contact import parse_indenter
+
+        try:
+            parse_indenter(cfg.probe)
+        except SpecError as exc:
+            child = node.value["probe"]
+            raise SpecError(exc.message, path=path, line=child.line, column=child.column,
+                            field="probe") from None
     cfg.source_text = text
     cfg.source_path = path
     return cfg
