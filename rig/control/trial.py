@@ -119,6 +119,9 @@ class Trial:
         self.loadcell = loadcell
         self.clock = clock
         self.log_path = Path(log_path)
+        # set once the log's name is final (the recorder may take the next free one) or the trial
+        # ended before opening it: a caller that reports the name waits for this
+        self.log_named = threading.Event()
         self.info = info or TrialInfo()
         self.rate = config.loop.rate_Hz
         self.period = 1.0 / self.rate
@@ -236,6 +239,7 @@ class Trial:
         try:
             return self._run()
         finally:
+            self.log_named.set()
             with self._lock:  # the caller may hand the devices to others now: no more bus use here
                 self._phase = "ended"
 
@@ -252,6 +256,7 @@ class Trial:
                        compression=cfg.recorder.compression, max_queue=cfg.recorder.max_queue)
         self.recorder = rec
         self.log_path = rec.path  # the name the recorder could take (another run may have had ours)
+        self.log_named.set()
         # After the recorder's thread exists, so only the loop thread runs at real-time priority.
         rt = Realtime(cfg.loop.realtime, cfg.loop.realtime_priority) if isinstance(self.clock, RealClock) \
             else None

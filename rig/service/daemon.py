@@ -40,6 +40,8 @@ from rig.service.sdnotify import Watchdog, healthy, notify, watchdog_interval_s
 from rig.specs.config import RigConfig
 from rig.specs.protocol import check_limits, parse_protocol
 
+LOG_NAMED_S = 5.0  # a start waits this long at most for its log to be named
+
 
 def default_socket_path(config: RigConfig | None = None) -> Path:
     if config is not None and config.daemon.socket:
@@ -258,6 +260,13 @@ class Daemon:
                                                  daemon=True)
             self.dev_lock.acquire()
             self.trial_thread.start()
+        # the recorder may take the next free name (a log of the same second exists): the reply
+        # names the file this trial writes, never an earlier one
+        trial.log_named.wait(LOG_NAMED_S)
+        log_path = trial.log_path
+        with self.state_lock:
+            if self.trial is trial:
+                self.trial_meta["log"] = str(log_path)
         self.say(f"{user} started '{proto.name}' (specimen {specimen}) -> {log_path}")
         for w in warnings:
             self.say(w)
