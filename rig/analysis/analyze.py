@@ -10,7 +10,7 @@ import numpy as np
 from rig.analysis.data import PHASES, TrialData, load_trial
 from rig.analysis.fit import FitResult, error_table, evaluate, fit
 from rig.errors import RigError, SpecError
-from rig.models.catalogue import CATALOGUE, CONTACT, build_model, contact_effect, named_models
+from rig.models.catalogue import CATALOGUE, CONTACT, CONTACT_POINT, build_model, contact_effect, named_models
 from rig.models.contact import Indenter, parse_indenter
 from rig.models.core import Effect
 from rig.models.plugins import check_plugin_effect, load_plugin
@@ -60,6 +60,7 @@ def load_inputs(paths: list[str], holdout: list[str], plugins: list[str],
         ind, source = parse_indenter(named[0]), f"the header of {named[1]}"
     if ind is not None:
         registry[CONTACT] = contact_effect(ind, poisson)
+        registry[CONTACT_POINT.name] = CONTACT_POINT
     for e in registry.values():
         if e.source == "plugin":
             m = build_model("linear_elastic", [e.name], registry)

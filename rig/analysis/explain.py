@@ -111,6 +111,8 @@ def candidates(model: Model, registry: dict[str, Effect],
             continue  # a rate speeds up a lag: without one it has nothing to act on
         if e.stage == "rate" and trials is not None and not several_speeds:
             continue
+        if {e.name, *model.effect_names} >= {"contact_point", "contact_offset"}:
+            continue  # one contact point: the other is a second name for it
         out.append(e)
     return out
 

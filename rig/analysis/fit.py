@@ -178,9 +178,15 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) ->
     init = _inside(init, lo, hi)
     rng = np.random.default_rng(seed)
     candidates = [init]
+    # a parameter that starts at zero inside finite bounds (the contact point) is not moved by a
+    # factor: its starts spread across the middle of its range instead
+    shifted = np.flatnonzero((init == 0) & np.isfinite(lo) & np.isfinite(hi))
     for _ in range(max(starts - 1, 0)):
         # log-uniform spread around the starting point, kept inside the bounds
-        candidates.append(_inside(init * np.exp(rng.uniform(-1.5, 1.5, len(init))), lo, hi))
+        z = init * np.exp(rng.uniform(-1.5, 1.5, len(init)))
+        if len(shifted):
+            z[shifted] = rng.uniform(np.maximum(lo[shifted], -0.5), np.minimum(hi[shifted], 0.5))
+        candidates.append(_inside(z, lo, hi))
     stride = max(1, min(t.n for t in trials) // SCREEN_SAMPLES)
     nfev = 0
     if stride > 1 and len(candidates) > 1:

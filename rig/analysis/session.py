@@ -160,12 +160,12 @@ def material_json(res: FitResult, inputs) -> dict:
     out: dict = {"indenter": inputs.indenter.spec(), "indenter_description": inputs.indenter.describe(),
                  "indenter_from": inputs.indenter_from, "poisson": inputs.poisson,
                  "E_Pa": res.values["E_Pa"], "E_Pa_stderr": res.stderr.get("E_Pa")}
-    x0 = res.values.get("x0_mm")
-    if x0 is not None:
+    x_c = res.values.get("x_c_m")
+    if x_c is not None:
         # the contact point in each record's own travel from its first sample
-        out["contact_point_m"] = [(t.contact_m or 0.0) + x0 / 1000.0 for t in res.trials]
-        err = res.stderr.get("x0_mm")
-        out["contact_point_m_stderr"] = err / 1000.0 if err is not None and math.isfinite(err) else None
+        out["contact_point_m"] = [(t.contact_m or 0.0) + x_c for t in res.trials]
+        err = res.stderr.get("x_c_m")
+        out["contact_point_m_stderr"] = err if err is not None and math.isfinite(err) else None
     rows = modulus_vs_depth(res)
     out["modulus_vs_depth"] = rows
     out["modulus_drift"] = plateau_drift(rows)
