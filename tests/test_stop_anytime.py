@@ -246,3 +246,22 @@ def test_ctrl_c_to_rig_run_aborts_with_a_complete_log(tmp_path):
     log = read_log(next(out.glob("*.mcap")))
     assert log.complete and log.outcome == "aborted"
     assert abs(log.samples["position_mm"][-1]) <= 0.02
+
+
+def test_a_start_replies_with_the_log_it_writes_when_the_planned_name_is_taken(daemon, monkeypatch):
+    """Two trials in one second with the same protocol and specimen plan the same name: the
+    second's recorder takes the next free one, and the reply, the status and the end all name
+    that file, never the earlier trial's."""
+    import rig.service.daemon as daemon_module
+
+    planned = daemon.daemon.out_dir / "planned.mcap"
+    planned.parent.mkdir(parents=True, exist_ok=True)
+    planned.write_bytes(b"an earlier trial's log")
+    monkeypatch.setattr(daemon_module, "default_log_path", lambda out_dir, proto, specimen: planned)
+    r = daemon.req({"cmd": "start", "protocol_text": SHORT, "protocol_path": "short.yaml"})
+    assert r["ok"], r
+    assert r["log"] == str(planned.with_name("planned_2.mcap")), r
+    st = daemon.wait_idle()
+    assert st["last"]["log"] == r["log"] and st["last"]["outcome"] == "completed", st
+    assert planned.read_bytes() == b"an earlier trial's log"
+    assert read_log(r["log"]).complete
