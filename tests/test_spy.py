@@ -67,10 +67,17 @@ def test_rtu_trial_spy_holds_the_exact_frames_of_the_driver_tests(tmp_path):
     assert sent[3] == COMM_TIMEOUT
     assert sent.count(RAMP) == 1 and sent.count(RETURN) == 1
     assert sent.index(RAMP) < sent.index(RETURN)
-    # one position read a tick, status every 10th
+    # one position read a tick, status every 10th, and every tick while a move nears its target
+    # (its arrival needs a fresh "standing still"): the ticks within the tolerance of 4 mm in the
+    # ramp and of 0 mm in the return, and a few more for the last STOP's confirmation
     n_pos = sent.count(POSITION_READ)
     assert result.samples <= n_pos <= result.samples + 10
-    assert n_pos / 10 - 3 <= sent.count(STATUS_READ) <= n_pos / 10 + 3
+    x = log.samples["position_mm"]
+    kinds = np.array(log.step_kind)
+    tol = RigConfig().slider.position_tolerance_mm
+    near = int(np.sum((kinds == "ramp") & (np.abs(x - 4.0) <= tol))
+               + np.sum((kinds == "return") & (np.abs(x) <= tol)))
+    assert n_pos / 10 - 3 <= sent.count(STATUS_READ) <= n_pos / 10 + 3 + near + 3, near
     assert set(sent) <= {POSITION_READ, STATUS_READ, RELEASE, COMM_TIMEOUT, RAMP, RETURN, STOP,
                          rtu("01 03 007C 0002"), rtu("01 03 0300 0002")}
     # the replies decode into the positions the loop logged

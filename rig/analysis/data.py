@@ -86,8 +86,10 @@ def decimate(t: TrialData, stride: int) -> TrialData:
 SEGMENTS = ("all", "approach")
 
 
-def load_trial(path: str | Path, options: ReadOptions | int | None = None, segment: str = "all") -> TrialData:
-    return prepare(read_record(path, options), str(path), segment)
+def load_trial(path: str | Path, options: ReadOptions | int | None = None, segment: str = "all", *,
+               block: int | None = None) -> TrialData:
+    """A record read (`options`, or a Mach-1 `block`) and prepared (`segment`: all or approach)."""
+    return prepare(read_record(path, options, block=block), str(path), segment)
 
 
 def approach_only(rec: Record, where: str) -> Record:
