@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import threading
 import time
+from collections.abc import Callable, Iterable
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -49,3 +53,16 @@ def paper_075_log(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("paper")
     result = run_sim(PROTOCOLS / "paper-0.75mm_s.yaml", tmp_path=tmp)
     return result
+
+
+def per_seed(fn: Callable, seeds: Iterable, *args) -> list:
+    """fn(seed, *args) for every seed, on every core: the seeds of a CPU-bound analysis test are
+    independent and nothing here runs on the real clock. The workers are fresh processes (BLAS on
+    one thread each, from the environment tests/__init__.py sets). Results in the order of
+    `seeds`; a worker's exception is raised here."""
+    seeds = list(seeds)
+    workers = min(len(seeds), os.cpu_count() or 1)
+    if workers <= 1:
+        return [fn(s, *args) for s in seeds]
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return list(pool.map(fn, seeds, *([a] * len(seeds) for a in args)))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +23,7 @@ from rig.models.core import Model, Motion
 from rig.models.fractional import modes
 from rig.recording.logs import read_log
 from rig.specs.config import RigConfig
-from tests.conftest import run_sim
+from tests.conftest import per_seed, run_sim
 
 SEEDS = (1, 2, 3, 4, 5)
 SPEEDS = ("1.5", "3")
@@ -207,31 +208,34 @@ def _verdict(ex) -> tuple[dict, str]:
     return v, line
 
 
-@pytest.mark.parametrize("effect", sorted(HIDDEN))
-def test_hidden_physics_is_named_once_in_the_catalogue_and_unexplained_before(effect, tmp_path):
+def _hidden_physics_one_seed(seed: int, effect: str, tmp_path: Path) -> None:
     sim_effect, params = HIDDEN[effect]
     without = {k: v for k, v in CATALOGUE.items() if k != effect}
-    for seed in SEEDS:
-        tmp = tmp_path / str(seed)
-        tmp.mkdir()
-        trials = [load_trial(p) for p in _simulate(tmp, sim_effect, params, seed)]
-        base = fit(build_model("proposed"), trials)
-        assert not base.adequate
-        ex = explain(base, dict(CATALOGUE))
-        v, line = _verdict(ex)
-        assert v["best"] == effect, f"seed {seed}: {line}"
-        assert line.startswith(f"=> most likely missing: {effect} (dBIC "), line
-        assert v["unexplained"] is False and ex.suggestions[0].rmse_N <= 1.2 * base.noise_N
-        # before the catalogue has it: a structured residual, described, and no wrong answer
-        ex = explain(base, without)
-        v, line = _verdict(ex)
-        assert v["best"] is None, f"seed {seed}: {line}"
-        assert "most likely missing" not in line
-        assert "no effect in the catalogue explains it" in line, line
-        assert isinstance(v["unexplained"], str) and "the residual is " in v["unexplained"], v["unexplained"]
-        assert v["unexplained"] in line
-        if v["closest"]:
-            assert f"closest: {v['closest']} (dBIC " in line and "still leaves a structured residual" in line
+    tmp = tmp_path / str(seed)
+    tmp.mkdir()
+    trials = [load_trial(p) for p in _simulate(tmp, sim_effect, params, seed)]
+    base = fit(build_model("proposed"), trials)
+    assert not base.adequate
+    ex = explain(base, dict(CATALOGUE))
+    v, line = _verdict(ex)
+    assert v["best"] == effect, f"seed {seed}: {line}"
+    assert line.startswith(f"=> most likely missing: {effect} (dBIC "), line
+    assert v["unexplained"] is False and ex.suggestions[0].rmse_N <= 1.2 * base.noise_N
+    # before the catalogue has it: a structured residual, described, and no wrong answer
+    ex = explain(base, without)
+    v, line = _verdict(ex)
+    assert v["best"] is None, f"seed {seed}: {line}"
+    assert "most likely missing" not in line
+    assert "no effect in the catalogue explains it" in line, line
+    assert isinstance(v["unexplained"], str) and "the residual is " in v["unexplained"], v["unexplained"]
+    assert v["unexplained"] in line
+    if v["closest"]:
+        assert f"closest: {v['closest']} (dBIC " in line and "still leaves a structured residual" in line
+
+
+@pytest.mark.parametrize("effect", sorted(HIDDEN))
+def test_hidden_physics_is_named_once_in_the_catalogue_and_unexplained_before(effect, tmp_path):
+    per_seed(_hidden_physics_one_seed, SEEDS, effect, tmp_path)
 
 
 def test_residual_description_names_a_periodic_residual_and_its_phase(tmp_path):

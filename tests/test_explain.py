@@ -5,6 +5,7 @@ sizes vary between cases (fixed seeds); the thresholds are the tool's own, not t
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,7 +17,7 @@ from rig.cli import main
 from rig.models import CATALOGUE, build_model
 from rig.recording.logs import export_csv, read_log
 from rig.specs.config import RigConfig
-from tests.conftest import PROTOCOLS, run_sim
+from tests.conftest import PROTOCOLS, per_seed, run_sim
 
 SPECIMENS = {
     "A": {},
@@ -100,23 +101,25 @@ def _check_verdict(ex, hidden: str) -> str:
     return ""
 
 
-@pytest.mark.parametrize("case", sorted(CASES))
-def test_hidden_effect_is_named_by_the_verdict(case, tmp_path):
+def _one_seed(seed: int, case: str, tmp_path: Path) -> str:
+    """The verdict on one seed of a case: '' when it names the hidden effect, else what it read."""
     specimen, effects, _ = CASES[case]
     (hidden,) = effects
-    misses = []
-    for seed in SEEDS:
-        tmp = tmp_path / str(seed)
-        tmp.mkdir()
-        paths = simulate(tmp, specimen, effects, seed, SPEEDS, HOLD_S.get(case, 30.0))
-        trials = [load_trial(p) for p in paths]
-        base = fit(build_model("proposed"), trials)
-        assert not base.adequate
-        ex = explain(base, dict(CATALOGUE))
-        miss = _check_verdict(ex, hidden)
-        if miss:
-            misses.append(f"seed {seed}: {miss}; ranked "
-                          f"{[(s.effect, round(s.delta_bic, 1)) for s in ex.ranked[:3]]}")
+    tmp = tmp_path / str(seed)
+    tmp.mkdir()
+    paths = simulate(tmp, specimen, effects, seed, SPEEDS, HOLD_S.get(case, 30.0))
+    trials = [load_trial(p) for p in paths]
+    base = fit(build_model("proposed"), trials)
+    assert not base.adequate
+    ex = explain(base, dict(CATALOGUE))
+    miss = _check_verdict(ex, hidden)
+    return (f"seed {seed}: {miss}; ranked {[(s.effect, round(s.delta_bic, 1)) for s in ex.ranked[:3]]}"
+            if miss else "")
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_hidden_effect_is_named_by_the_verdict(case, tmp_path):
+    misses = [m for m in per_seed(_one_seed, SEEDS, case, tmp_path) if m]
     found = len(SEEDS) - len(misses)
     assert found >= MIN_FOUND.get(case, len(SEEDS)), f"{case}: found {found}/{len(SEEDS)}\n" + "\n".join(misses)
 
