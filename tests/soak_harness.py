@@ -312,7 +312,7 @@ class Soak:
         if rec.stop_ok:
             # a fault already under way (a full disk shows at the writer's next flush, up to a
             # second later) may still end a trial whose stop was accepted
-            allowed = {rec.stop_ok} | ({"estopped"} if "estopped" in rec.causes else set()) \
+            allowed = {rec.stop_ok} | ({"estopped", "stopped"} & set(rec.causes)) \
                 | ({"fault"} if {"fault", "disk_full"} & set(rec.causes) else set())
         rec.final = allowed | ({"interrupted"} if "disk_full" in rec.causes else set())
         feature = self._pending_feature(rec)
@@ -522,6 +522,10 @@ class SoakMachine(RuleBasedStateMachine):
                      f"{mode} answered ok but no STOP reached the drive ({r})")
             if rec.stop_ok is None or mode == "estop":
                 rec.stop_ok = STOP_OUTCOME[mode]
+            elif mode == "hold" and rec.stop_ok == "aborted":
+                # a hold during an abort's return stops it where it is ("stopped"), unless the
+                # return had already arrived ("aborted")
+                rec.causes.append("stopped")
             return
         ended = "no trial is running" in r["error"] or "ended" in r["error"]
         # refused because the trial had ended by itself, or because a fault had already stopped the
@@ -530,8 +534,8 @@ class SoakMachine(RuleBasedStateMachine):
         # a stop of another kind in progress (an estop a moment earlier) is a true refusal too
         stopping = "already stopping" in r["error"] and s.sim.drive.stops > 0
         # with the port pulled no STOP can reach the drive, and the reply says exactly that
-        unreachable = ("did not acknowledge" in r["error"] and s.sim.bridge is not None
-                       and s.sim.bridge.client_master < 0)
+        unreachable = (("did not acknowledge" in r["error"] or "not acknowledged" in r["error"])
+                       and s.sim.bridge is not None and s.sim.bridge.client_master < 0)
         s.expect(ended or faulted or stopping or unreachable, "reply true",
                  f"{mode} {delay:g} s after the start was refused: {r['error']}", "stop_anytime")
 

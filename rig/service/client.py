@@ -34,20 +34,39 @@ def _lines(sock: socket.socket) -> Iterator[dict]:
             chunk = sock.recv(65536)
         except TimeoutError:
             raise RigError("the daemon did not answer in time") from None
+        except OSError as exc:  # reset: the daemon went away (stopping, killed) mid-request
+            raise RigError(f"the daemon closed the connection ({exc.strerror or exc})") from None
         if not chunk:
             if buf.strip():
-                yield json.loads(buf)
+                yield _decode(buf)
             return
         buf += chunk
         while b"\n" in buf:
             line, buf = buf.split(b"\n", 1)
             if line.strip():
-                yield json.loads(line)
+                yield _decode(line)
+
+
+def _decode(line: bytes) -> dict:
+    try:
+        reply = json.loads(line)
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise RigError(f"the daemon's reply is not a JSON line: {line[:80]!r}") from None
+    if not isinstance(reply, dict):
+        raise RigError(f"the daemon's reply is not a JSON object: {line[:80]!r}")
+    return reply
+
+
+def _send(sock: socket.socket, obj: dict) -> None:
+    try:
+        sock.sendall((json.dumps(obj) + "\n").encode())
+    except OSError as exc:
+        raise RigError(f"the daemon closed the connection ({exc.strerror or exc})") from None
 
 
 def request(path: Path, obj: dict, timeout_s: float = 10.0) -> dict:
     with _connect(path, timeout_s) as sock:
-        sock.sendall((json.dumps(obj) + "\n").encode())
+        _send(sock, obj)
         for reply in _lines(sock):
             return reply
     raise RigError("the daemon closed the connection without a reply")
@@ -55,5 +74,5 @@ def request(path: Path, obj: dict, timeout_s: float = 10.0) -> dict:
 
 def stream(path: Path, obj: dict, timeout_s: float = 10.0) -> Iterator[dict]:
     with _connect(path, timeout_s) as sock:
-        sock.sendall((json.dumps(obj) + "\n").encode())
+        _send(sock, obj)
         yield from _lines(sock)
