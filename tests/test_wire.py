@@ -15,6 +15,7 @@ import yaml
 from rig.sim.params import SimParams
 from rig.sim.server import ALARM_COMM_TIMEOUT, WireSim
 
+from rig.errors import RigError
 from rig.recording.logs import read_log
 from rig.service.run import RunOptions, run_trial
 from rig.specs.config import RigConfig
@@ -115,6 +116,24 @@ def test_one_dropped_reply_rides_through(wire_sim, tmp_path, transport):
     assert result.outcome == "completed"
     assert log.health[-1]["bus_errors"] == 1
     assert not [e for e in log.events if e["kind"] == "fault"]
+
+
+@pytest.mark.parametrize("lost", [1, 2])
+def test_a_reply_lost_on_connect_is_asked_again(wire_sim, lost):
+    """The first position read of a line just opened may go unanswered (an adapter just plugged in):
+    asked again, the drive is found; a drive that never answers still fails, with the reason."""
+    from rig.control.devices import FIRST_READ_TRIES, open_slider
+
+    wire_sim.params.faults.drop_replies = lost
+    slider, _, _ = open_slider(wired_config(wire_sim))
+    try:
+        assert slider.read_position_mm() == pytest.approx(0.0)
+    finally:
+        slider.close()
+    wire_sim.params.faults.drop_replies = FIRST_READ_TRIES
+    with pytest.raises(RigError, match="no position read yet"):
+        open_slider(wired_config(wire_sim))
+    wire_sim.params.faults.drop_replies = 0
 
 
 def test_one_corrupted_crc_rides_through(wire_sim, tmp_path):

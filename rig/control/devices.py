@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from rig.clock import Clock
 from rig.control.ownership import acquire, hold_with, serial_key, tcp_key, tty_exclusive
 from rig.drivers.base import LoadCell, Slider
-from rig.errors import RigError
+from rig.errors import DeviceError, RigError
 from rig.specs.config import RigConfig
 
 
@@ -185,6 +185,18 @@ def make_slider(config: RigConfig, clock: Clock | None = None, *, tap=None, time
     return hold_with(slider, lock)
 
 
+FIRST_READ_TRIES = 3  # a reply lost on a line just opened (an adapter just plugged in) is not a dead drive
+
+
+def _first_position(slider) -> float:
+    """The drive's position, asked up to FIRST_READ_TRIES times: the error of the last try if none
+    is answered (a drive that is not there still fails at once, within a few timeouts)."""
+    for _ in range(FIRST_READ_TRIES - 1):
+        with contextlib.suppress(DeviceError):
+            return slider.read_position_mm()
+    return slider.read_position_mm()
+
+
 def open_slider(config: RigConfig, clock: Clock | None = None, *, tap=None, holder_note: str = ""):
     """The slider driver, connected: STOP released and verified, the comm timeout set.
 
@@ -195,7 +207,7 @@ def open_slider(config: RigConfig, clock: Clock | None = None, *, tap=None, hold
     slider = make_slider(config, clock, tap=tap, holder_note=holder_note)
     warnings: list[str] = []
     try:
-        slider.read_position_mm()
+        _first_position(slider)
         slider.prepare()
         if s.comm_timeout_s > 0 and slider.set_comm_timeout(s.comm_timeout_s):
             backstop = f"drive communication timeout {s.comm_timeout_s:g} s"
