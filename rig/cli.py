@@ -602,10 +602,14 @@ def build_parser() -> argparse.ArgumentParser:
                                    "and by phase, compare all named models, test on held-out records, find "
                                    "the missing effect. Reads, by content: the rig's MCAP logs; CSV with "
                                    "t_s,position_mm,force_N or other units in the column names (t_ms, "
-                                   "position_um, indentation_nm, force_nN, load_mN, force_gf, strain); JPK "
-                                   ".jpk-force files and text exports; Mach-1 .txt; Instron Bluehill CSV. "
+                                   "position_um, indentation_nm, force_nN, load_mN, force_gf, strain); AFM "
+                                   "force curves and maps that afmformats reads (JPK, Asylum, NT-MDT, AFM "
+                                   "Workshop, Optics11 Chiaro) and JPK text exports; Mach-1 .txt; Instron "
+                                   "Bluehill CSV. "
                                    "Contact, phases and every scale come from the record itself.")
-    r.add_argument("inputs", nargs="+", help="records: MCAP, CSV, JPK, Mach-1 or Instron files")
+    r.add_argument("inputs", nargs="+",
+                   help="records: the rig's MCAP logs, CSV, AFM force curves and maps (JPK, Asylum, NT-MDT, "
+                        "AFM Workshop, Optics11), Mach-1 or Instron files")
     r.add_argument("--block", type=int, metavar="N",
                    help="Mach-1 files: analyse data block N (default: the longest)")
     r.add_argument("--curve", type=int, metavar="N",

@@ -252,7 +252,7 @@ def test_any_indenter_round_trips_exactly(ind):
 
 
 @pytest.mark.parametrize("spec", ["sphere:R=10um", "sphere:R=10µm", "sphere:R=10μm", "sphere:R=1e-5m",
-                                  "sphere:R=1E-5", "sphere:R=0.00001", "sphere:R=10000nm", "sphere:R=0.01mm",
+                                  "sphere:R=1E-5m", "sphere:R=0.00001m", "sphere:R=10000nm", "sphere:R=0.01mm",
                                   " Sphere : R = 10 um ", "sphere:radius=10um", "sphere:r=10um,"])
 def test_lengths_in_any_unit(spec):
     assert parse_indenter(spec) == Indenter("sphere", R_m=1e-5)
@@ -296,6 +296,7 @@ BAD = [
     ("sphere:R=-10um", "the radius must be a finite positive length"),
     ("cylinder:R=0mm", "the radius must be a finite positive length"),
     ("sphere:R=1e999m", "finite positive length"),
+    ("sphere:R=10", "the length has no unit (expected nm, um, µm, mm or m, e.g. 10um)"),
     ("sphere:R=10uk", "unknown length unit 'uk'"),
     ("sphere:R=10 inch", "unknown length unit 'inch'"),
     ("sphere:R=abc", "is not a number with a unit"),
@@ -363,7 +364,7 @@ def test_random_valid_specs_round_trip():
     for _ in range(300):
         kind = rng.choice(KINDS)
         if kind in ("paraboloid", "sphere", "cylinder"):
-            unit = rng.choice(["nm", "um", "mm", "m", ""])
+            unit = rng.choice(["nm", "um", "mm", "m"])
             spec = f"{kind}:R={rng.uniform(0.001, 999):.{rng.randint(1, 9)}g}{unit}"
         else:
             spec = f"{kind}:half_angle={rng.uniform(0.1, 84.9):.{rng.randint(1, 9)}g}deg"

@@ -90,7 +90,7 @@ def test_a_wrong_geometry_is_not_adequate_and_the_right_one_recovers_e(tmp_path)
 
 
 @pytest.mark.parametrize(("kw", "message"), [
-    ({}, "the hertz model needs the indenter's geometry: give --indenter"),
+    ({}, "the hertz model needs the indenter's geometry, which the record does not name: give --indenter"),
     ({"indenter": "sphre:R=1um"},
      "--indenter: indenter 'sphre:R=1um': unknown shape 'sphre' (did you mean 'sphere'"),
     ({"indenter": "cone"}, "--indenter: indenter 'cone': missing parameter half_angle"),
@@ -112,6 +112,35 @@ def test_the_cli_refuses_bad_arguments_in_one_line(tmp_path):
         assert r.returncode == 2 and said in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 
+def test_hertz_fits_one_curve_at_a_time(tmp_path):
+    """Each curve has its own contact point: two curves in one hertz fit are refused, not forced
+    onto one contact."""
+    a, b = hertz_curve(tmp_path / "a.csv", 1), hertz_curve(tmp_path / "b.csv", 2, surface_m=0.4e-6)
+    with pytest.raises(RigError, match=r"fits one curve at a time .* pick one curve of a map with --curve"):
+        analyze(AnalyzeRequest([str(a), str(b)], model="hertz", indenter="paraboloid:R=5um"))
+    with pytest.raises(RigError, match="fits one curve at a time"):
+        analyze(AnalyzeRequest([str(a)], holdout=[str(b)], model="hertz", indenter="paraboloid:R=5um"))
+
+
+def test_records_that_name_different_indenters_are_refused(tmp_path, monkeypatch):
+    import rig.analysis.analyze as an
+    from rig.analysis.data import prepare
+    from rig.records import read_record
+
+    paths = [hertz_curve(tmp_path / "a.csv", 1), hertz_curve(tmp_path / "b.csv", 2)]
+    named = {"a.csv": "sphere:R=5um", "b.csv": "cone:half_angle=35deg"}
+
+    def load(path, *args, **kwargs):  # the records as an instrument that names its tip gives them
+        rec = read_record(path)
+        rec.meta["indenter"] = named[rec.name]
+        return prepare(rec, str(path))
+
+    monkeypatch.setattr(an, "load_trial", load)
+    with pytest.raises(RigError, match=r"the records name different indenters \(a.csv: sphere:R=5um, "
+                                       r"b.csv: cone:half_angle=35deg\)"):
+        an.load_inputs([str(p) for p in paths], [], [])
+
+
 def test_without_an_indenter_the_models_stay_lumped(tmp_path):
     path = hertz_curve(tmp_path / "h.csv", 2)
     out = analyze(AnalyzeRequest([str(path)], model="hunt_crossley")).json
@@ -130,7 +159,8 @@ def test_the_chiaro_modulus_agrees_with_the_instruments_own_fit():
     own = read_record(CHIARO).meta["instrument_result"]["E_Pa"]
     out = analyze(AnalyzeRequest([str(CHIARO)], model="hertz", indenter="paraboloid", segment="approach"))
     m = out.json["material"]
-    assert m["indenter"] == "paraboloid:R=27.5um" and "radius from the header" in m["indenter_from"]
+    assert m["indenter"] == "paraboloid:R=27.5um"
+    assert m["indenter_from"] == f"--indenter, its radius from the header of {CHIARO.name}"
     assert abs(m["E_Pa"] / own - 1) < 0.03, (m["E_Pa"], own)
     assert "its own fit gives E = 117 Pa (Hertz, Poisson 0.5)" in out.text
     sphere = analyze(AnalyzeRequest([str(CHIARO)], model="hertz", segment="approach")).json["material"]
@@ -147,7 +177,7 @@ def test_a_rig_config_names_its_probe_and_the_log_carries_it(tmp_path):
     log = next(tmp_path.glob("*.mcap"))
     out = analyze(AnalyzeRequest([str(log)], model="hertz")).json
     m = out["material"]
-    assert m["indenter"] == "cylinder:R=2mm" and "the header of" in m["indenter_from"]
+    assert m["indenter"] == "cylinder:R=2mm" and m["indenter_from"] == f"the config in {log.name}"
     assert m["E_Pa"] > 0
 
 

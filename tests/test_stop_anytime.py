@@ -265,3 +265,18 @@ def test_a_start_replies_with_the_log_it_writes_when_the_planned_name_is_taken(d
     assert st["last"]["log"] == r["log"] and st["last"]["outcome"] == "completed", st
     assert planned.read_bytes() == b"an earlier trial's log"
     assert read_log(r["log"]).complete
+
+
+def test_a_start_that_fails_before_its_log_opens_is_answered_as_failed(daemon, monkeypatch):
+    """A trial that ends before it opens its log (here its log's folder cannot be written) did
+    not start: the reply says so and names no log."""
+    import rig.control.trial as trial_module
+
+    def no_log(*args, **kwargs):
+        raise OSError(30, "Read-only file system")
+
+    monkeypatch.setattr(trial_module, "Recorder", no_log)
+    r = daemon.req({"cmd": "start", "protocol_text": SHORT, "protocol_path": "short.yaml"})
+    assert not r["ok"] and "log" not in r, r
+    assert r["error"].startswith("the trial did not start: ") and "Read-only file system" in r["error"], r
+    assert daemon.req({"cmd": "status"})["state"] == "idle"

@@ -27,6 +27,23 @@ class Inputs:
     poisson: float = 0.5
 
 
+ROUND = ("paraboloid", "sphere")  # a bare shape that takes a file's radius
+
+
+def _named_indenter(trials: list[TrialData]) -> tuple[Indenter, str] | None:
+    """The indenter the records name (an instrument's header, a rig log's config), and where from;
+    records that name different ones are refused rather than one of them chosen."""
+    found = [(parse_indenter(t.meta["indenter"]), t) for t in trials if t.meta.get("indenter")]
+    if not found:
+        return None
+    if len({ind for ind, _ in found}) > 1:
+        raise RigError("the records name different indenters (" + ", ".join(f"{t.name}: {ind.spec()}"
+                       for ind, t in found) + "): analyse them apart, or give --indenter")
+    ind, t = found[0]
+    where = f"the config in {t.name}" if t.source == "mcap" else f"the header of {t.name}"
+    return ind, where
+
+
 def load_inputs(paths: list[str], holdout: list[str], plugins: list[str],
                 options: ReadOptions | int | None = None, *, indenter: str | None = None,
                 poisson: float = 0.5, segment: str = "all") -> Inputs:
@@ -44,20 +61,20 @@ def load_inputs(paths: list[str], holdout: list[str], plugins: list[str],
     trials = [load_trial(p, options, segment) for p in paths]
     held = [load_trial(p, options, segment) for p in holdout]
     ind, source = None, ""
-    named = next(((t.meta.get("indenter"), t.name) for t in trials if t.meta.get("indenter")), None)
-    if indenter and indenter.strip() in ("paraboloid", "sphere", "cylinder") and named \
-            and parse_indenter(named[0]).R_m:
-        # a shape alone takes its size from the header: `--indenter paraboloid` on a file that
+    named = _named_indenter(trials)
+    shape = (indenter or "").strip().lower()
+    if shape in ROUND and named and named[0].kind in ROUND:
+        # a round shape alone takes its size from the file: `--indenter paraboloid` on a file that
         # names a sphere fits Hertz's approximation with the sphere's radius
-        ind = parse_indenter(f"{indenter.strip()}:R={parse_indenter(named[0]).R_m}m")
-        source = f"--indenter, its radius from the header of {named[1]}"
+        ind = parse_indenter(f"{shape}:R={named[0].R_m}m")
+        source = f"--indenter, its radius from {named[1]}"
     elif indenter:
         try:
             ind, source = parse_indenter(indenter), "--indenter"
         except SpecError as exc:
             raise RigError(f"--indenter: {exc.message}") from None
     elif named:
-        ind, source = parse_indenter(named[0]), f"the header of {named[1]}"
+        ind, source = named
     if ind is not None:
         registry[CONTACT] = contact_effect(ind, poisson)
         registry[CONTACT_POINT.name] = CONTACT_POINT

@@ -8,12 +8,21 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from rig.analysis.analyze import compare, format_compare, format_holdout, holdout_json, load_inputs, result_json
+from rig.analysis.analyze import (
+    _finite,
+    compare,
+    format_compare,
+    format_holdout,
+    holdout_json,
+    load_inputs,
+    result_json,
+)
 from rig.analysis.data import PHASES
 from rig.analysis.explain import auto, explain, format_auto, format_explain
 from rig.analysis.fit import FitResult, fit
 from rig.analysis.modulus import format_modulus, format_pa, modulus_vs_depth, plateau_drift
 from rig.analysis.report import write_report
+from rig.errors import RigError
 from rig.models.catalogue import CONTACT, build_model
 from rig.records import ReadOptions
 
@@ -53,6 +62,11 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     inputs = load_inputs(req.inputs, req.holdout, req.plugins, options, indenter=req.indenter,
                          poisson=req.poisson, segment=req.segment)
     model = build_model(req.model, req.add, inputs.registry)
+    if model.has("contact_point") and len(inputs.trials) + len(inputs.holdout) > 1:
+        # the contact point belongs to each curve: one parameter shared by several would put
+        # some curves' contact past their deepest point
+        raise RigError(f"the {req.model} model fits one curve at a time (each has its own contact point): "
+                       "give one record, or pick one curve of a map with --curve")
     before = fit(build_model(req.model, [], inputs.registry), inputs.trials) if req.add else None
     res = fit(model, inputs.trials)
     if before is not None:
@@ -159,7 +173,7 @@ def material_json(res: FitResult, inputs) -> dict:
         return {}
     out: dict = {"indenter": inputs.indenter.spec(), "indenter_description": inputs.indenter.describe(),
                  "indenter_from": inputs.indenter_from, "poisson": inputs.poisson,
-                 "E_Pa": res.values["E_Pa"], "E_Pa_stderr": res.stderr.get("E_Pa")}
+                 "E_Pa": res.values["E_Pa"], "E_Pa_stderr": _finite(res.stderr.get("E_Pa"))}
     x_c = res.values.get("x_c_m")
     if x_c is not None:
         # the contact point in each record's own travel from its first sample

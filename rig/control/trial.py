@@ -122,6 +122,7 @@ class Trial:
         # set once the log's name is final (the recorder may take the next free one) or the trial
         # ended before opening it: a caller that reports the name waits for this
         self.log_named = threading.Event()
+        self.recorder: Recorder | None = None  # once the log is open
         self.info = info or TrialInfo()
         self.rate = config.loop.rate_Hz
         self.period = 1.0 / self.rate

@@ -173,9 +173,9 @@ NAMED_MODELS: dict[str, list[str]] = {
 
 
 CONTACT = "elastic_contact"  # the effect an indenter brings (rig.models.contact)
-NEEDS_INDENTER = ("needs the indenter's geometry: give --indenter (e.g. paraboloid:R=10um, sphere:R=2.5um, "
-                  "cone:half_angle=35deg, pyramid:half_angle=35deg,sides=4, cylinder:R=1mm) or probe: in the "
-                  "rig config")
+NEEDS_INDENTER = ("needs the indenter's geometry, which the record does not name: give --indenter (e.g. "
+                  "paraboloid:R=10um, sphere:R=2.5um, cone:half_angle=35deg, pyramid:half_angle=35deg,sides=4, "
+                  "cylinder:R=1mm), or probe: in the rig config for the rig's own logs")
 
 
 def contact_effect(indenter, poisson: float = 0.5) -> Effect:

@@ -155,12 +155,15 @@ def _number_and_unit(key: str, raw: str, what: str) -> tuple[str, str]:
 
 
 def _parse_length(key: str, raw: str) -> float:
-    what = "expected a length such as 10um; units nm, um, µm, mm, m; a plain number is metres"
+    what = "expected a length such as 10um; units nm, um, µm, mm, m"
     number, unit = _number_and_unit(key, raw, what)
-    if unit not in _LENGTH_UNITS and unit != "":
+    if unit == "":
+        # a bare 10 is 10 m to a parser and 10 µm to an AFM user: the unit is never guessed
+        raise SpecError(f"{key}={raw}: the length has no unit (expected nm, um, µm, mm or m, e.g. 10um)")
+    if unit not in _LENGTH_UNITS:
         raise SpecError(f"{key}={raw}: unknown length unit {unit!r}{did_you_mean(unit, _LENGTH_UNITS)}"
                         f" (length units: nm, um, µm, mm, m)")
-    x_m = _metres(number, unit or "m")
+    x_m = _metres(number, unit)
     if not math.isfinite(x_m) or not x_m > 0:
         raise SpecError(f"{key}={raw}: the radius must be a finite positive length")
     return x_m
@@ -247,7 +250,7 @@ def _parse(spec: str) -> Indenter:
 def parse_indenter(spec: str) -> Indenter:
     """An `Indenter` from a spec string: 'sphere:R=10um', 'paraboloid:R=2.5um', 'cone:half_angle=35deg',
     'pyramid:half_angle=35deg,sides=4' (sides 3 or 4, default 4), 'cylinder:R=1mm' (alias a= or
-    radius=). Lengths in nm, um, µm, mm or m (a plain number is metres; 1e-5m works); angles in deg,
+    radius=). Lengths in nm, um, µm, mm or m, the unit always written (1e-5m works); angles in deg,
     ° or rad. Anything wrong raises SpecError saying what and what was expected."""
     if not isinstance(spec, str):
         raise SpecError(f"indenter {spec!r}: expected a spec string ({_EXAMPLES})")

@@ -264,6 +264,12 @@ class Daemon:
         # names the file this trial writes, never an earlier one
         trial.log_named.wait(LOG_NAMED_S)
         log_path = trial.log_path
+        if trial.recorder is None and trial.log_named.is_set():
+            # it ended before opening its log (a limit from where the slider stands, the first
+            # position read, the log's folder): the truth is that it did not start
+            self.trial_thread.join(LOG_NAMED_S)
+            why = (self.last or {}).get("error", "it ended at once")
+            raise RequestError(f"the trial did not start: {why}")
         with self.state_lock:
             if self.trial is trial:
                 self.trial_meta["log"] = str(log_path)
