@@ -271,6 +271,10 @@ class RtuBridge:
         self.client_master, self._client_slave, self.client_path = _raw_pty()
         self._link()
         self._stop = threading.Event()
+        # vanish() asks, the bridge's own thread closes: a descriptor closed under its select
+        # could be reused by any file the process opens next and read from as the port
+        self._vanish = threading.Event()
+        self._vanished = threading.Event()
         self._thread = threading.Thread(target=self._run, name="rtu-bridge", daemon=True)
         self._thread.start()
 
@@ -288,15 +292,26 @@ class RtuBridge:
             os.replace(tmp, self.link_path)
 
     def vanish(self) -> None:
-        """The port goes away under whoever has it open: both ends of its pseudo-terminal closed."""
+        """The port goes away under whoever has it open: both ends of its pseudo-terminal closed
+        (by the bridge's thread, between two of its reads; at once if it no longer runs)."""
+        self._vanished.clear()
+        self._vanish.set()
+        if self._thread.is_alive() and self._vanished.wait(2.0):
+            return
+        self._close_client()
+
+    def _close_client(self) -> None:
         with self._lock:
             for fd in (self.client_master, self._client_slave):
-                with contextlib.suppress(OSError):
-                    os.close(fd)
+                if fd >= 0:
+                    with contextlib.suppress(OSError):
+                        os.close(fd)
             self.client_master = self._client_slave = -1
             if self.link_path:
                 with contextlib.suppress(FileNotFoundError):
                     os.unlink(self.link_path)
+        self._vanish.clear()
+        self._vanished.set()
 
     def restore(self) -> str:
         """The port is back (a new pseudo-terminal); returns the path to open."""
@@ -309,13 +324,13 @@ class RtuBridge:
     def _run(self) -> None:
         sm = self.server_master
         while not self._stop.is_set():
+            if self._vanish.is_set():
+                self._close_client()
             cm = self.client_master
             fds = [sm] if cm < 0 else [sm, cm]
             try:
                 ready, _, _ = select.select(fds, [], [], 0.05)
             except (OSError, ValueError):
-                if self.client_master != cm:  # vanished while we waited
-                    continue
                 return
             for fd in ready:
                 try:
