@@ -62,6 +62,12 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     inputs = load_inputs(req.inputs, req.holdout, req.plugins, options, indenter=req.indenter,
                          poisson=req.poisson, segment=req.segment)
     model = build_model(req.model, req.add, inputs.registry)
+    if req.save:
+        from rig.models.saved import savable
+
+        why = savable(model)
+        if why:  # said before the fit, not after it
+            raise RigError(f"--save: {why}")
     if model.has("contact_point") and len(inputs.trials) + len(inputs.holdout) > 1:
         # the contact point belongs to each curve: one parameter shared by several would put
         # some curves' contact past their deepest point

@@ -196,10 +196,11 @@ def contact_effect(indenter, poisson: float = 0.5) -> Effect:
 
 # The contact point as a parameter of the record (AFM practice), brought with an indenter: anywhere
 # from a travel before the first estimate to just short of the deepest point, which a threshold
-# can miss by far. Not a catalogue candidate: for the lumped models contact_offset is that.
+# can miss by far. Not among the lumped models' candidates: for them contact_offset is that.
 CONTACT_POINT = E("contact_point", "geometry", (P("x_c_m", "m", 0.0, -1.0, 0.99),),
                   _contact_point, "indentation = max(x - x_c, 0), x_c fitted from the first estimate",
-                  "model force rises too early or too late: the contact point is elsewhere")
+                  "model force rises too early or too late: the contact point is elsewhere",
+                  source="indenter (the record's contact point)")
 
 
 def named_models(registry: dict[str, Effect]) -> list[str]:

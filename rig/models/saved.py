@@ -58,11 +58,23 @@ class SavedModel:
         return "\n".join(lines)
 
 
+def savable(model) -> str | None:
+    """Why `model` cannot be saved to run in the loop, or None: the loop rebuilds a saved model
+    from the catalogue alone, so a plugin's effect or an indenter's contact (hertz) stays out."""
+    indenter = [e.name for e in model.effects if e.source.startswith("indenter")]
+    if indenter:
+        return (f"effect(s) {', '.join(indenter)} hold the indenter's geometry, which a saved model does "
+                "not carry yet; save a model of catalogue effects")
+    plugin = [e.name for e in model.effects if e.source != "catalogue"]
+    if plugin:
+        return f"effect(s) {', '.join(plugin)} come from a plugin; only catalogue effects can be saved"
+    return None
+
+
 def from_fit(res, trials: list[str]) -> SavedModel:
-    unknown = [e.name for e in res.model.effects if e.source != "catalogue"]
-    if unknown:
-        raise RigError(f"--save: effect(s) {', '.join(unknown)} come from a plugin; only catalogue effects "
-                       "can be saved")
+    why = savable(res.model)
+    if why:
+        raise RigError(f"--save: {why}")
     stderr = {k: (e if e is not None and math.isfinite(e) else None) for k, e in res.stderr.items()}
     return SavedModel(res.model, dict(res.values), stderr, trials, res.noise_N,
                       res.overall.rmse_N)
