@@ -102,6 +102,25 @@ _NUM = r"[-+]?(?:\d+(?:[.,]\d*)?|[.,]\d+)(?:[eE][-+]?\d+)?"
 _NTMDT_ROW = re.compile(rf"^\s*{_NUM}\t{_NUM}\t{_NUM}\s*$")
 
 
+def in_time_order(t: np.ndarray, *columns: np.ndarray | None) -> tuple:
+    """`t` and the columns sorted by time, a repeated time dropped (segments that restart or
+    overlap); a None column stays None."""
+    order = np.argsort(t, kind="stable")
+    keep = np.concatenate([[True], np.diff(t[order]) > 0])
+    return (t[order][keep], *(None if c is None else c[order][keep] for c in columns))
+
+
+def tip_travel(height_m: np.ndarray, force_N: np.ndarray, spring_N_per_m: float | None,
+               notes: list[str]) -> np.ndarray:
+    """The travel into the sample from a height that falls as the tip goes in; with the
+    cantilever's spring constant, less its deflection (the tip lags the piezo by force / k)."""
+    travel = -(height_m - height_m[0])
+    if spring_N_per_m:
+        travel = travel - (force_N - np.median(force_N[: max(len(force_N) // 50, 5)])) / spring_N_per_m
+        notes.append(f"indentation = travel - deflection (cantilever {spring_N_per_m:.3g} N/m)")
+    return travel
+
+
 def detect_afm(head: bytes, path: Path) -> AfmFormat | None:
     """The AFM format of a file from its suffix and first bytes, or None.
 
@@ -437,12 +456,7 @@ def _build(path: Path, fmt: AfmFormat, d, n_curves: int, header: dict, caught: l
     if "time" in cols:
         t = np.asarray(d["time"], dtype=float)
         time_from = "file"
-        order_t = np.argsort(t, kind="stable")
-        t, h, f = t[order_t], h[order_t], f[order_t]
-        seg = seg[order_t] if seg is not None else None
-        keep = np.concatenate([[True], np.diff(t) > 0])
-        t, h, f = t[keep], h[keep], f[keep]
-        seg = seg[keep] if seg is not None else None
+        t, h, f, seg = in_time_order(t, h, f, seg)
     else:
         rate = _float(_meta(md, "rate approach"))
         if rate and rate > 0:
@@ -456,8 +470,8 @@ def _build(path: Path, fmt: AfmFormat, d, n_curves: int, header: dict, caught: l
     if len(t) < 2:
         raise SpecError(f"curve {enum} holds {len(t)} sample(s)", path=where)
     k = _float(_meta(md, "spring constant"))
-    travel = -(h - h[0])
     if column == "tip position":
+        travel = tip_travel(h, f, None, notes)
         notes.append("position from the file's tip position (the cantilever's deflection already subtracted)")
     else:
         if fmt is CHIARO:
@@ -465,11 +479,8 @@ def _build(path: Path, fmt: AfmFormat, d, n_curves: int, header: dict, caught: l
                          "from its own contact point)")
         elif column != "height (measured)":
             notes.append(f"position from the file's {column}")
-        if k:
-            # the tip lags the piezo by the cantilever's deflection
-            travel = travel - (f - np.median(f[: max(len(f) // 50, 5)])) / k
-            notes.append(f"indentation = travel - deflection (cantilever {k:.3g} N/m)")
-        else:
+        travel = tip_travel(h, f, k, notes)
+        if not k:
             notes.append("the file gives no spring constant: the position is the piezo's travel, the "
                          "cantilever's deflection not subtracted (give --spring-constant to subtract it)")
     labels = _segment_labels(seg, modality, travel, notes)

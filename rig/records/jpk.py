@@ -16,14 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from rig.errors import SpecError
+from rig.records.afm import JPK, in_time_order, read_afm, tip_travel
 from rig.records.record import Record
 from rig.records.units import FORCE, LENGTH, TIME
-
-ZIP_MAGIC = b"PK\x03\x04"
-
-
-def looks_like_jpk_force(head: bytes, path: Path) -> bool:
-    return head.startswith(ZIP_MAGIC) and path.suffix.lower().startswith(".jpk")
 
 
 def looks_like_jpk_text(head: str) -> bool:
@@ -33,21 +28,12 @@ def looks_like_jpk_text(head: str) -> bool:
 def read_jpk_force(path: str | Path, options=None) -> Record:
     """A binary JPK force file through afmformats: its first curve, or `options.curve`
     (a rig.records.afm.ReadOptions)."""
-    from rig.records.afm import JPK, read_afm
-
     return read_afm(Path(path), options, JPK)
 
 
 def _jpk_record(path: Path, source: str, t, h, f, spring_N_per_m: float | None, notes: list[str]) -> Record:
-    order = np.argsort(t, kind="stable")
-    t, h, f = t[order], h[order], f[order]
-    keep = np.concatenate([[True], np.diff(t) > 0])
-    t, h, f = t[keep], h[keep], f[keep]
-    travel = -(h - h[0])
-    if spring_N_per_m:
-        # the tip lags the piezo by the cantilever's deflection
-        travel = travel - (f - np.median(f[: max(len(f) // 50, 5)])) / spring_N_per_m
-        notes.append(f"indentation = travel - deflection (cantilever {spring_N_per_m:.3g} N/m)")
+    t, h, f = in_time_order(t, h, f)
+    travel = tip_travel(h, f, spring_N_per_m, notes)
     return Record(path.name, source, t, travel, f, length_unit="µm", force_unit="nN", notes=notes)
 
 
