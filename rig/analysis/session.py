@@ -4,7 +4,6 @@ finds as the JSON document (SI) and as the text a person reads (the record's uni
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -184,8 +183,7 @@ def material_json(res: FitResult, inputs) -> dict:
     if x_c is not None:
         # the contact point in each record's own travel from its first sample
         out["contact_point_m"] = [(t.contact_m or 0.0) + x_c for t in res.trials]
-        err = res.stderr.get("x_c_m")
-        out["contact_point_m_stderr"] = err if err is not None and math.isfinite(err) else None
+        out["contact_point_m_stderr"] = _finite(res.stderr.get("x_c_m"))
     rows = modulus_vs_depth(res)
     out["modulus_vs_depth"] = rows
     out["modulus_drift"] = plateau_drift(rows)
@@ -198,7 +196,7 @@ def material_json(res: FitResult, inputs) -> dict:
 
 def format_material(m: dict, res: FitResult) -> str:
     err = m["E_Pa_stderr"]
-    e = f" +/- {format_pa(err)}" if err is not None and math.isfinite(err) else ""
+    e = f" +/- {format_pa(err)}" if err is not None else ""  # finite or None (material_json)
     lines = [f"material   E = {format_pa(m['E_Pa'])}{e}  ({m['indenter_description']}, "
              f"from {m['indenter_from']}; Poisson's ratio {m['poisson']:g})"]
     if "contact_point_m" in m:
