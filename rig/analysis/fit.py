@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 from warnings import catch_warnings, simplefilter
 
 import numpy as np
-from scipy.optimize import least_squares
 
+from rig.analysis import separable
 from rig.analysis.data import PHASES, Scales, TrialData, decimate
 from rig.analysis.noise import Noise, from_baseline, from_residual, integral_scale
 from rig.analysis.scaling import ParamScaling
@@ -176,6 +176,13 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) ->
     ps = ParamScaling(model, scales)
     init, lo, hi = ps.start_and_bounds(initial)
     init = _inside(init, lo, hi)
+    form = separable.split(model)
+    best = _separable(model, ps, trials, scales, init, lo, hi, form) if form else None
+    if best is not None:
+        if polish and tol <= 1e-8:
+            best = _newton_polish(_residual_fn(model, ps, trials, scales), best, lo, hi)
+        best.jac = _central_jacobian(_residual_fn(model, ps, trials, scales), best.x, range(len(best.x)))
+        return _result(model, ps, trials, scales, best, lo, hi, best.nfev, t0)
     rng = np.random.default_rng(seed)
     candidates = [init]
     # a parameter that starts at zero inside finite bounds (the contact point) is not moved by a
@@ -225,7 +232,26 @@ def _residual_fn(model, ps: ParamScaling, trials, scales: Scales):
     return resid
 
 
+def _separable(model, ps: ParamScaling, trials, scales: Scales, init, lo, hi,
+               form) -> separable.Solution | None:
+    """The global optimum of a model linear in all but its contact point (rig.analysis.separable),
+    or None when the general solver must do it."""
+    inv_F = 1.0 / scales.force_N
+    names = model.param_names
+    target = np.concatenate([t.force_N for t in trials]) * inv_F
+
+    def predict_z(z: np.ndarray) -> np.ndarray:
+        vals = dict(zip(names, ps.to_si(z), strict=True))
+        return np.concatenate([model.predict(vals, t.motion) for t in trials]) * inv_F
+
+    resid = _residual_fn(model, ps, trials, scales)
+    return separable.solve(resid, predict_z, init, lo, hi, target, form)
+
+
 def _solve(model, ps: ParamScaling, trials, scales: Scales, z0, lo, hi, tol, max_nfev, jac="2-point"):
+    # imported here: scipy.optimize costs a one-curve `rig analyze` more than its fit
+    from scipy.optimize import least_squares
+
     return least_squares(_residual_fn(model, ps, trials, scales), z0, bounds=(lo, hi), method="trf",
                          x_scale=1.0, max_nfev=max_nfev, ftol=tol, xtol=tol, gtol=tol, jac=jac)
 
@@ -249,13 +275,7 @@ def _newton_polish(resid, sol, lo, hi, steps: int = 30):
     idx = np.flatnonzero(free)
 
     def jacobian(z: np.ndarray) -> np.ndarray:
-        h = 6e-6 * np.maximum(1.0, np.abs(z))
-        J = np.empty((len(r), len(idx)))
-        for j, i in enumerate(idx):
-            dz = np.zeros_like(z)
-            dz[i] = h[i]
-            J[:, j] = (resid(z + dz) - resid(z - dz)) / (2 * h[i])
-        return J
+        return _central_jacobian(resid, z, idx)
 
     r = resid(z)
     cost = 0.5 * float(r @ r)
@@ -298,6 +318,17 @@ def _newton_polish(resid, sol, lo, hi, steps: int = 30):
     if cost <= sol.cost * (1.0 + 1e-12):
         sol.x, sol.cost, sol.fun = z, cost, r
     return sol
+
+
+def _central_jacobian(resid, z: np.ndarray, idx) -> np.ndarray:
+    """d(residual)/dz for the variables `idx`, by central differences."""
+    h = 6e-6 * np.maximum(1.0, np.abs(z))
+    cols = []
+    for i in idx:
+        dz = np.zeros_like(z)
+        dz[i] = h[i]
+        cols.append((resid(z + dz) - resid(z - dz)) / (2 * h[i]))
+    return np.column_stack(cols)
 
 
 def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> FitResult:

@@ -141,10 +141,10 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in [
       "hold residual decaying over many time scales at once: fast at first, then a long power-law tail"),
     E("offset", "sensor", (P("offset_N", "N", 0.0),),
       _offset, "constant force offset (tare error)",
-      "residual constant, also before contact and after retraction"),
+      "residual constant, also before contact and after retraction", linear=True),
     E("drift", "sensor", (P("drift_N_per_s", "N/s", 0.0),),
       _drift, "force drift linear in time",
-      "residual growing linearly with time, also before contact"),
+      "residual growing linearly with time, also before contact", linear=True),
     E("contact_offset", "geometry", (P("x0_mm", "mm", 0.02, -0.3, 0.9),),
       _contact_offset, "indentation = max(x - x0, 0)",
       "model force too early (or too late) at the start of the ramp: contact elsewhere than assumed"),
@@ -191,7 +191,7 @@ def contact_effect(indenter, poisson: float = 0.5) -> Effect:
     return Effect(CONTACT, "drive", (P("E_Pa", "Pa", 1.0, 0.0, warn_negative=True),), _elastic_contact,
                   f"F = E g(d): {law}, {indenter.describe()}, Poisson {poisson:g}",
                   "ramp residual shaped like a power of depth other than the indenter's",
-                  source=f"indenter {indenter.spec()}")
+                  source=f"indenter {indenter.spec()}", linear=True)
 
 
 # The contact point as a parameter of the record (AFM practice), brought with an indenter: anywhere

@@ -90,6 +90,9 @@ class Effect:
     signature: str  # where in a trial its absence shows
     source: str = "catalogue"
     needs_force: bool = False  # geometry that depends on the force itself (frame compliance)
+    # a drive or sensor term that is its one parameter times a term free of it: the fit then
+    # solves for that parameter directly (rig.analysis.separable)
+    linear: bool = False
 
     def __post_init__(self) -> None:
         if self.stage not in STAGES:

@@ -22,7 +22,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import lapack
 
 FRAME_RTOL = 1e-10  # of the force's own peak: far below any sensor's resolution
 FRAME_MAX_ITER = 60
@@ -139,6 +138,8 @@ class _Step:
                 ab[kl + ku + d, :n - d] = row[d:]
             else:
                 ab[kl + ku + d, -d:] = row[:d]
+        from scipy.linalg import lapack  # only a frame solve needs it; a plain fit does not import it
+
         lu, piv, info = lapack.dgbtrf(ab, kl, ku)
         if info != 0 or not np.all(np.isfinite(lu)):
             return None
@@ -148,6 +149,8 @@ class _Step:
         rhs = _shift_poly(self.drive_rhs, _tri_times(self.m, r))
         if self.nb is not None and np.any(self.rate_rhs):
             rhs += _shift_poly(self.rate_rhs, _tri_times(self.nb, r))
+        from scipy.linalg import lapack
+
         z, info = lapack.dgbtrs(self.lu, self.kl, self.ku, rhs, self.piv)
         return -r + self.live * z if info == 0 else -r
 

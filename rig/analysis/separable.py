@@ -1,0 +1,193 @@
+"""Models linear in all their parameters but one, fitted by variable projection.
+
+An elastic contact law over a baseline, F = E g(x - x_c) + offset, is linear in E and the
+offset once the contact point x_c is fixed: for each x_c, linear least squares gives the best
+E and offset in one step, and the fit is left with a cost of one variable (Golub and Pereyra,
+1973). That cost is scanned across the contact point's whole range and refined around its
+lowest point, so the result is the global least-squares optimum: a local solver started from a
+guessed contact point can settle in a neighbouring valley. The whole fit is numpy: a user
+fitting one curve does not pay for importing a general solver.
+
+A model qualifies when every drive and sensor effect is flagged `linear` (its output is its
+one parameter times a term that does not depend on it), nothing lags, branches or waits, and
+at most one parameter sits in the geometry. The linear combination is checked against the
+model's own prediction at the optimum; anything unexpected (a bound reached, a clamp that
+bites) hands the fit back to the general solver.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rig.models.core import Model
+
+GRID = 48  # cost evaluations across the contact point's range before refining
+GOLDEN = 0.5 * (3.0 - 5.0 ** 0.5)
+
+
+@dataclass
+class Solution:
+    """What a least-squares solver leaves: the fit variables, half the sum of squares, the
+    residual and its Jacobian there, and how many residual evaluations it took."""
+
+    x: np.ndarray
+    cost: float
+    fun: np.ndarray
+    jac: np.ndarray | None
+    nfev: int
+
+
+def split(model: Model) -> tuple[int | None, list[int]] | None:
+    """(index of the one nonlinear parameter or None, indices of the linear ones), or None when
+    the model is not of this form."""
+    stages = {e.stage for e in model.effects}
+    if stages - {"geometry", "drive", "sensor"} or any(e.needs_force for e in model.effects):
+        return None
+    names = model.param_names
+    linear, nonlinear = [], []
+    for e in model.effects:
+        idx = [names.index(p.name) for p in e.params]
+        if e.stage == "geometry":
+            nonlinear += idx
+        elif e.linear and len(idx) == 1:
+            linear += idx
+        else:
+            return None
+    if len(set(nonlinear)) > 1 or set(linear) & set(nonlinear) or len(set(linear)) != len(linear):
+        return None
+    # a drive term bounded below zero could make the tissue pull, which the clamp forbids
+    params = model.params
+    if any(params[i].lo < 0 for i in linear if _stage(model, i) == "drive"):
+        return None
+    return (nonlinear[0] if nonlinear else None), linear
+
+
+def _stage(model: Model, i: int) -> str:
+    name = model.param_names[i]
+    return next(e.stage for e in model.effects if any(p.name == name for p in e.params))
+
+
+def solve(resid_at, predict_z, z0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+          target: np.ndarray, form: tuple[int | None, list[int]]) -> Solution | None:
+    """The least-squares optimum in the fit variables z.
+
+    `predict_z(z)` is the model's prediction (in the record's force scale, all trials joined),
+    `target` the measurement in the same scale, `resid_at(z)` their difference as the general
+    solver sees it. None when the optimum is not an interior point of the linear form."""
+    k_nl, lin = form
+    nfev = 0
+
+    def columns(z_nl: float | None) -> np.ndarray:
+        nonlocal nfev
+        z = np.zeros_like(z0)
+        if k_nl is not None:
+            z[k_nl] = z_nl
+        cols = []
+        for j in lin:
+            zj = z.copy()
+            zj[j] = 1.0
+            cols.append(predict_z(zj))
+            nfev += 1
+        return np.column_stack(cols)
+
+    def linear_part(z_nl: float | None) -> tuple[np.ndarray, float, np.ndarray]:
+        A = columns(z_nl)
+        coef = _bounded_lstsq(A, target, lo[lin], hi[lin])
+        combined = A @ coef
+        r = combined - target
+        return coef, 0.5 * float(r @ r), combined
+
+    z_nl = None if k_nl is None else _minimise(lambda c: linear_part(c)[1], float(lo[k_nl]), float(hi[k_nl]))
+    coef, _, combined = linear_part(z_nl)
+    z = z0.copy()
+    z[lin] = coef
+    if k_nl is not None:
+        z[k_nl] = z_nl
+    span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
+    inside = np.all((z[lin] - lo[lin] > 1e-6 * span[lin]) & (hi[lin] - z[lin] > 1e-6 * span[lin]))
+    r = resid_at(z)
+    nfev += 1
+    # the columns' combination is the model only when no clamp or bound intervened
+    scale = max(1.0, float(np.abs(target).max()))
+    if not inside or not np.allclose(r + target, combined, rtol=1e-9, atol=1e-12 * scale):
+        return None
+    return Solution(z, 0.5 * float(r @ r), r, None, nfev)
+
+
+def _bounded_lstsq(A: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Least squares with each coefficient kept within its bounds: a coefficient the free
+    solution pushes out is held at the bound it crossed and the rest solved again (exact for the
+    one or two coefficients these models have, where at most one bound is active)."""
+    coef = np.linalg.lstsq(A, b, rcond=None)[0]
+    out = (coef < lo) | (coef > hi)
+    if not np.any(out):
+        return coef
+    fixed = np.clip(coef, lo, hi)
+    free = ~out
+    if np.any(free):
+        rest = b - A[:, out] @ fixed[out]
+        fixed[free] = np.clip(np.linalg.lstsq(A[:, free], rest, rcond=None)[0], lo[free], hi[free])
+    return fixed
+
+
+def _minimise(cost, lo: float, hi: float) -> float:
+    """The lowest point of a cost of one variable on [lo, hi]: a grid finds the valley of the
+    global minimum, golden-section search with parabolic steps (Brent) refines it."""
+    lo_in = lo + 1e-6 * (hi - lo)
+    hi_in = hi - 1e-6 * (hi - lo)
+    grid = np.linspace(lo_in, hi_in, GRID)
+    values = np.array([cost(c) for c in grid])
+    i = int(np.argmin(values))
+    a, b = grid[max(i - 1, 0)], grid[min(i + 1, GRID - 1)]
+    return _brent(cost, a, b, grid[i], values[i])
+
+
+def _brent(f, a: float, b: float, x: float, fx: float, tol: float = 1e-10, iters: int = 100) -> float:
+    """Brent's minimisation on [a, b] from the interior point x (Numerical Recipes, 10.2)."""
+    w = v = x
+    fw = fv = fx
+    d = e = 0.0
+    for _ in range(iters):
+        m = 0.5 * (a + b)
+        tol1 = tol * abs(x) + 1e-12
+        tol2 = 2.0 * tol1
+        if abs(x - m) <= tol2 - 0.5 * (b - a):
+            break
+        parabolic = False
+        if abs(e) > tol1:
+            r = (x - w) * (fx - fv)
+            q = (x - v) * (fx - fw)
+            p = (x - v) * q - (x - w) * r
+            q = 2.0 * (q - r)
+            if q > 0:
+                p = -p
+            q = abs(q)
+            if abs(p) < abs(0.5 * q * e) and q * (a - x) < p < q * (b - x):
+                e, d = d, p / q
+                u = x + d
+                if u - a < tol2 or b - u < tol2:
+                    d = tol1 if m >= x else -tol1
+                parabolic = True
+        if not parabolic:
+            e = (a if x >= m else b) - x
+            d = GOLDEN * e
+        u = x + (d if abs(d) >= tol1 else (tol1 if d > 0 else -tol1))
+        fu = f(u)
+        if fu <= fx:
+            if u >= x:
+                a = x
+            else:
+                b = x
+            v, fv, w, fw, x, fx = w, fw, x, fx, u, fu
+        else:
+            if u < x:
+                a = u
+            else:
+                b = u
+            if fu <= fw or w == x:
+                v, fv, w, fw = w, fw, u, fu
+            elif fu <= fv or v in (x, w):
+                v, fv = u, fu
+    return x
