@@ -192,7 +192,7 @@ def test_a_bad_probe_in_the_config_is_refused_where_it_stands(tmp_path):
 
 def test_a_hertz_fit_cannot_be_saved_and_says_why_before_fitting(tmp_path):
     path = hertz_curve(tmp_path / "h.csv", 3)
-    said = r"--save: effect\(s\) elastic_contact, contact_point hold the indenter's geometry, which a saved"
+    said = r"--save: effect\(s\) elastic_contact hold the indenter's geometry, which a saved"
     with pytest.raises(RigError, match=said):
         analyze(AnalyzeRequest([str(path)], model="hertz", indenter="paraboloid:R=5um",
                                save=str(tmp_path / "m.json")))

@@ -10,7 +10,15 @@ import numpy as np
 from rig.analysis.data import PHASES, TrialData, load_trial
 from rig.analysis.fit import FitResult, error_table, evaluate, fit
 from rig.errors import RigError, SpecError
-from rig.models.catalogue import CATALOGUE, CONTACT, CONTACT_POINT, build_model, contact_effect, named_models
+from rig.models.catalogue import (
+    CATALOGUE,
+    CONTACT,
+    CONTACT_POINT,
+    RECORD_ZERO,
+    build_model,
+    contact_effect,
+    named_models,
+)
 from rig.models.contact import Indenter, parse_indenter
 from rig.models.core import Effect
 from rig.models.plugins import check_plugin_effect, load_plugin
@@ -108,14 +116,52 @@ def result_json(res: FitResult, paths: list[str]) -> dict:
         "scales": {"length_m": res.scales.length_m, "force_N": res.scales.force_N, "time_s": res.scales.time_s},
         "fit_variables": res.z,
         "records": [{"trial": t.name, "source": t.source, "samples": t.n, "dt_s": t.motion.dt_s,
-                     "force_unit": t.force_unit[1], "length_unit": t.length_unit[1], "notes": t.notes}
-                    for t in res.trials],
+                     "force_unit": t.force_unit[1], "length_unit": t.length_unit[1], "notes": t.notes,
+                     **placed}
+                    for t, placed in zip(res.trials, record_placement(res), strict=True)],
         "phases": {ph: (s.as_dict() if s else None) for ph, s in res.phases.items()},
         "per_trial": res.per_trial,
         "adequate": res.adequate,
         "warnings": res.warnings,
         "suggestions": [],
     }
+
+
+def record_placement(res: FitResult) -> list[dict]:
+    """Where the fit put each record's contact (in its travel from its first sample) and, when the
+    record's zero was fitted, its force at rest; empty entries when the model has neither."""
+    out = []
+    for i, t in enumerate(res.trials):
+        row: dict = {}
+        for effect, key, to in ((CONTACT_POINT, "contact_point_m", t.contact_m or 0.0),
+                                (RECORD_ZERO, "zero_N", 0.0)):
+            (p,) = effect.params
+            name = res.model.key(p, i)
+            if res.model.has(effect.name) and name in res.values:
+                row[key] = to + res.values[name]
+                row[f"{key}_stderr"] = _finite(res.stderr.get(name))
+        out.append(row)
+    return out
+
+
+def format_placement(res: FitResult) -> str:
+    """One line per record whose contact the fit placed: where, and its zero."""
+    k, u = res.trials[0].length_unit
+    kf, uf = res.force_unit
+    lines = []
+    for t, row in zip(res.trials, record_placement(res), strict=True):
+        if "contact_point_m" not in row or not t.contact_estimated:
+            continue
+        se = row["contact_point_m_stderr"]
+        text = f"contact    {t.name}: at {row['contact_point_m'] / k:.4g} {u} of travel"
+        text += f" +/- {se / k:.2g} {u}" if se is not None else ""
+        if "zero_N" in row:
+            ze = row["zero_N_stderr"]
+            text += f"; force at rest {row['zero_N'] / kf:.4g}"
+            text += f" +/- {ze / kf:.2g}" if ze is not None else ""
+            text += f" {uf}"
+        lines.append(text + " (fitted)")
+    return "\n".join(lines)
 
 
 def correlations_json(res: FitResult) -> dict[str, dict[str, float | None]] | None:

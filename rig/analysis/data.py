@@ -13,7 +13,7 @@ from the protocol steps; otherwise from the motion itself.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -61,6 +61,9 @@ class TrialData:
     notes: list[str] = field(default_factory=list)
     meta: dict = field(default_factory=dict)  # what the file says beyond its samples (Record.meta)
     contact_m: float | None = None  # where the analysis put contact, in the record's travel from its start
+    # contact found from the force alone (an approach): only a first estimate, which every fit
+    # refines as a parameter of the record (rig.analysis.fit), and the force kept as recorded
+    contact_estimated: bool = False
 
     def __post_init__(self) -> None:
         if self.scales is None:
@@ -78,9 +81,8 @@ def decimate(t: TrialData, stride: int) -> TrialData:
     """Every `stride`-th sample (the velocity is already smoothed), same scales and units."""
     m = t.motion
     sl = slice(None, None, stride)
-    return TrialData(t.name, Motion(m.t_s[sl], m.x_m[sl], m.v_m_s[sl], m.dt_s * stride), t.force_N[sl],
-                     t.phase[sl], t.baseline_noise_N, t.source, t.baseline_n, t.scales, t.baseline_N,
-                     t.force_unit, t.length_unit, t.notes, t.meta, t.contact_m)
+    motion = Motion(m.t_s[sl], m.x_m[sl], m.v_m_s[sl], m.dt_s * stride, m.record)
+    return replace(t, motion=motion, force_N=t.force_N[sl], phase=t.phase[sl], scales=t.scales)
 
 
 SEGMENTS = ("all", "approach")
@@ -125,6 +127,7 @@ def prepare(rec: Record, where: str = "", segment: str = "all") -> TrialData:
     dt = float(np.median(np.diff(t)))
     notes = list(rec.notes)
     contact_m = None
+    estimated = False
     if rec.frame is Frame.SURFACE:
         x = pos
         if np.max(x) <= 0.0:
@@ -133,10 +136,11 @@ def prepare(rec: Record, where: str = "", segment: str = "all") -> TrialData:
         tare = rec.baseline_force_N
         baseline = tare if tare is not None and len(tare) else f[pre]
     else:
-        x, f, baseline, note = _find_contact(t, pos, f, where)
+        x, f, baseline, note, level = _find_contact(t, pos, f, where)
         notes.append(note)
         contact_m = float(-x[0])  # x counts from contact: its first value is minus the travel to it
-        end = _end_of_contact(x, f)
+        estimated = level is not None
+        end = _end_of_contact(x, f - (level or 0.0))
         if end < len(x):
             # once the probe is back out, or the force back at the baseline on the way out, the
             # sensor reads the free probe or the specimen pulling on it (adhesion), not the push
@@ -155,7 +159,8 @@ def prepare(rec: Record, where: str = "", segment: str = "all") -> TrialData:
     fu = display_unit(scales.force_N, FORCE_DISPLAY)
     lu = display_unit(scales.length_m, LENGTH_DISPLAY)
     return TrialData(Path(rec.name).name, m, f, phase, noise, rec.source, len(base), scales,
-                     base_detr if len(base) >= MIN_BASELINE else None, fu, lu, notes, dict(rec.meta), contact_m)
+                     base_detr if len(base) >= MIN_BASELINE else None, fu, lu, notes, dict(rec.meta), contact_m,
+                     estimated)
 
 
 def record_scales(m: Motion, f: np.ndarray, phase: np.ndarray) -> Scales:
@@ -179,9 +184,12 @@ def _find_contact(t, pos, f, where):
 
     Force and position are turned so that loading is positive (compression read as
     negative force, tension, heights that fall as the tip goes in). The force at rest is the
-    level before it rises; contact is where it last left that level before rising to a tenth
-    of its peak. When the force rises with the first motion the specimen was preloaded: the
-    position's zero is the start and the model describes the force above the preload.
+    level before it rises; contact is first placed where the force last left that level before
+    rising to a tenth of its peak, a threshold that a soft or stiffening specimen crosses late,
+    so each fit refines it. When the force rises with the first motion the specimen was
+    preloaded: the position's zero is the start and the model describes the force above the
+    preload. Returns the position from contact, the force, the force at rest before contact,
+    a note, and the level at rest (None for a preload, which is subtracted).
     """
     n = len(f)
     head = max(5, n // 100)
@@ -218,7 +226,7 @@ def _find_contact(t, pos, f, where):
         x = pos - pos[i_move - 1]  # from where it stood
         note = (f"starts in contact: the force at rest, {_fmt_force(f_rest)} (a preload, or the sensor's "
                 "zero), is subtracted; the model describes the force above it")
-        return x, f - f_rest, rest if i_move >= MIN_BASELINE else np.array([]), note
+        return x, f - f_rest, rest if i_move >= MIN_BASELINE else np.array([]), note, None
     # the resting level (with its slow drift) from the first two thirds of the approach: the
     # last third may already carry the first touch
     i_fit = max(2 * i_load // 3, 1)
@@ -242,11 +250,18 @@ def _find_contact(t, pos, f, where):
         if x_touch > pos[i_quiet]:
             i_c = i_quiet + int(np.argmax(pos[i_quiet:i5 + 1] >= x_touch))
     f_base = float(np.polyval(f_base_fit, t[i_c] - t[0]))
+    level = f_rest if i_move >= 10 else f0  # before the probe moved, else its first samples
     x = pos - pos[i_c]
-    baseline = f[:i_c] - f_base
-    note = (f"contact at {_fmt_len(pos[i_c] - pos[0])} of travel, t = {t[i_c] - t[0]:.4g} s; "
-            f"baseline force {_fmt_force(f_base)} subtracted")
-    return x, f - f_base, baseline, note
+    # Nothing is subtracted: the force at rest is part of the record, and where the instrument's
+    # zero is off (an offset) or wanders (drift), the residual before contact shows it. The
+    # first estimate of contact is refined by every fit; the force at rest before it serves
+    # the noise until a fit places contact itself.
+    # the noise from the approach before that estimate, less a cubic in time: a soft first touch
+    # rises smoothly within it, the noise does not
+    baseline = _detrend(f[:i_c], 3) if i_c >= 8 else f[:i_c] - f_base
+    note = (f"contact first placed at {_fmt_len(pos[i_c] - pos[0])} of travel, t = {t[i_c] - t[0]:.4g} s "
+            f"(the fit refines it); force at rest {_fmt_force(level)}, kept")
+    return x, f, baseline, note, level
 
 
 def _end_of_contact(x: np.ndarray, f: np.ndarray) -> int:
@@ -274,9 +289,9 @@ def _fmt_len(v: float) -> str:
     return f"{v / k:.4g} {u}"
 
 
-def _detrend(y: np.ndarray) -> np.ndarray:
-    i = np.arange(len(y))
-    return y - np.polyval(np.polyfit(i, y, 1), i)
+def _detrend(y: np.ndarray, degree: int = 1) -> np.ndarray:
+    i = np.linspace(-1.0, 1.0, len(y))
+    return y - np.polyval(np.polyfit(i, y, degree), i)
 
 
 def _uniform(t, x, f, kinds):

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from warnings import catch_warnings, simplefilter
 
 import numpy as np
@@ -32,6 +32,7 @@ from rig.analysis.noise import Noise, from_baseline, from_residual, integral_sca
 from rig.analysis.scaling import ParamScaling
 from rig.analysis.uncertainty import bic as effective_bic
 from rig.analysis.uncertainty import correlation, effective_samples, hac_covariance, notable_correlations
+from rig.models.catalogue import CONTACT_POINT, RECORD_ZERO
 from rig.models.core import Effect, Model
 from rig.models.frame import NotConverged
 
@@ -111,6 +112,13 @@ class FitResult:
         k, u = self.force_unit
         return f"{value_N / k:{'+' if signed else ''}.4g} {u}"
 
+    def _whose(self, name: str) -> str:
+        """For a record's own parameter (name@i), the record it belongs to."""
+        base, _, i = name.rpartition("@")
+        if base and i.isdigit() and int(i) < len(self.trials):
+            return f"  ({self.trials[int(i)].name})"
+        return ""
+
     def verdict(self) -> str:
         if self.adequate:
             return "adequate"
@@ -129,7 +137,7 @@ class FitResult:
             err = self.stderr.get(p.name)
             e = f" +/- {err:.4g}" if err is not None and math.isfinite(err) else ""
             e = "  (not determined)" if err == math.inf else e
-            lines.append(f"  {p.name:<18} {self.values[p.name]:>12.5g}{e}  {p.unit}")
+            lines.append(f"  {p.name:<18} {self.values[p.name]:>12.5g}{e}  {p.unit}{self._whose(p.name)}")
         pairs = self.correlations(CORRELATION_FLOOR)
         if pairs:
             lines.append(f"correlations (|C| >= {CORRELATION_FLOOR:g}, largest first)")
@@ -143,6 +151,8 @@ class FitResult:
 
 
 def evaluate(model: Model, values: dict[str, float], trials: list[TrialData]) -> list[np.ndarray]:
+    for i, t in enumerate(trials):
+        t.motion.record = i
     return [model.predict(values, t.motion) for t in trials]
 
 
@@ -155,6 +165,31 @@ def error_table(trials: list[TrialData], residuals: list[np.ndarray]) -> tuple[E
 
 def noise_of(trials: list[TrialData], residuals: list[np.ndarray]) -> Noise:
     return from_baseline([t.baseline_N for t in trials]) or from_residual(residuals)
+
+
+def with_record_params(model: Model, trials: list[TrialData], scales: Scales | None = None) -> Model:
+    """`model` as fitted to `trials`, and each record told its position among them.
+
+    A record whose contact the preparation only estimated from its force (an approach) says
+    neither where the surface is nor what its force reads at rest: both are its own
+    parameters, one value per record, fitted with the rest (the contact point, and the
+    offset as the record's zero). A zero taken as known would leave its error, a tare's
+    sigma/sqrt(n) at the least, to be absorbed by the contact point, with a standard error
+    that does not allow for it."""
+    if any(t.contact_estimated for t in trials):
+        effects = [e for e in model.effects if e.name not in (RECORD_ZERO.name, CONTACT_POINT.name)]
+        if model.has(CONTACT_POINT.name) or not model.has("contact_offset"):
+            # anywhere from the start of the travel: a slow rise (a soft surface layer, drag) can
+            # put the first touch far before the threshold's estimate
+            start = min(float(np.min(t.motion.x_m)) for t in trials) / (scales or Scales.joint(trials)).length_m
+            (p,) = CONTACT_POINT.params
+            effects.append(replace(CONTACT_POINT, params=(replace(p, lo=min(start, p.lo)),)))
+        model = Model([*effects, RECORD_ZERO], model.name, model.records)
+    if model.per_record and model.records != len(trials):
+        model = model.for_records(len(trials))
+    for i, t in enumerate(trials):
+        t.motion.record = i
+    return model
 
 
 def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0,
@@ -173,6 +208,7 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) ->
     for t in trials:
         t.motion.forget_solutions()
     scales = scales or Scales.joint(trials)
+    model = with_record_params(model, trials, scales)
     ps = ParamScaling(model, scales)
     init, lo, hi = ps.start_and_bounds(initial)
     init = _inside(init, lo, hi)
@@ -414,7 +450,8 @@ def _stderr(cov: np.ndarray | None, names: list[str]) -> dict[str, float | None]
 
 
 def _owner(model: Model, p) -> Effect:
-    return next(e for e in model.effects if p in e.params)
+    base = p.name.rpartition("@")[0] if p.per_record else p.name
+    return next(e for e in model.effects if any(q.name in (p.name, base) for q in e.params))
 
 
 def _integrator_rates(model: Model, ps: ParamScaling, sol, si: np.ndarray, to_si: np.ndarray,

@@ -12,6 +12,7 @@ from rig.analysis.analyze import (
     compare,
     format_compare,
     format_holdout,
+    format_placement,
     holdout_json,
     load_inputs,
     result_json,
@@ -130,6 +131,8 @@ def analyze(req: AnalyzeRequest) -> Analysis:
              else f"{res.report()}\nfitted in {res.seconds:.2f} s"]
     if material:
         parts.append(format_material(material, res))
+    elif format_placement(res):
+        parts.append(format_placement(res))
     if compare_text:
         parts.append(compare_text)
     if held:

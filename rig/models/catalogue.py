@@ -194,13 +194,23 @@ def contact_effect(indenter, poisson: float = 0.5) -> Effect:
                   source=f"indenter {indenter.spec()}", linear=True)
 
 
-# The contact point as a parameter of the record (AFM practice), brought with an indenter: anywhere
-# from a travel before the first estimate to just short of the deepest point, which a threshold
-# can miss by far. Not among the lumped models' candidates: for them contact_offset is that.
-CONTACT_POINT = E("contact_point", "geometry", (P("x_c_m", "m", 0.0, -1.0, 0.99),),
+# The contact point as a parameter of the record (AFM practice): anywhere from a travel before the
+# first estimate to just short of the deepest point, which a threshold can miss by far. An indenter
+# brings it; so does every record whose contact was only estimated from its force (an approach),
+# one value per record (rig.analysis.fit.with_record_params). Not among the candidates `--explain`
+# tries: for a record whose surface is known, contact_offset is that.
+CONTACT_POINT = E("contact_point", "geometry", (P("x_c_m", "m", 0.0, -1.0, 0.99, per_record=True),),
                   _contact_point, "indentation = max(x - x_c, 0), x_c fitted from the first estimate",
                   "model force rises too early or too late: the contact point is elsewhere",
-                  source="indenter (the record's contact point)")
+                  source="the record (its contact point)")
+
+
+# The offset as the zero of a record that does not know it (its contact only estimated from the
+# force): one value per record (rig.analysis.fit.with_record_params).
+RECORD_ZERO = E("offset", "sensor", (P("offset_N", "N", 0.0, per_record=True),),
+                _offset, "constant force offset: the record's zero, one per record",
+                "residual constant, also before contact and after retraction", linear=True,
+                source="the record (its force at rest)")
 
 
 def named_models(registry: dict[str, Effect]) -> list[str]:

@@ -21,7 +21,7 @@ Everything is vectorised: a first-order lag is a linear recursion solved as a pr
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
@@ -44,6 +44,9 @@ class Param:
     # init, lo and hi are in the record's own units (force, length and time scales of the data,
     # combined as the unit says) rather than SI: the catalogue's parameters are
     relative: bool = False
+    # one value per record when several are fitted together: where each record's surface lies
+    # differs from record to record (the records' own parameters, named name@0, name@1, ...)
+    per_record: bool = False
 
     @property
     def typical(self) -> float:
@@ -58,6 +61,7 @@ class Motion:
     x_m: np.ndarray  # indentation from the trial zero (the probe position), m
     v_m_s: np.ndarray  # its time derivative, smoothed
     dt_s: float
+    record: int = 0  # the position of this record among those fitted together
 
     @cached_property
     def speed_m_s(self) -> float:
@@ -106,6 +110,7 @@ class Effect:
 class Model:
     effects: list[Effect]
     name: str = ""
+    records: int = 1  # fitted together: a per-record parameter has this many values
 
     def __post_init__(self) -> None:
         names = [e.name for e in self.effects]
@@ -122,13 +127,36 @@ class Model:
                 if p.name in seen and seen[p.name].unit != p.unit:
                     raise ValueError(f"parameter '{p.name}' has units {seen[p.name].unit} and {p.unit}")
                 seen.setdefault(p.name, p)
-        self.params: list[Param] = list(seen.values())
+        self.params: list[Param] = [q for p in seen.values() for q in self._expanded(p)]
         if not self.name:
             self.name = "+".join(e.name for e in self.effects)
 
+    def _expanded(self, p: Param) -> list[Param]:
+        if not (p.per_record and self.records > 1):
+            return [p]
+        return [replace(p, name=f"{p.name}@{i}") for i in range(self.records)]
+
+    def key(self, p: Param, record: int) -> str:
+        """The name of `p`'s value for the record at position `record`."""
+        return f"{p.name}@{record}" if p.per_record and self.records > 1 else p.name
+
+    def for_records(self, n: int) -> Model:
+        """This model fitted to `n` records together (a per-record parameter takes n values)."""
+        return Model(list(self.effects), self.name, max(int(n), 1))
+
+    @property
+    def per_record(self) -> list[Param]:
+        """The parameters (as the effects declare them) that take one value per record."""
+        seen: dict[str, Param] = {}
+        for e in self.effects:
+            for p in e.params:
+                if p.per_record:
+                    seen.setdefault(p.name, p)
+        return list(seen.values())
+
     def __add__(self, other: Effect | Model) -> Model:
         extra = other.effects if isinstance(other, Model) else [other]
-        return Model(self.effects + [e for e in extra if e.name not in self.effect_names])
+        return Model(self.effects + [e for e in extra if e.name not in self.effect_names], records=self.records)
 
     @property
     def effect_names(self) -> list[str]:
@@ -148,7 +176,7 @@ class Model:
         by_stage = {s: [e for e in self.effects if e.stage == s] for s in STAGES}
 
         def args(e: Effect) -> dict[str, float]:
-            return {p.name: values[p.name] for p in e.params}
+            return {p.name: values[self.key(p, m.record)] for p in e.params}
 
         compliance = [e for e in by_stage["geometry"] if e.needs_force]
         plain_geometry = [e for e in by_stage["geometry"] if not e.needs_force]

@@ -65,7 +65,8 @@ def savable(model) -> str | None:
     if indenter:
         return (f"effect(s) {', '.join(indenter)} hold the indenter's geometry, which a saved model does "
                 "not carry yet; save a model of catalogue effects")
-    plugin = [e.name for e in model.effects if e.source != "catalogue"]
+    plugin = [e.name for e in model.effects
+              if e.source != "catalogue" and not e.source.startswith("the record")]
     if plugin:
         return f"effect(s) {', '.join(plugin)} come from a plugin; only catalogue effects can be saved"
     return None
@@ -75,9 +76,14 @@ def from_fit(res, trials: list[str]) -> SavedModel:
     why = savable(res.model)
     if why:
         raise RigError(f"--save: {why}")
-    stderr = {k: (e if e is not None and math.isfinite(e) else None) for k, e in res.stderr.items()}
-    return SavedModel(res.model, dict(res.values), stderr, trials, res.noise_N,
-                      res.overall.rmse_N)
+    # the records' own parameters (where each record's surface and zero lay) describe those
+    # records, not the tissue: the loop knows its own surface and tare
+    model = Model([e for e in res.model.effects if not e.source.startswith("the record")], res.model.name)
+    keep = set(model.param_names)
+    stderr = {k: (e if e is not None and math.isfinite(e) else None)
+              for k, e in res.stderr.items() if k in keep}
+    values = {k: v for k, v in res.values.items() if k in keep}
+    return SavedModel(model, values, stderr, trials, res.noise_N, res.overall.rmse_N)
 
 
 def save(saved: SavedModel, path: str | Path) -> Path:
