@@ -214,21 +214,26 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) ->
     init = _inside(init, lo, hi)
     form = separable.split(model)
     best = _separable(model, ps, trials, scales, init, lo, hi, form) if form else None
+    x_c = CONTACT_POINT.params[0].name
+    kinked = [i for i, p in enumerate(model.params) if p.name.partition("@")[0] == x_c]
     if best is not None:
         if polish and tol <= 1e-8:
-            best = _newton_polish(_residual_fn(model, ps, trials, scales), best, lo, hi)
+            best = _newton_polish(_residual_fn(model, ps, trials, scales), best, lo, hi, kinked=kinked)
         best.jac = _central_jacobian(_residual_fn(model, ps, trials, scales), best.x, range(len(best.x)))
         return _result(model, ps, trials, scales, best, lo, hi, best.nfev, t0)
     rng = np.random.default_rng(seed)
     candidates = [init]
     # a parameter that starts at zero inside finite bounds (the contact point) is not moved by a
-    # factor: its starts spread across the middle of its range instead
+    # factor: its starts are spaced evenly across its range instead. Evenly, not at random: where
+    # the cost moves in steps with it (a model whose force follows the velocity only, switched on
+    # at contact) the solver cannot move it, and the best of the starts is the answer
     shifted = np.flatnonzero((init == 0) & np.isfinite(lo) & np.isfinite(hi))
-    for _ in range(max(starts - 1, 0)):
+    span_lo, span_hi = np.maximum(lo[shifted], -1.0), np.minimum(hi[shifted], 0.5)
+    for j in range(1, max(starts, 1)):
         # log-uniform spread around the starting point, kept inside the bounds
         z = init * np.exp(rng.uniform(-1.5, 1.5, len(init)))
         if len(shifted):
-            z[shifted] = rng.uniform(np.maximum(lo[shifted], -0.5), np.minimum(hi[shifted], 0.5))
+            z[shifted] = span_lo + (span_hi - span_lo) * j / starts
         candidates.append(_inside(z, lo, hi))
     stride = max(1, min(t.n for t in trials) // SCREEN_SAMPLES)
     nfev = 0
@@ -244,7 +249,7 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) ->
         # Jacobian (its own error ~ sqrt of machine precision) would otherwise decide the last
         # digits, and a record in other units (the same problem up to rounding) must land on the
         # same parameters
-        best = _newton_polish(_residual_fn(model, ps, trials, scales), best, lo, hi)
+        best = _newton_polish(_residual_fn(model, ps, trials, scales), best, lo, hi, kinked=kinked)
     return _result(model, ps, trials, scales, best, lo, hi, nfev, t0)
 
 
@@ -292,7 +297,7 @@ def _solve(model, ps: ParamScaling, trials, scales: Scales, z0, lo, hi, tol, max
                          x_scale=1.0, max_nfev=max_nfev, ftol=tol, xtol=tol, gtol=tol, jac=jac)
 
 
-def _newton_polish(resid, sol, lo, hi, steps: int = 30):
+def _newton_polish(resid, sol, lo, hi, steps: int = 30, kinked: list[int] | None = None):
     """Newton steps with a central-difference Jacobian from an interior optimum.
 
     A trust-region solver stops when the cost stops falling, which along a nearly flat
@@ -301,6 +306,10 @@ def _newton_polish(resid, sol, lo, hi, steps: int = 30):
     curvature of the residuals themselves is left out), so the Hessian carries a secant
     correction for that term (the structured update of Dennis, Gay and Welsch, as in NL2SOL):
     the same problem posed in other units then lands on the same parameters.
+
+    `kinked`: variables where the cost may have a corner (the contact point: a sample's step
+    enters contact piecewise linearly). An optimum there stops Newton's steps on all the
+    others; when a step fails, those are held where they are and the rest go on.
     """
     z = sol.x.copy()
     with np.errstate(invalid="ignore"):
@@ -335,7 +344,15 @@ def _newton_polish(resid, sol, lo, hi, steps: int = 30):
         # near the optimum the cost no longer resolves the step (rounding): a step that does not
         # make it worse beyond that is taken, since it is where the gradient vanishes
         if not cost_new <= cost * (1.0 + 1e-12):
-            break
+            held = [i for i in idx if i in (kinked or ())]
+            if not held or len(held) == len(idx):
+                break
+            idx = np.array([i for i in idx if i not in held])
+            kinked = None
+            J = jacobian(z)
+            g = J.T @ r
+            A = np.zeros((len(idx), len(idx)))
+            continue
         J_new = jacobian(trial)
         g_new = J_new.T @ r_new
         step = trial[idx] - z[idx]

@@ -59,7 +59,17 @@ def _contact_offset(x, v, x0_mm):
 
 
 def _contact_point(x, v, x_c_m):
-    return np.maximum(x - x_c_m, 0.0), np.where(x > x_c_m, v, 0.0)
+    return np.maximum(x - x_c_m, 0.0), v * _in_contact(x, x_c_m)
+
+
+def _in_contact(x, x_c):
+    """How far each sample's step has gone past the contact point, from 0 before it to 1 after:
+    a rate term switched on at contact then moves with the contact point continuously, where a
+    switch at whole samples would make the fit's cost a staircase in it that no solver can climb."""
+    step = np.abs(np.diff(x, prepend=x[:1]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        part = np.where(step > 0, (x - x_c) / step, (x > x_c).astype(float))
+    return np.clip(part, 0.0, 1.0)
 
 
 def _compliance(x, v, force, dt, k_frame_N_per_m):
