@@ -388,7 +388,10 @@ def cmd_import(args: argparse.Namespace) -> int:
           f"{trial.scales.force_N / k:.4g} {u}, travel {trial.scales.length_m / kl:.4g} {ul}")
     for note in trial.notes:
         print(f"  {note}")
-    print(f"wrote {args.csv} (t_s,indentation_mm,force_N: indentation from contact, force above the baseline)")
+    print(f"wrote {args.csv} (" + ("t_s,position_mm,force_N: travel from the first sample, force as recorded; "
+                                   "every fit places the contact point and the zero" if trial.contact_estimated
+                                   else "t_s,indentation_mm,force_N: indentation from contact, force above the "
+                                   "preload") + ")")
     return 0
 
 

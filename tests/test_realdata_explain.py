@@ -68,13 +68,32 @@ def check_named_first(explained: tuple, effect: str) -> None:
     assert ex.suggestions[0].rmse_drop > 0.2  # it explains a good part of the error
 
 
-def test_hidden_offset_through_the_command_line(tmp_path, capsys):
+def test_hidden_friction_through_the_command_line(tmp_path, capsys):
     trial = load_trial(REALDATA / RECORDS[0])
-    csv = tmp_path / "gel+offset.csv"
-    write_trial_csv(hide(trial, "offset"), csv)
+    csv = tmp_path / "gel+friction.csv"
+    write_trial_csv(hide(trial, "friction"), csv)
     assert main(["analyze", str(csv), "--add", "relaxation2", "--explain", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["suggestions"][0]["effect"] == "offset", out["diagnosis"]
-    assert out["diagnosis"]["best"] == "offset"
-    assert out["diagnosis"]["text"].startswith("most likely missing: offset")
+    assert out["suggestions"][0]["effect"] == "friction", out["diagnosis"]
+    assert out["diagnosis"]["best"] == "friction"
+    assert out["diagnosis"]["text"].startswith("most likely missing: friction")
     assert out["adequate"] is False and out["fit"]["rmse_over_noise"] > 1.2
+
+
+def test_an_offset_from_the_first_sample_is_the_records_zero(tmp_path, capsys):
+    """A record that does not say where its surface is does not say what its force reads at rest
+    either: an offset present from its first sample is its zero, fitted with it, not an effect
+    to name."""
+    trial = load_trial(REALDATA / RECORDS[0])
+    runs = []
+    for name, t in (("gel", trial), ("gel+offset", hide(trial, "offset"))):
+        csv = tmp_path / f"{name}.csv"
+        write_trial_csv(t, csv)
+        assert main(["analyze", str(csv), "--add", "relaxation2", "--explain", "--json"]) == 0
+        runs.append(json.loads(capsys.readouterr().out))
+    clean, shifted = runs
+    assert "offset" not in [s["effect"] for s in shifted["suggestions"]]
+    (zero_clean,), (zero_shifted,) = ([r["zero_N"] for r in run["records"]] for run in runs)
+    added = SIZES["offset"] * trial.scales.force_N
+    assert zero_shifted - zero_clean == pytest.approx(added, rel=1e-3)
+    assert shifted["fit"]["rmse_N"] == pytest.approx(clean["fit"]["rmse_N"], rel=1e-3)

@@ -172,21 +172,25 @@ def check_time(t: np.ndarray, column: str, where: str, first_line: int) -> None:
 
 
 IMPORTED = ("t_s", "indentation_mm", "force_N")
+# a trial whose contact was only estimated: its travel from the first sample, for every fit to place
+ESTIMATED = ("t_s", "position_mm", "force_N")
 
 
 def write_trial_csv(trial, out: str | Path) -> int:
-    """t_s,indentation_mm,force_N of a prepared trial: indentation from contact, loading
-    positive, force above the baseline (what `rig import` writes; read back, it gives the same
-    trial)."""
+    """A prepared trial as `rig import` writes it, loading positive: t_s,indentation_mm,force_N
+    (indentation from contact, force above the preload) when the record knew its surface or
+    started in contact; else t_s,position_mm,force_N (travel from the first sample, force as
+    recorded), whose contact point and zero every fit places. Read back, it gives the same trial."""
     m = trial.motion
+    x0 = float(m.x_m[0]) if trial.contact_estimated else 0.0
     try:
         fh = open(out, "w", newline="")  # noqa: SIM115
     except OSError as exc:
         raise SpecError(f"cannot write: {exc.strerror or exc}", path=str(out)) from None
     with fh:
         w = csv.writer(fh)
-        w.writerow(IMPORTED)
-        for t, x, f in zip(m.t_s, m.x_m * 1000.0, trial.force_N, strict=True):
+        w.writerow(ESTIMATED if trial.contact_estimated else IMPORTED)
+        for t, x, f in zip(m.t_s, (m.x_m - x0) * 1000.0, trial.force_N, strict=True):
             w.writerow([repr(float(t)), repr(float(x)), repr(float(f))])
     return len(m.t_s)
 
