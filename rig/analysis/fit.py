@@ -502,7 +502,8 @@ def _undetermined(model: Model, values: dict[str, float], stderr: dict[str, floa
         if err == math.inf:
             out.append(f"{_owner(model, p).name}.{p.name} = {v:.4g} {p.unit}: not determined by these "
                        "trials (the fit's error does not depend on it)")
-        elif err is not None and err > abs(v):
+        # a record's own zero or contact correction near nought is known to its error, not undetermined
+        elif err is not None and err > abs(v) and not _owner(model, p).source.startswith("the record"):
             out.append(f"{_owner(model, p).name}.{p.name} = {v:.4g} +/- {err:.3g} {p.unit}: not determined "
                        "by these trials (its standard error exceeds its value)")
     return out
