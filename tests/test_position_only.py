@@ -15,6 +15,7 @@ from rig.analysis.analyze import record_placement
 from rig.analysis.data import load_trial
 from rig.analysis.explain import explain
 from rig.analysis.fit import fit
+from rig.analysis.session import AnalyzeRequest, analyze
 from rig.cli import main
 from rig.models import CATALOGUE, build_model
 from rig.recording.logs import read_log
@@ -128,3 +129,14 @@ def test_each_record_has_its_own_contact_point_and_zero(tmp_path, n):
         assert "x_c_m" not in names
         # the report names the record each belongs to
         assert f"({paths[1].name})" in next(s for s in res.report().splitlines() if "x_c_m@1" in s)
+
+
+def test_a_held_out_record_is_placed_before_it_is_scored(tmp_path):
+    """Fitted on one control, scored on the other: the held-out record's contact point and zero
+    are its own (fitted with the model held), so its error is the noise."""
+    paths = controls(tmp_path, 4)
+    out = analyze(AnalyzeRequest([str(paths[0])], holdout=[str(paths[1])])).json
+    assert out["adequate"], out["fit"]
+    (held,) = out["holdout"]
+    assert held["rmse_N"] < 1.2 * out["fit"]["noise_N"], (held, out["fit"]["noise_N"])
+    assert abs(held["contact_point_m"] - surface_mm(4) / 1000.0) <= 2 * held["contact_point_m_stderr"], held

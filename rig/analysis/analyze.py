@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from rig.analysis.data import PHASES, TrialData, load_trial
-from rig.analysis.fit import FitResult, error_table, evaluate, fit
+from rig.analysis.fit import FitResult, error_table, evaluate, fit, with_record_params
 from rig.errors import RigError, SpecError
 from rig.models.catalogue import (
     CATALOGUE,
@@ -20,7 +20,7 @@ from rig.models.catalogue import (
     named_models,
 )
 from rig.models.contact import Indenter, parse_indenter
-from rig.models.core import Effect
+from rig.models.core import Effect, Model, Param
 from rig.models.plugins import check_plugin_effect, load_plugin
 from rig.records import ReadOptions
 
@@ -175,13 +175,38 @@ def correlations_json(res: FitResult) -> dict[str, dict[str, float | None]] | No
 
 
 def holdout_json(res: FitResult, held: list[TrialData]) -> list[dict]:
+    """The fitted model's error on records it was not fitted to. A held-out record that does not
+    know its surface is placed first: its own contact point and zero fitted, the model's
+    parameters held where the fit put them."""
     out = []
-    preds = evaluate(res.model, res.values, held)
-    for t, p in zip(held, preds, strict=True):
+    for t in held:
+        placed: dict = {}
+        if t.contact_estimated:
+            own = fit(_frozen(with_record_params(res.model, [t]), res.values), [t])
+            values, model = own.values, own.model
+            placed = record_placement(own)[0]
+        else:
+            values, model = res.values, res.model.for_records(1)
+        (p,) = evaluate(model, values, [t])
         overall, phases = error_table([t], [t.force_N - p])
-        out.append({"trial": t.name, **overall.as_dict(),
+        out.append({"trial": t.name, **overall.as_dict(), **placed,
                     "phases": {k: (v.as_dict() if v else None) for k, v in phases.items()}})
     return out
+
+
+def _frozen(model: Model, values: dict[str, float]) -> Model:
+    """`model` with the parameters `values` holds fixed there (bounds a billionth apart), all but
+    the record's own."""
+    def hold(p: Param) -> Param:
+        if p.name not in values:
+            return p
+        v = values[p.name]
+        tol = max(abs(v) * 1e-9, 1e-300)
+        return replace(p, init=v, lo=v - tol, hi=v + tol, relative=False)
+
+    # the record's own parameters (its contact point and zero) are what is left to fit
+    return Model([e if e.source.startswith("the record") else replace(e, params=tuple(map(hold, e.params)))
+                  for e in model.effects], model.name, model.records)
 
 
 def compare(trials: list[TrialData], registry: dict[str, Effect]) -> list[FitResult]:
