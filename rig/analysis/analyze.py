@@ -153,7 +153,9 @@ def format_placement(res: FitResult) -> str:
         if "contact_point_m" not in row or not t.contact_estimated:
             continue
         se = row["contact_point_m_stderr"]
-        text = f"contact    {t.name}: at {row['contact_point_m'] / k:.4g} {u} of travel"
+        at = row["contact_point_m"]
+        at = 0.0 if abs(at) < 1e-9 * res.scales.length_m else at  # the first sample, not 3e-15 of a µm
+        text = f"contact    {t.name}: at {at / k:.4g} {u} of travel"
         text += f" +/- {se / k:.2g} {u}" if se is not None else ""
         if "zero_N" in row:
             ze = row["zero_N_stderr"]
