@@ -197,3 +197,28 @@ def test_a_hertz_fit_cannot_be_saved_and_says_why_before_fitting(tmp_path):
         analyze(AnalyzeRequest([str(path)], model="hertz", indenter="paraboloid:R=5um",
                                save=str(tmp_path / "m.json")))
     assert not (tmp_path / "m.json").exists()
+
+
+QI = REALDATA / "afm-fd" / "fmt-jpk-fd_2020.02.07-16.29.05.036.jpk-qi-data"
+
+
+@pytest.mark.skipif(not QI.exists(), reason=f"no {QI.name} in {QI.parent}")
+@pytest.mark.parametrize("curve", range(4))
+def test_a_verdict_never_contradicts_its_reason(curve, capsys):
+    """A QI curve whose overall error is below the noise but whose return is not: the verdict
+    says which test failed, not only an RMSE that reads as passing."""
+    from rig.analysis.fit import ADEQUATE_RMSE
+    from rig.cli import main
+
+    assert main(["analyze", str(QI), "--curve", str(curve), "--model", "hertz",
+                 "--indenter", "paraboloid:R=10um", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert main(["analyze", str(QI), "--curve", str(curve), "--model", "hertz",
+                 "--indenter", "paraboloid:R=10um"]) == 0
+    line = next(s for s in capsys.readouterr().out.splitlines() if s.startswith("fit "))
+    if out["adequate"]:
+        assert line.endswith("adequate") and "NOT" not in line
+    elif out["fit"]["rmse_over_noise"] <= ADEQUATE_RMSE:
+        assert "x the noise overall, but " in line or "the residual is correlated over" in line, line
+    else:
+        assert f"NOT adequate (RMSE {out['fit']['rmse_over_noise']:.1f}x the noise)" in line, line

@@ -120,9 +120,21 @@ class FitResult:
         return ""
 
     def verdict(self) -> str:
+        """"adequate", or which of the three tests failed: the overall RMSE, a phase's, or the
+        residual's correlation."""
         if self.adequate:
             return "adequate"
-        return f"NOT adequate (RMSE {self.overall.rmse_N / max(self.noise_N, 1e-300):.1f}x the noise)"
+        noise = max(self.noise_N, 1e-300)
+        ratio = self.overall.rmse_N / noise
+        if ratio > ADEQUATE_RMSE:
+            return f"NOT adequate (RMSE {ratio:.1f}x the noise)"
+        phase, worst = max(((ph, s.rmse_N) for ph, s in self.phases.items() if s is not None),
+                           key=lambda x: x[1], default=("", 0.0))
+        if worst > ADEQUATE_PHASE * noise:
+            return (f"NOT adequate (RMSE {ratio:.2g}x the noise overall, but {worst / noise:.1f}x in {phase}, "
+                    f"above {ADEQUATE_PHASE:g}x)")
+        return (f"NOT adequate (RMSE {ratio:.2g}x the noise, but the residual is correlated over "
+                f"{self.white_L:.1f} samples, the noise over {self.noise_L:.1f}: a shape the model misses)")
 
     def report(self) -> str:
         """lmfit-style text report, forces in the record's own unit."""
