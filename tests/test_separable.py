@@ -98,3 +98,15 @@ def test_a_one_curve_hertz_analysis_does_not_import_scipy(tmp_path):
     assert out.returncode == 0, out.stderr[-2000:]
     assert "E = 12" in out.stdout, out.stdout
     assert out.stdout.strip().splitlines()[-1] == "False 0", out.stdout[-500:]
+
+
+def test_several_records_are_fitted_by_the_general_solver(tmp_path):
+    """A contact point per record is more than one nonlinear parameter: the general solver fits
+    them, each record placed, one modulus for all."""
+    trials = [inputs(tmp_path, s).trials[0] for s in (0, 1)]
+    reg = inputs(tmp_path, 2).registry
+    model = build_model("hertz", registry=reg)
+    res = fit(model, trials)
+    assert separable.split(res.model) is None and res.model.records == 2
+    assert {"x_c_m@0", "x_c_m@1", "offset_N@0", "offset_N@1"} <= set(res.values)
+    assert abs(res.values["E_Pa"] - E_TRUE) < 2 * res.stderr["E_Pa"] and res.adequate

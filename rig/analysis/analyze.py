@@ -207,7 +207,7 @@ def _frozen(model: Model, values: dict[str, float]) -> Model:
         return replace(p, init=v, lo=v - tol, hi=v + tol, relative=False)
 
     # the record's own parameters (its contact point and zero) are what is left to fit
-    return Model([e if e.source.startswith("the record") else replace(e, params=tuple(map(hold, e.params)))
+    return Model([e if e.of_record else replace(e, params=tuple(map(hold, e.params)))
                   for e in model.effects], model.name, model.records)
 
 

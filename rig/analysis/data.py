@@ -252,12 +252,10 @@ def _find_contact(t, pos, f, where):
     f_base = float(np.polyval(f_base_fit, t[i_c] - t[0]))
     level = f_rest if i_move >= 10 else f0  # before the probe moved, else its first samples
     x = pos - pos[i_c]
-    # Nothing is subtracted: the force at rest is part of the record, and where the instrument's
-    # zero is off (an offset) or wanders (drift), the residual before contact shows it. The
-    # first estimate of contact is refined by every fit; the force at rest before it serves
-    # the noise until a fit places contact itself.
-    # the noise from the approach before that estimate, less a cubic in time: a soft first touch
-    # rises smoothly within it, the noise does not
+    # Nothing is subtracted: every fit places this record's contact point and its zero itself
+    # (rig.analysis.fit.with_record_params), and a drift or friction shows in the residual
+    # before contact. The noise is the approach before the first estimate less a cubic in
+    # time: a soft first touch rises smoothly within it, the noise does not.
     baseline = _detrend(f[:i_c], 3) if i_c >= 8 else f[:i_c] - f_base
     note = (f"contact first placed at {_fmt_len(pos[i_c] - pos[0])} of travel, t = {t[i_c] - t[0]:.4g} s "
             f"(the fit refines it); force at rest {_fmt_force(level)}, kept")

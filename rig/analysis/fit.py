@@ -197,7 +197,7 @@ def with_record_params(model: Model, trials: list[TrialData], scales: Scales | N
             (p,) = CONTACT_POINT.params
             effects.append(replace(CONTACT_POINT, params=(replace(p, lo=min(start, p.lo)),)))
         model = Model([*effects, RECORD_ZERO], model.name, model.records)
-    if model.per_record and model.records != len(trials):
+    if model.has_record_params and model.records != len(trials):
         model = model.for_records(len(trials))
     for i, t in enumerate(trials):
         t.motion.record = i
@@ -224,14 +224,15 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) ->
     ps = ParamScaling(model, scales)
     init, lo, hi = ps.start_and_bounds(initial)
     init = _inside(init, lo, hi)
+    resid = _residual_fn(model, ps, trials, scales)
     form = separable.split(model)
-    best = _separable(model, ps, trials, scales, init, lo, hi, form) if form else None
+    best = _separable(model, ps, trials, scales, resid, init, lo, hi, form) if form else None
     x_c = CONTACT_POINT.params[0].name
     kinked = [i for i, p in enumerate(model.params) if p.name.partition("@")[0] == x_c]
     if best is not None:
         if polish and tol <= 1e-8:
-            best = _newton_polish(_residual_fn(model, ps, trials, scales), best, lo, hi, kinked=kinked)
-        best.jac = _central_jacobian(_residual_fn(model, ps, trials, scales), best.x, range(len(best.x)))
+            best = _newton_polish(resid, best, lo, hi, kinked=kinked)
+        best.jac = _central_jacobian(resid, best.x, range(len(best.x)))
         return _result(model, ps, trials, scales, best, lo, hi, best.nfev, t0)
     rng = np.random.default_rng(seed)
     candidates = [init]
@@ -261,7 +262,7 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) ->
         # Jacobian (its own error ~ sqrt of machine precision) would otherwise decide the last
         # digits, and a record in other units (the same problem up to rounding) must land on the
         # same parameters
-        best = _newton_polish(_residual_fn(model, ps, trials, scales), best, lo, hi, kinked=kinked)
+        best = _newton_polish(resid, best, lo, hi, kinked=kinked)
     return _result(model, ps, trials, scales, best, lo, hi, nfev, t0)
 
 
@@ -285,7 +286,7 @@ def _residual_fn(model, ps: ParamScaling, trials, scales: Scales):
     return resid
 
 
-def _separable(model, ps: ParamScaling, trials, scales: Scales, init, lo, hi,
+def _separable(model, ps: ParamScaling, trials, scales: Scales, resid, init, lo, hi,
                form) -> separable.Solution | None:
     """The global optimum of a model linear in all but its contact point (rig.analysis.separable),
     or None when the general solver must do it."""
@@ -297,7 +298,6 @@ def _separable(model, ps: ParamScaling, trials, scales: Scales, init, lo, hi,
         vals = dict(zip(names, ps.to_si(z), strict=True))
         return np.concatenate([model.predict(vals, t.motion) for t in trials]) * inv_F
 
-    resid = _residual_fn(model, ps, trials, scales)
     return separable.solve(resid, predict_z, init, lo, hi, target, form)
 
 
@@ -514,8 +514,7 @@ def _undetermined(model: Model, values: dict[str, float], stderr: dict[str, floa
         if err == math.inf:
             out.append(f"{_owner(model, p).name}.{p.name} = {v:.4g} {p.unit}: not determined by these "
                        "trials (the fit's error does not depend on it)")
-        # a record's own zero or contact correction near nought is known to its error, not undetermined
-        elif err is not None and err > abs(v) and not _owner(model, p).source.startswith("the record"):
+        elif err is not None and err > abs(v) and not _owner(model, p).of_record:
             out.append(f"{_owner(model, p).name}.{p.name} = {v:.4g} +/- {err:.3g} {p.unit}: not determined "
                        "by these trials (its standard error exceeds its value)")
     return out

@@ -45,6 +45,8 @@ def split(model: Model) -> tuple[int | None, list[int]] | None:
     stages = {e.stage for e in model.effects}
     if stages - {"geometry", "drive", "sensor"} or any(e.needs_force for e in model.effects):
         return None
+    if model.records > 1 and model.has_record_params:
+        return None  # a contact point per record: more than one nonlinear parameter
     names = model.param_names
     linear, nonlinear = [], []
     for e in model.effects:
@@ -52,21 +54,14 @@ def split(model: Model) -> tuple[int | None, list[int]] | None:
         if e.stage == "geometry":
             nonlinear += idx
         elif e.linear and len(idx) == 1:
+            if e.stage == "drive" and e.params[0].lo < 0:
+                return None  # a drive term bounded below zero could make the tissue pull: the clamp bites
             linear += idx
         else:
             return None
     if len(set(nonlinear)) > 1 or set(linear) & set(nonlinear) or len(set(linear)) != len(linear):
         return None
-    # a drive term bounded below zero could make the tissue pull, which the clamp forbids
-    params = model.params
-    if any(params[i].lo < 0 for i in linear if _stage(model, i) == "drive"):
-        return None
     return (nonlinear[0] if nonlinear else None), linear
-
-
-def _stage(model: Model, i: int) -> str:
-    name = model.param_names[i]
-    return next(e.stage for e in model.effects if any(p.name == name for p in e.params))
 
 
 def solve(resid_at, predict_z, z0: np.ndarray, lo: np.ndarray, hi: np.ndarray,

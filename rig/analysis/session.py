@@ -15,6 +15,7 @@ from rig.analysis.analyze import (
     format_placement,
     holdout_json,
     load_inputs,
+    record_placement,
     result_json,
 )
 from rig.analysis.data import PHASES
@@ -69,8 +70,7 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         if why:  # said before the fit, not after it
             raise RigError(f"--save: {why}")
     if model.has("contact_point") and len(inputs.trials) + len(inputs.holdout) > 1:
-        # the contact point belongs to each curve: one parameter shared by several would put
-        # some curves' contact past their deepest point
+        # the material report (E, its depth profile, the contact) is one curve's
         raise RigError(f"the {req.model} model fits one curve at a time (each has its own contact point): "
                        "give one record, or pick one curve of a map with --curve")
     before = fit(build_model(req.model, [], inputs.registry), inputs.trials) if req.add else None
@@ -182,11 +182,11 @@ def material_json(res: FitResult, inputs) -> dict:
     out: dict = {"indenter": inputs.indenter.spec(), "indenter_description": inputs.indenter.describe(),
                  "indenter_from": inputs.indenter_from, "poisson": inputs.poisson,
                  "E_Pa": res.values["E_Pa"], "E_Pa_stderr": _finite(res.stderr.get("E_Pa"))}
-    x_c = res.values.get("x_c_m")
-    if x_c is not None:
-        # the contact point in each record's own travel from its first sample
-        out["contact_point_m"] = [(t.contact_m or 0.0) + x_c for t in res.trials]
-        out["contact_point_m_stderr"] = _finite(res.stderr.get("x_c_m"))
+    placed = record_placement(res)  # hertz fits one record
+    if "contact_point_m" in placed[0]:
+        # the contact point in the record's own travel from its first sample
+        out["contact_point_m"] = [row["contact_point_m"] for row in placed]
+        out["contact_point_m_stderr"] = placed[0]["contact_point_m_stderr"]
     rows = modulus_vs_depth(res)
     out["modulus_vs_depth"] = rows
     out["modulus_drift"] = plateau_drift(rows)

@@ -98,6 +98,12 @@ class Effect:
     # solves for that parameter directly (rig.analysis.separable)
     linear: bool = False
 
+    @property
+    def of_record(self) -> bool:
+        """A parameter of the record (where its surface lies, what it reads at rest), not of the
+        tissue: fitted with it, never saved, and near nought not "undetermined"."""
+        return self.source.startswith("the record")
+
     def __post_init__(self) -> None:
         if self.stage not in STAGES:
             raise ValueError(f"effect '{self.name}': stage must be one of {', '.join(STAGES)}")
@@ -145,14 +151,9 @@ class Model:
         return Model(list(self.effects), self.name, max(int(n), 1))
 
     @property
-    def per_record(self) -> list[Param]:
-        """The parameters (as the effects declare them) that take one value per record."""
-        seen: dict[str, Param] = {}
-        for e in self.effects:
-            for p in e.params:
-                if p.per_record:
-                    seen.setdefault(p.name, p)
-        return list(seen.values())
+    def has_record_params(self) -> bool:
+        """Whether some parameter takes one value per record."""
+        return any(p.per_record for p in self.params)
 
     def __add__(self, other: Effect | Model) -> Model:
         extra = other.effects if isinstance(other, Model) else [other]

@@ -66,7 +66,7 @@ def savable(model) -> str | None:
         return (f"effect(s) {', '.join(indenter)} hold the indenter's geometry, which a saved model does "
                 "not carry yet; save a model of catalogue effects")
     plugin = [e.name for e in model.effects
-              if e.source != "catalogue" and not e.source.startswith("the record")]
+              if e.source != "catalogue" and not e.of_record]
     if plugin:
         return f"effect(s) {', '.join(plugin)} come from a plugin; only catalogue effects can be saved"
     return None
@@ -78,7 +78,7 @@ def from_fit(res, trials: list[str]) -> SavedModel:
         raise RigError(f"--save: {why}")
     # the records' own parameters (where each record's surface and zero lay) describe those
     # records, not the tissue: the loop knows its own surface and tare
-    model = Model([e for e in res.model.effects if not e.source.startswith("the record")], res.model.name)
+    model = Model([e for e in res.model.effects if not e.of_record], res.model.name)
     keep = set(model.param_names)
     stderr = {k: (e if e is not None and math.isfinite(e) else None)
               for k, e in res.stderr.items() if k in keep}
