@@ -304,7 +304,7 @@ def _unexplained(base: FitResult, best: Suggestion | None) -> bool | str:
     if res.adequate:
         return False
     worst = max(((ph, s.rmse_N) for ph, s in res.phases.items() if s), key=lambda x: x[1])
-    what = f"with {best.effect}" if best else f"{base.model.name}"
+    what = f"with {best.effect}" if best else f"with {base.model.name} alone"
     text = (f"{what} the error is still {res.overall.rmse_N / max(res.noise_N, 1e-300):.2f}x the noise "
             f"(worst in {worst[0]}: {res.f(worst[1])}; residual correlated over {res.white_L:.0f} samples, "
             f"noise {res.noise_L:.0f})")
