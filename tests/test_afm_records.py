@@ -236,15 +236,17 @@ def test_an_unknown_curve_lists_the_ones_there():
 
 
 def test_iter_records_loads_the_file_once(monkeypatch):
+    path = _file("fmt-jpk-fd_map2x2_extracted")
     calls = []
-    load = afmformats.load_data
+    # a JPK file goes straight to afmformats' JPK loader (its format is already known)
+    (recipe,) = afmformats.formats.formats_by_suffix[path.suffix]
+    load = recipe.recipe["loader"]
 
     def counting(*args, **kwargs):
         calls.append(args)
         return load(*args, **kwargs)
 
-    monkeypatch.setattr(afmformats, "load_data", counting)
-    path = _file("fmt-jpk-fd_map2x2_extracted")
+    monkeypatch.setitem(recipe.recipe, "loader", counting)
     got = [r.meta["curve"] for r in iter_records(path)]
     assert got == [0, 1, 2, 3] and len(calls) == 1
 
