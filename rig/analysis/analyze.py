@@ -7,8 +7,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from rig.analysis import criterion
 from rig.analysis.data import PHASES, TrialData, load_trial
 from rig.analysis.fit import FitResult, error_table, evaluate, fit, with_record_params
+from rig.analysis.noise import Noise, measure
 from rig.errors import RigError, SpecError
 from rig.models.catalogue import (
     CATALOGUE,
@@ -109,7 +111,8 @@ def result_json(res: FitResult, paths: list[str]) -> dict:
         "correlations": correlations_json(res),
         "fit": {"rmse_N": res.overall.rmse_N, "mean_N": res.overall.mean_N, "std_N": res.overall.std_N,
                 "noise_N": res.noise_N, "noise_source": res.noise_source, "bic": res.bic,
-                "effective_samples": res.n_eff, "bic_definition": "N_eff ln(RSS / N) + k ln(N_eff)",
+                "effective_samples": res.bic_samples, "bic_definition": criterion.DEFINITION,
+                "residual_effective_samples": res.n_eff,
                 "rmse_over_noise": res.overall.rmse_N / res.noise_N if res.noise_N > 0 else None,
                 "residual_correlation_samples": res.white_L, "noise_correlation_samples": res.noise_L,
                 "seconds": res.seconds},
@@ -211,21 +214,48 @@ def _frozen(model: Model, values: dict[str, float]) -> Model:
                   for e in model.effects], model.name, model.records)
 
 
-def compare(trials: list[TrialData], registry: dict[str, Effect]) -> list[FitResult]:
-    return [fit(build_model(name, registry=registry), trials) for name in named_models(registry)]
+@dataclass
+class Comparison:
+    """Every named model fitted to the same records, ranked by one criterion with one noise."""
+
+    results: list[FitResult]  # best first
+    ranking: list[dict]  # model, parameters, bic, delta_bic, effective_samples (rig.analysis.criterion)
+    noise: Noise  # the one every model is judged against
+
+    def json(self) -> dict:
+        return {"criterion": criterion.DEFINITION, "noise_N": self.noise.std_N,
+                "noise": self.noise.describe(), "noise_correlation_samples": self.noise.scale_samples,
+                "ranking": self.ranking}
 
 
-def format_compare(results: list[FitResult], noise_N: float) -> str:
+def compare(trials: list[TrialData], registry: dict[str, Effect]) -> Comparison:
+    """Each named model fitted; one noise for all (the records' force at rest, else the residual of
+    the model that fits best) and one BIC count (rig.analysis.criterion)."""
+    results = [fit(build_model(name, registry=registry), trials) for name in named_models(registry)]
+    closest = min(results, key=lambda r: r.overall.rmse_N)
+    noise = measure([t.baseline_N for t in trials], closest.residuals)
+    samples = [t.n for t in trials]
+    rows = criterion.ranking({r.model.name: r.overall.n * r.overall.rmse_N ** 2 for r in results},
+                             {r.model.name: len(r.model.params) for r in results}, samples, noise)
+    order = {row["model"]: i for i, row in enumerate(rows)}
+    return Comparison(sorted(results, key=lambda r: order[r.model.name]), rows, noise)
+
+
+def format_compare(comparison: Comparison) -> str:
+    results, noise_N = comparison.results, comparison.noise.std_N
     k, u = results[0].force_unit
-    head = (f"{'model':<14}{'RMSE ' + u:>9}{'mean ' + u:>10}{'std ' + u:>9}{'/noise':>8}"
+    delta = {row["model"]: row["delta_bic"] for row in comparison.ranking}
+    head = (f"{'model':<14}{'RMSE ' + u:>9}{'mean ' + u:>10}{'std ' + u:>9}{'/noise':>8}{'dBIC':>10}"
             + "".join(f"{p:>12}" for p in PHASES))
     lines = [head, "-" * len(head)]
     for r in results:
         ph = "".join(f"{(r.phases[p].rmse_N / k if r.phases[p] else float('nan')):>12.4g}" for p in PHASES)
         ratio = r.overall.rmse_N / noise_N if noise_N > 0 else float("inf")
         lines.append(f"{r.model.name:<14}{r.overall.rmse_N / k:>9.4g}{r.overall.mean_N / k:>+10.3g}"
-                     f"{r.overall.std_N / k:>9.4g}{ratio:>8.1f}{ph}" + ("   adequate" if r.adequate else ""))
-    lines.append(f"(sensor noise {noise_N / k:.4g} {u}, {results[0].noise_source})")
+                     f"{r.overall.std_N / k:>9.4g}{ratio:>8.1f}{delta[r.model.name]:>10.4g}{ph}"
+                     + ("   adequate" if r.adequate else ""))
+    lines.append(f"(sensor noise {noise_N / k:.4g} {u}, {comparison.noise.source}; "
+                 f"{criterion.describe(comparison.noise, [t.n for t in results[0].trials])})")
     lines.append("")
     for r in results:
         params = ", ".join(f"{k} = {v:.4g}" for k, v in r.values.items())

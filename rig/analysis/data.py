@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rig.analysis.noise import MIN_BASELINE, from_baseline, quiet_length
 from rig.errors import SpecError
 from rig.models.core import Motion
 from rig.records import ReadOptions, Record, read_record
@@ -28,7 +29,6 @@ PHASES = ("ramp", "hold_early", "hold_late", "return")
 HOLD_EARLY_FRACTION = 1.0 / 6.0  # the paper's 10 s of a 60 s hold
 LOAD_FRACTION = 0.1  # the force has clearly risen at a tenth of its peak
 MOVING_FRACTION = 0.1  # moving: faster than a tenth of the record's ramp speed
-MIN_BASELINE = 200  # samples of force at rest that make a noise spectrum
 
 
 @dataclass(frozen=True)
@@ -51,11 +51,11 @@ class TrialData:
     motion: Motion
     force_N: np.ndarray
     phase: np.ndarray  # phase name per sample ("" = outside every phase)
-    baseline_noise_N: float | None  # std of the force at rest before contact, if there is enough of it
+    baseline_noise_N: float | None  # the noise of the quiet force at rest before contact, if enough
     source: str
     baseline_n: int = 0
     scales: Scales | None = None
-    baseline_N: np.ndarray | None = None  # the force at rest before contact, detrended
+    baseline_N: np.ndarray | None = None  # the force at rest before contact, as recorded
     force_unit: tuple[float, str] = (1.0, "N")  # how to show forces of this record
     length_unit: tuple[float, str] = (1e-3, "mm")
     notes: list[str] = field(default_factory=list)
@@ -152,14 +152,14 @@ def prepare(rec: Record, where: str = "", segment: str = "all") -> TrialData:
     v = _velocity(x, dt)
     phase = _phases_from_steps(t, steps) if steps is not None else _phases_from_motion(t, x, v)
     base = np.asarray(baseline, dtype=float)
-    base_detr = _detrend(base) if len(base) >= 3 else base
-    noise = float(np.std(base_detr)) if len(base) >= 20 else None
+    quiet = from_baseline([base]) if len(base) >= MIN_BASELINE else None
+    noise = quiet.std_N if quiet else (float(np.std(_detrend(base))) if len(base) >= 20 else None)
     m = Motion(t, x, v, dt)
     scales = record_scales(m, f, phase)
     fu = display_unit(scales.force_N, FORCE_DISPLAY)
     lu = display_unit(scales.length_m, LENGTH_DISPLAY)
     return TrialData(Path(rec.name).name, m, f, phase, noise, rec.source, len(base), scales,
-                     base_detr if len(base) >= MIN_BASELINE else None, fu, lu, notes, dict(rec.meta), contact_m,
+                     base if len(base) >= MIN_BASELINE else None, fu, lu, notes, dict(rec.meta), contact_m,
                      estimated)
 
 
@@ -249,14 +249,13 @@ def _find_contact(t, pos, f, where):
         x_touch = pos[i5] - lifted[i5] / slope if slope > 0 else pos[i_quiet]
         if x_touch > pos[i_quiet]:
             i_c = i_quiet + int(np.argmax(pos[i_quiet:i5 + 1] >= x_touch))
-    f_base = float(np.polyval(f_base_fit, t[i_c] - t[0]))
     level = f_rest if i_move >= 10 else f0  # before the probe moved, else its first samples
     x = pos - pos[i_c]
     # Nothing is subtracted: every fit places this record's contact point and its zero itself
     # (rig.analysis.fit.with_record_params), and a drift or friction shows in the residual
-    # before contact. The noise is the approach before the first estimate less a cubic in
-    # time: a soft first touch rises smoothly within it, the noise does not.
-    baseline = _detrend(f[:i_c], 3) if i_c >= 8 else f[:i_c] - f_base
+    # before contact. The noise is measured on the quiet part of the approach before the first
+    # estimate (rig.analysis.noise.quiet_length): a first touch and a slow rise are left out.
+    baseline = f[:quiet_length(f[:i_c])]
     note = (f"contact first placed at {_fmt_len(pos[i_c] - pos[0])} of travel, t = {t[i_c] - t[0]:.4g} s "
             f"(the fit refines it); force at rest {_fmt_force(level)}, kept")
     return x, f, baseline, note, level
@@ -310,7 +309,7 @@ def _velocity(x: np.ndarray, dt: float) -> np.ndarray:
     """dx/dt, smoothed over as few samples as the position's own noise allows.
 
     The window w is the shortest that keeps the derivative's noise (sigma_x * sqrt(12) /
-    (dt w^1.5) for a quadratic Savitzky-Golay fit) below 2 % of the record's ramp speed;
+    (dt w^1.5) for a quadratic Savitzky-Golay fit) below 2 % of the speed of the moving samples;
     sigma_x comes from the position's second differences, so encoder steps and sensor
     noise set it, not a number of seconds.
     """
@@ -323,7 +322,11 @@ def _velocity(x: np.ndarray, dt: float) -> np.ndarray:
         sigma_x = float(np.std(d2)) / np.sqrt(6.0)
     lag = max(1, n // 400)  # differences over a few hundredths of the record see through the noise
     coarse = np.abs(x[lag:] - x[:-lag]) / (lag * dt)
-    speed = float(np.percentile(coarse, 95)) or float(np.max(coarse)) or 1.0
+    # the speed of the samples that move: a 1 s ramp in a 32 s record is 3 % of it, and a
+    # percentile of the whole record would read the hold
+    top = float(np.max(coarse))
+    moving = coarse[coarse > 0.2 * top]
+    speed = float(np.median(moving)) if len(moving) else (top or 1.0)
     w = (sigma_x * np.sqrt(12.0) / (0.02 * speed * dt)) ** (2.0 / 3.0) if sigma_x > 0 else 5.0
     w = int(np.clip(np.ceil(w), 5, max(5, n // 20))) | 1
     if n <= w:

@@ -6,15 +6,16 @@ Long records are fitted in two passes: the starts run on a decimated copy (a few
 samples per trial: the effects live on time scales of many samples), and only the best
 is polished on every sample.
 
-Noise: the force at rest before contact when the record has enough of it, else the
-residual's short-lag differences (`rig.analysis.noise`), as a level and a correlation
-time. `adequate` means the residual is consistent with that noise: overall RMSE within
-1.2x, no phase above 1.5x, and no more correlated than the noise itself (1.5x its
-integral time scale).
+Noise: the quiet part of the approach when the record has enough of it, else the
+residual's short-lag structure (`rig.analysis.noise`), as a level, a spectrum and a
+correlation time. `adequate` means the residual is consistent with that noise: overall RMSE
+within 1.2x, no phase above 1.5x, and no more correlated than the noise itself (1.5x its
+integral time scale), each widened by what a perfect model would show on this record
+(`rig.analysis.adequacy`).
 
 Standard errors and the parameters' correlations come from a sandwich that allows for the
 residual's correlation in time (`rig.analysis.uncertainty`); `bic` is the one BIC the tool
-uses, on the effective number of independent residuals.
+uses, on the records' effective number of independent samples (`rig.analysis.criterion`).
 """
 
 from __future__ import annotations
@@ -22,23 +23,24 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
 from rig.analysis import separable
+from rig.analysis.adequacy import ADEQUATE_PHASE, ADEQUATE_RMSE, ADEQUATE_WHITE, Limits, whitened_scale
+from rig.analysis.adequacy import limits as adequacy_limits
+from rig.analysis.criterion import noise_count
 from rig.analysis.data import PHASES, Scales, TrialData, decimate
-from rig.analysis.noise import Noise, from_baseline, from_residual, integral_scale
+from rig.analysis.noise import Noise, integral_scale, measure
 from rig.analysis.scaling import ParamScaling
 from rig.analysis.uncertainty import bic as effective_bic
-from rig.analysis.uncertainty import correlation, effective_samples, hac_covariance, notable_correlations
+from rig.analysis.uncertainty import correlation, hac_covariance, notable_correlations
 from rig.models.catalogue import CONTACT_POINT, RECORD_ZERO
 from rig.models.core import Effect, Model
 from rig.models.frame import NotConverged
 
-ADEQUATE_RMSE = 1.2
-ADEQUATE_PHASE = 1.5
-ADEQUATE_WHITE = 1.5  # residual correlation time over the noise's own
 SCREEN_SAMPLES = 4000  # per trial, for the starts of a long record
 AT_BOUND = 1e-4  # fit units (order one): closer than this to a bound is "at" it
 CORRELATION_FLOOR = 0.1  # parameter correlations reported from this size up (lmfit's default)
@@ -86,6 +88,8 @@ class FitResult:
     z: dict[str, float] = field(default_factory=dict)  # the fit variables (order one)
     covariance: np.ndarray | None = None  # of the parameters in SI, allowing for correlated residuals
     n_eff: float = 0.0  # independent residuals: samples over the residual's correlation time
+    noise: Noise | None = None  # as measured (rig.analysis.noise)
+    bic_samples: float = 0.0  # the effective count `bic` is on: the records' (rig.analysis.criterion)
 
     @property
     def correlation(self) -> np.ndarray | None:
@@ -96,12 +100,39 @@ class FitResult:
         c = self.correlation
         return [] if c is None else notable_correlations(self.model.param_names, c, floor)
 
+    @cached_property
+    def limits(self) -> Limits:
+        """How far a perfect model's residual may go on these records (rig.analysis.adequacy)."""
+        if self.noise is None:
+            return Limits(ADEQUATE_RMSE, dict.fromkeys(PHASES, ADEQUATE_PHASE), ADEQUATE_WHITE)
+        return adequacy_limits(self.noise, self.predictions, [t.phase for t in self.trials], PHASES)
+
+    @cached_property
+    def whitened_L(self) -> float:
+        """The residual's correlation time (samples) with the noise's own taken out."""
+        return 1.0 if self.noise is None else whitened_scale(self.residuals, self.noise)
+
+    def _failed(self) -> list[tuple[str, float, float]]:
+        """The tests the residual fails: (what, its value, its limit), in the order they are told."""
+        noise = max(self.noise_N, 1e-300)
+        lim = self.limits
+        out = []
+        ratio = self.overall.rmse_N / noise
+        if ratio > lim.rmse:
+            out.append(("rmse", ratio, lim.rmse))
+        worst = [(s.rmse_N / noise / lim.phase.get(ph, ADEQUATE_PHASE), ph, s.rmse_N / noise,
+                  lim.phase.get(ph, ADEQUATE_PHASE)) for ph, s in self.phases.items() if s is not None]
+        if worst:
+            excess, ph, value, limit = max(worst)
+            if excess > 1.0:
+                out.append((ph, value, limit))
+        if self.whitened_L > lim.white:
+            out.append(("correlation", self.whitened_L, lim.white))
+        return out
+
     @property
     def adequate(self) -> bool:
-        worst = max((s.rmse_N for s in self.phases.values() if s is not None), default=0.0)
-        return (self.overall.rmse_N <= ADEQUATE_RMSE * self.noise_N
-                and worst <= ADEQUATE_PHASE * self.noise_N
-                and self.white_L <= ADEQUATE_WHITE * max(self.noise_L, 1.0))
+        return not self._failed()
 
     @property
     def force_unit(self) -> tuple[float, str]:
@@ -122,19 +153,19 @@ class FitResult:
     def verdict(self) -> str:
         """"adequate", or which of the three tests failed: the overall RMSE, a phase's, or the
         residual's correlation."""
-        if self.adequate:
+        failed = self._failed()
+        if not failed:
             return "adequate"
-        noise = max(self.noise_N, 1e-300)
-        ratio = self.overall.rmse_N / noise
-        if ratio > ADEQUATE_RMSE:
-            return f"NOT adequate (RMSE {ratio:.1f}x the noise)"
-        phase, worst = max(((ph, s.rmse_N) for ph, s in self.phases.items() if s is not None),
-                           key=lambda x: x[1], default=("", 0.0))
-        if worst > ADEQUATE_PHASE * noise:
-            return (f"NOT adequate (RMSE {ratio:.2g}x the noise overall, but {worst / noise:.1f}x in {phase}, "
-                    f"above {ADEQUATE_PHASE:g}x)")
+        what, value, limit = failed[0]
+        ratio = self.overall.rmse_N / max(self.noise_N, 1e-300)
+        if what == "rmse":
+            return f"NOT adequate (RMSE {ratio:.2g}x the noise, above {limit:.3g}x)"
+        if what != "correlation":
+            return (f"NOT adequate (RMSE {ratio:.2g}x the noise overall, but {value:.2g}x in {what}, "
+                    f"above {limit:.3g}x)")
         return (f"NOT adequate (RMSE {ratio:.2g}x the noise, but the residual is correlated over "
-                f"{self.white_L:.1f} samples, the noise over {self.noise_L:.1f}: a shape the model misses)")
+                f"{value:.1f} samples beyond the noise's own correlation, where a perfect model's is "
+                f"within {limit:.2g}: a shape the model misses)")
 
     def report(self) -> str:
         """lmfit-style text report, forces in the record's own unit."""
@@ -176,7 +207,7 @@ def error_table(trials: list[TrialData], residuals: list[np.ndarray]) -> tuple[E
 
 
 def noise_of(trials: list[TrialData], residuals: list[np.ndarray]) -> Noise:
-    return from_baseline([t.baseline_N for t in trials]) or from_residual(residuals)
+    return measure([t.baseline_N for t in trials], residuals)
 
 
 def with_record_params(model: Model, trials: list[TrialData], scales: Scales | None = None) -> Model:
@@ -423,6 +454,8 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
         warnings += _undetermined(model, values, stderr_named)
     else:
         warnings += _undetermined(model, values, stderr)
+    if noise.note:
+        warnings.append(f"noise: {noise.note}")
     unsolved = [w.message.residual_N for w in caught if isinstance(w.message, NotConverged)]
     if unsolved:
         worst = max(unsolved)
@@ -433,14 +466,17 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
         o, ph = error_table([t], [r])
         per_trial.append({"trial": t.name, **o.as_dict(),
                           "phases": {k: (v.rmse_N if v else None) for k, v in ph.items()}})
-    white = float(np.mean([integral_scale(r) for r in residuals]))
+    scales_r = [integral_scale(r) for r in residuals]
+    white = float(np.mean(scales_r))
     n = overall.n
-    n_eff = effective_samples(n, white)
-    bic = effective_bic(n * overall.rmse_N ** 2, n, len(model.params), n_eff)
+    # independent residuals, record by record (--explain compares candidates at this count)
+    n_eff = max(sum(len(r) / L for r, L in zip(residuals, scales_r, strict=True)), 10.0)
+    counted = noise_count(lengths, noise)
+    bic = effective_bic(n * overall.rmse_N ** 2, n, len(model.params), counted)
     return FitResult(model, trials, values, stderr, predictions, residuals, overall, phases, noise.std_N,
                      noise.source, bic, warnings, time.perf_counter() - t0, nfev, per_trial, white,
                      noise.scale_samples, scales, dict(zip(model.param_names, map(float, z), strict=True)),
-                     cov, n_eff)
+                     cov, n_eff, noise, counted)
 
 
 def _inside(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

@@ -1,68 +1,336 @@
-"""The sensor's noise as the instrument delivers it: its level and its correlation time.
+"""The sensor's noise as the instrument delivers it: its level, its spectrum, its quantisation,
+and how well the record pins them down.
 
-Indicators filter their signal, so their noise is not white at the sample rate: a perfect
-model leaves a residual as correlated as the noise itself. The noise is measured where the
-record shows it alone:
+Everything the analysis says against "the noise" (x the noise, adequate, the criterion, the
+bootstrap) rests on this, so it is measured where the record shows the noise alone and never
+where a contact estimate merely claims it:
 
-- the force at rest before contact (detrended), when the record has enough of it;
-- otherwise the residual's short-lag structure: differences at lags 1 and 2 keep the noise
-  and barely see a smooth misfit. For noise that is a first-order low-pass of white noise
-  (an AR(1) process with coefficient rho), D1 = 2 s^2 (1 - rho), D2 = 2 s^2 (1 - rho^2),
-  so rho = D2/D1 - 1 and s^2 = D1 / (2 (1 - rho)).
+- **the quiet part of the approach**: the force at rest before the first contact estimate, cut
+  where it first leaves a straight line by more than its own block-to-block scatter. A first
+  estimate is late by a fraction of the depth for a stiffening contact (6 % for F ~ d^1.5, 29 %
+  for d^3), and a slow rise before contact (drag, long-range forces) is a signal, not noise:
+  neither is allowed into the estimate;
+- otherwise the residual's short-lag structure (differences over a few dozen samples keep the
+  noise and barely see a smooth misfit: `from_residual`).
 
-Either way the result is a level (std) and an integral time scale in samples (1 for white
-noise, (1 + rho)/(1 - rho) for AR(1)): a model is adequate when its residual is as large and
-as correlated as that noise, no more.
+The spectrum is an AR(p) process, p chosen by BIC (an averaging ADC or a second-order filter is
+not an AR(1)); its integral time scale S(0)/var, in samples, is what a residual as correlated as
+the noise shows. A force quantised on a lattice coarser than half the noise is detected: on the
+quiet approach such a record sits on a few levels and its spread says little, so the
+underlying Gaussian is fitted to the level counts (interval-censored maximum likelihood) and
+the quantisation error, q^2/12 once the force moves, is added. `samples` and `spread` say how
+well the record pins the level down: the adequacy test (rig.analysis.adequacy) allows for it.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 MIN_BASELINE = 200
-MAX_RHO = 0.98
+AT_REST = "the force at rest before contact"
+SHORT_LAGS = 64  # the residual's structure is read up to this lag at most
+MAX_ORDER = 24  # AR orders tried (a 10-sample boxcar needs about ten)
+QUIET_SIGMAS = 4.0  # two blocks in a row this many block-scatters off the line end the quiet part
 
 
 @dataclass(frozen=True)
 class Noise:
-    std_N: float
-    scale_samples: float  # integral time scale: samples per independent value
+    std_N: float  # what a perfect model's residual shows: the noise with its quantisation error
+    scale_samples: float  # integral time scale: samples per independent value (1 for white noise)
     source: str
+    ar: tuple[float, ...] = ()  # the spectrum: x_t = sum phi_k x_(t-k) + e_t
+    gauss_std_N: float = 0.0  # the noise before quantisation
+    quantum_N: float = 0.0  # the quantisation step (0: none that matters)
+    origin_N: float = 0.0  # where the quantisation lattice sits
+    level_N: float = 0.0  # the force at rest where it was measured
+    samples: int = 0  # behind the estimate
+    spread: float = 0.0  # standard deviation of ln(std_N) from those samples
+    note: str = ""  # the other estimate, when it disagrees
+
+    @property
+    def effective_samples(self) -> float:
+        return self.samples / max(variance_scale(self.ar), 1.0)
+
+    def describe(self) -> str:
+        parts = [self.source]
+        if self.ar:
+            parts.append(f"AR({len(self.ar)}), correlated over {self.scale_samples:.3g} samples")
+        if self.quantum_N:
+            parts.append(f"quantised in steps of {self.quantum_N:.3g} N")
+        if self.samples:
+            parts.append(f"{self.samples} samples, +/- {100 * self.spread:.2g} %")
+        return "; ".join(parts)
+
+
+# --- where the noise shows alone -------------------------------------------------------------
+
+def quiet_length(y: np.ndarray) -> int:
+    """Samples at the start of `y` (the approach before the first contact estimate) where the
+    force is a straight line and noise: the line and the block-to-block scatter of the first
+    quarter, extended block by block until two blocks in a row leave the line (refitted over the
+    quiet part so far) by QUIET_SIGMAS scatters."""
+    n = len(y)
+    head = max(n // 4, min(n, MIN_BASELINE // 2))
+    if head < 32:
+        return n
+    block = max(8, head // 8)
+    i = np.arange(n, dtype=float)
+
+    def scatter(end: int) -> tuple[np.ndarray, float]:
+        coef = np.polyfit(i[:end], y[:end], 1)
+        r = y[:end] - np.polyval(coef, i[:end])
+        means = r[: end // block * block].reshape(-1, block).mean(axis=1)
+        return coef, float(np.sqrt(np.mean(means ** 2)))
+
+    end = head
+    coef, s = scatter(end)
+    if s == 0.0:
+        return n
+    while end + block <= n:
+        # a block off the line may be the noise's own excursion; two in a row are the force rising
+        off = [abs(float((y[a:a + block] - np.polyval(coef, i[a:a + block])).mean())) > QUIET_SIGMAS * s
+               for a in (end, end + block) if a + block <= n]
+        if all(off):
+            break
+        end += block
+        if end % (4 * block) == 0:
+            coef, s_new = scatter(end)
+            s = max(s, s_new) if s_new > 0 else s
+    return end if n - end >= block else n
+
+
+# --- the spectrum ----------------------------------------------------------------------------
+
+def autocovariance(x: np.ndarray, lags: int) -> np.ndarray:
+    """Biased autocovariance of each row of `x` (or of `x`) at lags 0..lags (by FFT)."""
+    x = np.atleast_2d(x)
+    x = x - x.mean(axis=1, keepdims=True)
+    n = x.shape[1]
+    nfft = 1 << int(np.ceil(np.log2(2 * n)))
+    f = np.fft.rfft(x, nfft, axis=1)
+    return np.fft.irfft(f * np.conj(f), nfft, axis=1)[:, : lags + 1] / n
+
+
+def ar_fit(gamma: np.ndarray, n: int, max_order: int = MAX_ORDER) -> tuple[np.ndarray, float]:
+    """AR coefficients and innovation variance from an autocovariance (Levinson-Durbin, the
+    Yule-Walker solution: always stationary), the order chosen by BIC."""
+    g0 = float(gamma[0])
+    if g0 <= 0.0:
+        return np.zeros(0), 0.0
+    order = min(max_order, len(gamma) - 1, max(n // 10, 1))
+    phi = np.zeros(0)
+    v = g0
+    # Schwarz's criterion: AIC's order on a few hundred samples of averaged noise overfits, and
+    # the spectrum at zero frequency (what the correlation time and the whitening rest on) swings
+    best = (n * math.log(v), phi, v)
+    for k in range(1, order + 1):
+        acc = float(gamma[k] - phi @ gamma[k - 1:0:-1]) if k > 1 else float(gamma[1])
+        refl = acc / v
+        phi = np.concatenate([phi - refl * phi[::-1], [refl]])
+        v *= 1.0 - refl ** 2
+        if v <= 0.0:
+            break
+        bic = n * math.log(v) + k * math.log(n)
+        if bic < best[0]:
+            best = (bic, phi.copy(), v)
+    return best[1], best[2]
+
+
+def response(ar: tuple[float, ...] | np.ndarray, nfreq: int) -> np.ndarray:
+    """|1 / phi(e^-iw)| at nfreq frequencies from 0 to Nyquist: the AR filter's gain."""
+    a = np.concatenate([[1.0], -np.asarray(ar, dtype=float)])
+    return 1.0 / np.abs(np.fft.rfft(a, 2 * (nfreq - 1)))
+
+
+def integral_scale_ar(ar: tuple[float, ...] | np.ndarray) -> float:
+    """S(0) / variance of an AR process, in samples."""
+    if len(ar) == 0:
+        return 1.0
+    acf = _ar_acf(ar)
+    return float(max(1.0, 1.0 + 2.0 * acf[1:].sum()))
+
+
+def level_and_spectrum(x: np.ndarray) -> tuple[float, np.ndarray]:
+    """The std of a stretch of noise (less a line) and its AR(p) coefficients."""
+    n = len(x)
+    u = np.linspace(-1.0, 1.0, n)
+    d = x - np.polyval(np.polyfit(u, x, 1), u)
+    gamma = autocovariance(d, min(MAX_ORDER, n // 4))[0]
+    if gamma[0] <= 0.0:
+        return 0.0, np.zeros(0)
+    phi, _ = ar_fit(gamma, n)
+    return float(np.sqrt(gamma[0])), phi
+
+
+def whiten(r: np.ndarray, ar: tuple[float, ...] | np.ndarray) -> np.ndarray:
+    """The residual with the noise's own correlation taken out: e_t = r_t - sum phi_k r_(t-k)
+    (each row of `r`, or `r`); what a perfect model leaves is then white."""
+    p = len(ar)
+    if p == 0:
+        return r
+    out = r[..., p:].copy()
+    n = r.shape[-1]
+    for k, c in enumerate(ar, start=1):
+        out -= c * r[..., p - k:n - k]
+    return out
+
+
+def variance_scale(ar: tuple[float, ...] | np.ndarray) -> float:
+    """1 + 2 sum rho_k^2: how much the correlation widens a sample variance's spread."""
+    if len(ar) == 0:
+        return 1.0
+    acf = _ar_acf(ar)
+    return float(1.0 + 2.0 * (acf[1:] ** 2).sum())
+
+
+def _ar_acf(ar) -> np.ndarray:
+    """The AR process's autocorrelation, from its spectrum, to where it has died out."""
+    g = response(ar, 1 << 15) ** 2
+    acf = np.fft.irfft(g)
+    acf = acf[: len(acf) // 2] / acf[0]
+    return acf
 
 
 def integral_scale(r: np.ndarray, max_lag: int = 3000) -> float:
     """Samples per independent value: 1 + 2 * the sum of the autocorrelation up to its first
-    drop below 0.05."""
+    drop below 0.05 (the residual's; the noise's comes from its AR spectrum)."""
     r = r - r.mean()
     n = len(r)
     if n < 10 or not np.any(r):
         return 1.0
     lag = min(max_lag, n // 4)
-    nfft = 1 << int(np.ceil(np.log2(2 * n)))
-    f = np.fft.rfft(r, nfft)
-    acf = np.fft.irfft(f * np.conj(f), nfft)[: lag + 1]
+    acf = autocovariance(r, lag)[0]
     acf = acf / acf[0]
     below = np.flatnonzero(acf < 0.05)
     cut = below[0] if len(below) else lag
     return float(np.clip(1.0 + 2.0 * acf[1:cut].sum(), 1.0, n / 20.0))
 
 
-def from_baseline(baselines: list[np.ndarray]) -> Noise | None:
-    use = [b for b in baselines if b is not None and len(b) >= MIN_BASELINE]
-    if not use:
+# --- quantisation ----------------------------------------------------------------------------
+
+def quantum(y: np.ndarray) -> float:
+    """The step of the lattice the force sits on, or 0 when it does not sit on a coarse one."""
+    y = np.asarray(y, dtype=float)
+    d = np.abs(np.diff(y))
+    scale = float(np.max(np.abs(y))) or 1.0
+    d = d[d > 1e-9 * scale]
+    if len(d) < 3 or len(np.unique(y)) > len(y) / 3:
+        return 0.0
+    q = float(np.min(d))
+    k = d / q
+    return q if np.mean(np.abs(k - np.round(k)) < 0.02) > 0.99 else 0.0
+
+
+def gauss_behind_levels(y: np.ndarray, q: float) -> tuple[float, float]:
+    """The standard deviation of the Gaussian noise behind a quantised record at rest, and the
+    lattice's origin: maximum likelihood on the level counts about a straight line (the spread
+    of a few levels says little about it: at rest between two levels a record reads one)."""
+    from scipy.optimize import minimize
+    from scipy.special import log_ndtr
+
+    origin = float(y[0] - q * np.round(y[0] / q))
+    k = np.round((y - origin) / q)
+    u = np.linspace(-1.0, 1.0, len(y))
+
+    def nll(p: np.ndarray) -> float:
+        m = p[0] + p[1] * u
+        s = math.exp(p[2])
+        hi, lo = (k + 0.5 - m) / s, (k - 0.5 - m) / s
+        # log(Phi(hi) - Phi(lo)), stable on either tail
+        upper = np.where(lo > 0, log_ndtr(-lo), log_ndtr(hi))
+        lower = np.where(lo > 0, log_ndtr(-hi), log_ndtr(lo))
+        return -float(np.sum(upper + np.log1p(-np.exp(np.minimum(lower - upper, -1e-300)))))
+
+    c = np.polyfit(u, k, 1)
+    start = np.array([c[1], c[0], math.log(max(float(np.std(k - np.polyval(c, u))), 0.2))])
+    res = minimize(nll, start, method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-6, "maxiter": 600})
+    return q * min(math.exp(float(res.x[2])), 1e3), origin
+
+
+# --- the two estimates -----------------------------------------------------------------------
+
+def from_baseline(baselines: list[np.ndarray | None]) -> Noise | None:
+    """The noise of each record's force at rest (a tare, or the quiet part of its approach:
+    `quiet_length`), pooled; None when no record has MIN_BASELINE samples of it."""
+    quiet = [np.asarray(b, dtype=float) for b in baselines if b is not None and len(b) >= MIN_BASELINE]
+    if not quiet:
         return None
-    std = float(np.sqrt(np.mean([np.var(b) for b in use])))
-    scale = float(np.mean([integral_scale(b) for b in use]))
-    return Noise(std, scale, "force at rest before contact")
+    parts = [_one_baseline(b) for b in quiet]
+    n = sum(p.samples for p in parts)
+    if len(parts) == 1:
+        return parts[0]
+    # several records: one sensor; the level pooled by samples, the spectrum of the longest
+    var = sum(p.std_N ** 2 * p.samples for p in parts) / n
+    longest = max(parts, key=lambda p: p.samples)
+    gauss = math.sqrt(sum(p.gauss_std_N ** 2 * p.samples for p in parts) / n)
+    spread = math.sqrt(variance_scale(longest.ar) / (2.0 * n))
+    return replace(longest, std_N=math.sqrt(var), gauss_std_N=gauss, samples=n, spread=spread)
+
+
+def _one_baseline(b: np.ndarray) -> Noise:
+    n = len(b)
+    q = quantum(b)
+    u = np.linspace(-1.0, 1.0, n)
+    detr = b - np.polyval(np.polyfit(u, b, 1), u)
+    std = float(np.std(detr))
+    gauss, origin = std, 0.0
+    if q > 0.5 * std:
+        gauss, origin = gauss_behind_levels(b, q)
+        std = math.sqrt(gauss ** 2 + q ** 2 / 12.0)
+    else:
+        q = 0.0
+    phi, _ = ar_fit(autocovariance(detr, min(MAX_ORDER, n // 4))[0], n)
+    ar = tuple(float(c) for c in phi)
+    spread = math.sqrt(variance_scale(ar) / (2.0 * n))
+    return Noise(std, integral_scale_ar(ar), AT_REST, ar, gauss, q, origin,
+                 float(np.mean(b)), n, spread)
 
 
 def from_residual(residuals: list[np.ndarray]) -> Noise:
-    d1 = float(np.mean(np.concatenate([np.diff(r) ** 2 for r in residuals])))
-    d2 = float(np.mean(np.concatenate([(r[2:] - r[:-2]) ** 2 for r in residuals if len(r) > 2])))
-    if d1 <= 0.0:
-        return Noise(0.0, 1.0, "residual short-lag differences")
-    rho = float(np.clip(d2 / d1 - 1.0, 0.0, MAX_RHO))
-    std = float(np.sqrt(d1 / (2.0 * (1.0 - rho))))
-    return Noise(std, (1.0 + rho) / (1.0 - rho), "residual short-lag differences")
+    """The noise from the residual's short-lag structure, for a record with no force at rest.
+
+    The structure function D(k) = mean (r_(t+k) - r_t)^2 of noise correlated over fewer than K
+    samples levels off at twice its variance beyond that; a smooth misfit adds about b k^2. So
+    2 var + b k^2 is fitted over K/2..K, and the noise's autocovariance at the shorter lags is
+    var - (D(k) - b k^2) / 2, from which its AR spectrum follows. Noise correlated over more
+    than K samples cannot be told from a misfit on the residual alone: it is read as misfit."""
+    n = sum(len(r) for r in residuals)
+    source = "the residual's short-lag structure"
+    longest = max(len(r) for r in residuals)
+    K = int(np.clip(longest // 40, 8, SHORT_LAGS))
+    lags = np.arange(1, K + 1)
+    D = np.array([np.mean(np.concatenate([(r[k:] - r[:-k]) ** 2 for r in residuals if len(r) > k]))
+                  for k in lags])
+    far = lags >= K // 2
+    A = np.column_stack([np.ones(far.sum()), lags[far].astype(float) ** 2])
+    (_, b), *_ = np.linalg.lstsq(A, D[far], rcond=None)
+    b = max(float(b), 0.0)
+    var = max(float(np.mean(D[far] - b * lags[far] ** 2)) / 2.0, 0.0)
+    if var <= 0.0:
+        return Noise(0.0, 1.0, source, samples=n)
+    gamma = np.concatenate([[var], var - (D[: K // 2] - b * lags[: K // 2] ** 2) / 2.0])
+    phi, _ = ar_fit(gamma, n, max_order=K // 2 - 1)
+    ar = tuple(float(x) for x in phi)
+    std = math.sqrt(var)
+    return Noise(std, integral_scale_ar(ar), source, ar, std, samples=n,
+                 spread=math.sqrt(variance_scale(ar) / (2.0 * n)))
+
+
+def measure(baselines: list[np.ndarray | None], residuals: list[np.ndarray]) -> Noise:
+    """The noise from the quiet approach when the records have one, else from the residual; when
+    both exist and disagree beyond their spreads, the note says by how much (a residual far
+    noisier at short lags than the approach: the sensor changed in contact, or the model misses
+    something fast)."""
+    base = from_baseline(baselines)
+    if base is None:
+        return from_residual(residuals)
+    other = from_residual(residuals)
+    ratio = other.std_N / base.std_N if base.std_N > 0 else math.inf
+    allowed = 3.0 * math.hypot(base.spread, other.spread) + 0.1
+    if abs(math.log(max(ratio, 1e-300))) > allowed:
+        base = replace(base, note=f"the residual's short-lag structure says {other.std_N:.3g} N, "
+                                  f"{ratio:.2g}x the quiet approach's {base.std_N:.3g} N")
+    return base

@@ -86,10 +86,12 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         out["material"] = material
     if before is not None:
         out["before_add"] = result_json(before, req.inputs)
-    results = compare(inputs.trials, inputs.registry) if req.compare else None
-    compare_text = format_compare(results, res.noise_N) if results else ""
-    if results:
-        out["compare"] = [result_json(r, req.inputs) for r in results]
+    comparison = compare(inputs.trials, inputs.registry) if req.compare else None
+    results = comparison.results if comparison else None
+    compare_text = format_compare(comparison) if comparison else ""
+    if comparison:
+        out["compare"] = [result_json(r, req.inputs) for r in comparison.results]
+        out["compare_ranking"] = comparison.json()
     held = holdout_json(res, inputs.holdout) if inputs.holdout else None
     if held:
         out["holdout"] = held

@@ -1,0 +1,138 @@
+"""Is a model's residual the noise? Three tests, each against what a perfect model would show on
+this very record.
+
+A model is adequate when its residual is no larger than the noise overall (ADEQUATE_RMSE) and
+in every phase (ADEQUATE_PHASE), and no more correlated in time than the noise
+(ADEQUATE_WHITE, on the integral time scales): tolerances a user reads as "within 1.2x the
+noise". What a perfect model's residual shows is not a constant, though: the noise is itself
+an estimate (from a few hundred samples of approach, or from the residual), a short phase's RMSE
+scatters, a force quantised on a coarse lattice leaves a residual that follows the record's
+own course (flat where the force holds still, uniform where it moves), and a filtered sensor's
+residual correlation scatters widely. So each limit is the tolerance times the upper tail of
+that statistic under a perfect model, found by simulation: the measured noise spectrum drawn
+DRAWS times, quantised on the record's own lattice about the fitted prediction, the noise
+re-estimated from a simulated approach exactly as the record's was, and each statistic taken
+as the analysis takes it. A long record with a long quiet approach gets limits at the
+tolerances; a short approach or a coarse quantiser widens them by as much as it must.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from rig.analysis.noise import (
+    AT_REST,
+    Noise,
+    autocovariance,
+    from_residual,
+    gauss_behind_levels,
+    level_and_spectrum,
+    response,
+    whiten,
+)
+
+ADEQUATE_RMSE = 1.2
+ADEQUATE_PHASE = 1.5
+ADEQUATE_WHITE = 1.5  # residual correlation time over the noise's own
+DRAWS = 32
+Z = 2.0  # how far into the simulated tail a perfect model may go (one-sided, about 2 %)
+MAX_SIM_BASELINE = 20000
+
+
+@dataclass(frozen=True)
+class Limits:
+    rmse: float  # RMSE over the noise, at most
+    phase: dict[str, float]  # a phase's RMSE over the noise, at most
+    white: float  # the residual's correlation time, the noise's own taken out (samples), at most
+
+
+def simulate(noise: Noise, n: int, draws: int, rng: np.random.Generator) -> np.ndarray:
+    """`draws` stationary series of `n` samples of the noise before quantisation (its AR
+    spectrum, by spectral synthesis on a period long enough that the wrap does not matter)."""
+    span = int(min(max(4 * noise.scale_samples, 64), 1 << 16))
+    m = 1 << int(np.ceil(np.log2(n + span)))
+    gain = response(noise.ar, m // 2 + 1) if noise.ar else np.ones(m // 2 + 1)
+    power = (gain[0] ** 2 + gain[-1] ** 2 + 2.0 * np.sum(gain[1:-1] ** 2)) / m
+    w = rng.standard_normal((draws, m))
+    x = np.fft.irfft(np.fft.rfft(w, axis=1) * gain, m, axis=1)[:, :n]
+    return x * (noise.gauss_std_N / math.sqrt(power))
+
+
+def quantise(x: np.ndarray, noise: Noise) -> np.ndarray:
+    q = noise.quantum_N
+    return x if q <= 0 else noise.origin_N + q * np.round((x - noise.origin_N) / q)
+
+
+def limits(noise: Noise, predictions: list[np.ndarray], phases: list[np.ndarray],
+           names: tuple[str, ...], seed: int = 0) -> Limits:
+    """The three limits for residuals of a fit whose `predictions` (one per record, with the
+    records' `phases`, per sample) carry `noise`, by simulating perfect models."""
+    if noise.std_N <= 0.0:
+        return Limits(ADEQUATE_RMSE, dict.fromkeys(names, ADEQUATE_PHASE), ADEQUATE_WHITE)
+    rng = np.random.default_rng(seed)
+    sims = []
+    for p in predictions:
+        x = simulate(noise, len(p), DRAWS, rng)
+        sims.append(quantise(p + x, noise) - p if noise.quantum_N else x)
+    stds, spectra = _reestimated(noise, sims, rng)
+    all_r = np.concatenate(sims, axis=1)
+    rmse = np.sqrt(np.mean(all_r ** 2, axis=1)) / stds
+    phase = {}
+    for ph in names:
+        r = np.concatenate([s[:, m == ph] for s, m in zip(sims, phases, strict=True)], axis=1)
+        if r.shape[1]:
+            phase[ph] = _upper(np.sqrt(np.mean(r ** 2, axis=1)) / stds) * ADEQUATE_PHASE
+    white = np.mean([[batch_integral_scale(whiten(s[k:k + 1], ar))[0] for s in sims]
+                     for k, ar in enumerate(spectra)], axis=1)
+    return Limits(_upper(rmse) * ADEQUATE_RMSE, phase, _upper(white) * ADEQUATE_WHITE)
+
+
+def whitened_scale(residuals: list[np.ndarray], noise: Noise) -> float:
+    """The residual's correlation time once the noise's own is taken out (its AR filter): about
+    one sample for a perfect model whatever the sensor's filter, many for a shape it misses."""
+    return float(np.mean([batch_integral_scale(whiten(r[None, :], noise.ar))[0] for r in residuals]))
+
+
+def _upper(stat: np.ndarray) -> float:
+    """The statistic's upper tail under a perfect model: Z standard deviations above its mean,
+    on a log scale (ratios), and never below 1."""
+    logs = np.log(np.maximum(stat, 1e-300))
+    return float(max(math.exp(logs.mean() + Z * logs.std(ddof=1)), 1.0))
+
+
+def _reestimated(noise: Noise, sims: list[np.ndarray], rng) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The noise's level and spectrum as the record's own estimate would have found them in each
+    draw: from a simulated quiet approach of the same length, or from the residual."""
+    draws = sims[0].shape[0]
+    if noise.samples and noise.source == AT_REST:
+        nb = min(noise.samples, MAX_SIM_BASELINE)
+        base = quantise(noise.level_N + simulate(noise, nb, draws, rng), noise)
+        stds, spectra = [], []
+        for b in base:
+            std, phi = level_and_spectrum(b)
+            if noise.quantum_N:
+                gauss, _ = gauss_behind_levels(b, noise.quantum_N)
+                std = math.sqrt(gauss ** 2 + noise.quantum_N ** 2 / 12.0)
+            stds.append(max(std, 1e-300))
+            spectra.append(phi)
+        return np.array(stds), spectra
+    est = [from_residual([s[k] for s in sims]) for k in range(draws)]
+    return np.array([max(e.std_N, 1e-300) for e in est]), [np.array(e.ar) for e in est]
+
+
+def batch_integral_scale(r: np.ndarray, max_lag: int = 3000) -> np.ndarray:
+    """rig.analysis.noise.integral_scale of each row of `r`."""
+    n = r.shape[1]
+    if n < 10:
+        return np.ones(r.shape[0])
+    lag = min(max_lag, n // 4)
+    acf = autocovariance(r, lag)
+    acf = acf / np.maximum(acf[:, :1], 1e-300)
+    below = acf < 0.05
+    cut = np.where(below.any(axis=1), below.argmax(axis=1), lag)
+    csum = np.concatenate([np.zeros((len(r), 1)), np.cumsum(acf[:, 1:], axis=1)], axis=1)
+    s = csum[np.arange(len(r)), np.maximum(cut - 1, 0)]
+    return np.clip(1.0 + 2.0 * s, 1.0, n / 20.0)

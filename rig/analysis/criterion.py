@@ -1,0 +1,46 @@
+"""One criterion for every comparison of models: BIC on one effective sample count.
+
+    BIC = N_eff ln(RSS / N) + k ln(N_eff),  N_eff = sum over records of n_i / L
+
+L is the noise's integral time scale (samples per independent value, from its measured spectrum:
+rig.analysis.noise), so N_eff is a property of the records and their sensor, the same for every
+model fitted to them. That is what makes differences of BIC mean something: a force unit adds
+N_eff ln(c^2) to every model's BIC alike, and drops out of every difference. (A count taken
+from each model's own residual weighs that constant differently per model: the ranking then
+depends on the unit the forces happen to be in, and two nearly equal misfits can get counts
+37x apart.)
+
+`--explain` compares a model with its candidates the same way, at one count for all of them:
+the base model's residual count (rig.analysis.explain).
+"""
+
+from __future__ import annotations
+
+from rig.analysis.noise import Noise
+from rig.analysis.uncertainty import bic
+
+DEFINITION = ("N_eff ln(RSS / N) + k ln(N_eff), N_eff = the records' samples over the noise's correlation "
+              "time, one count for every model")
+
+
+def noise_count(samples: list[int], noise: Noise) -> float:
+    """Independent samples in records of `samples` each, carrying `noise` (at least 10)."""
+    return max(sum(samples) / max(noise.scale_samples, 1.0), 10.0)
+
+
+def ranking(rss: dict[str, float], params: dict[str, int], samples: list[int], noise: Noise) -> list[dict]:
+    """Models (name: RSS in N^2, name: parameter count) ranked by BIC on one count, best first,
+    with each BIC's difference from the best."""
+    n = sum(samples)
+    n_eff = noise_count(samples, noise)
+    rows = [{"model": m, "parameters": params[m], "bic": bic(rss[m], n, params[m], n_eff)} for m in rss]
+    rows.sort(key=lambda r: r["bic"])
+    for r in rows:
+        r["delta_bic"] = r["bic"] - rows[0]["bic"]
+        r["effective_samples"] = n_eff
+    return rows
+
+
+def describe(noise: Noise, samples: list[int]) -> str:
+    return (f"ranked by BIC = {DEFINITION}: N_eff = {noise_count(samples, noise):.4g} "
+            f"({sum(samples)} samples, noise correlated over {noise.scale_samples:.3g}; {noise.source})")
