@@ -37,6 +37,16 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _draws(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number of draws, got {text}") from None
+    if not 2 <= value <= 10000:
+        raise argparse.ArgumentTypeError(f"must be between 2 and 10000 draws, got {text}")
+    return value
+
+
 def _seconds(text: str) -> float:
     value = _positive_or_zero(text)
     if not 0.2 <= value <= 60:
@@ -346,6 +356,10 @@ def cmd_models(args: argparse.Namespace) -> int:
     return 0
 
 
+def _progress(done: int, total: int) -> None:
+    print(f"\rbootstrap: {done}/{total} draws", end="\n" if done == total else "", file=sys.stderr, flush=True)
+
+
 def cmd_analyze(args: argparse.Namespace) -> int:
     from rig.analysis.session import AnalyzeRequest, analyze
 
@@ -355,7 +369,8 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         plugins=args.plugin or [], block=args.block, compare=args.compare, explain=args.explain,
         auto=args.auto, design=args.design, design_config=design_config, save=args.save,
         report=args.report, indenter=args.indenter, poisson=args.poisson, segment=args.segment,
-        curve=args.curve, spring_constant_N_per_m=args.spring_constant, sensitivity_m_per_V=args.sensitivity))
+        curve=args.curve, spring_constant_N_per_m=args.spring_constant, sensitivity_m_per_V=args.sensitivity,
+        bootstrap=args.bootstrap, progress=_progress if args.bootstrap and sys.stderr.isatty() else None))
     print(json.dumps(done.json, indent=2, default=float) if args.json else done.text)
     return 0
 
@@ -649,6 +664,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "that would separate them")
     r.add_argument("--config", help="with --design: the rig whose limits the protocol must respect "
                                     "(default: the built-in simulated rig)")
+    r.add_argument("--bootstrap", type=_draws, metavar="N",
+                   help="redraw the record N times from the fitted model and the measured noise and "
+                        "analyse each as this one: each parameter's bias, scatter against its standard "
+                        "error, how often +/-1.96 SE held it, how often the verdict stays (100 is a start)")
     r.add_argument("--report", metavar="DIR", help="write figures and report.md here")
     r.add_argument("--save", metavar="MODEL.json",
                    help="save the fitted model (effects, parameters, what it was fitted on) to run it "

@@ -49,6 +49,8 @@ class AnalyzeRequest:
     curve: int | None = None  # an AFM map's curve, as the instrument numbers it
     spring_constant_N_per_m: float | None = None
     sensitivity_m_per_V: float | None = None
+    bootstrap: int | None = None  # draws of the parametric bootstrap (rig.analysis.bootstrap)
+    progress: Any = None  # called with (draws done, draws) as the bootstrap goes
 
 
 @dataclass
@@ -95,6 +97,12 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     held = holdout_json(res, inputs.holdout) if inputs.holdout else None
     if held:
         out["holdout"] = held
+    boot = None
+    if req.bootstrap:
+        from rig.analysis.bootstrap import bootstrap
+
+        boot = bootstrap(res, req.bootstrap, progress=req.progress)
+        out["bootstrap"] = boot.as_dict()
     ex = explain(res, inputs.registry) if req.explain else None
     if ex is not None:
         out["suggestions"] = [s.as_dict() for s in ex.suggestions]
@@ -139,6 +147,10 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         parts.append(compare_text)
     if held:
         parts.append(format_holdout(held, res.force_unit))
+    if boot is not None:
+        from rig.analysis.bootstrap import format_bootstrap
+
+        parts.append(format_bootstrap(boot, res))
     if ex is not None:
         parts.append(format_explain(ex))
     if design_text:
