@@ -331,6 +331,7 @@ def measure(baselines: list[np.ndarray | None], residuals: list[np.ndarray]) -> 
     ratio = other.std_N / base.std_N if base.std_N > 0 else math.inf
     allowed = 3.0 * math.hypot(base.spread, other.spread) + 0.1
     if abs(math.log(max(ratio, 1e-300))) > allowed:
-        base = replace(base, note=f"the residual's short-lag structure says {other.std_N:.3g} N, "
-                                  f"{ratio:.2g}x the quiet approach's {base.std_N:.3g} N")
+        base = replace(base, note=f"the residual's short-lag structure reads {other.std_N:.3g} N, "
+                                  f"{ratio:.2g}x the {base.std_N:.3g} N at rest before contact (a sensor "
+                                  "noisier in contact, or a misfit faster than a few dozen samples)")
     return base
