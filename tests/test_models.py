@@ -88,9 +88,12 @@ def test_predicted_force_is_never_negative():
 
 
 def test_compare_reproduces_the_papers_findings(paper_trials):
-    results = {r.model.name: r for r in compare(paper_trials, CATALOGUE)}
+    comparison = compare(paper_trials, CATALOGUE)
+    results = {r.model.name: r for r in comparison.results}
     noise = results["proposed"].noise_N
     assert 0.07 <= noise <= 0.09  # the simulator's 0.08 N, estimated from the data
+    assert comparison.noise.std_N == pytest.approx(noise, rel=0.05)  # the one all are judged by
+    assert comparison.ranking[0]["model"] == "proposed"  # and it ranks first
     # Voigt and Kelvin: negative damping (warned) or errors several times the noise
     for name in ("voigt", "kelvin"):
         r = results[name]

@@ -100,7 +100,10 @@ def test_fit_errors_match_the_spread_over_seeds(tmp_path):
 
 
 def test_one_bic_everywhere(tmp_path):
-    """FitResult, the JSON and --explain's dBIC use the effective-sample BIC; no plain BIC is left."""
+    """FitResult, the JSON and --explain's dBIC use the effective-sample BIC; no plain BIC is left.
+    A fit's BIC counts the records (their samples over the noise's correlation time: the same for
+    every model on them); --explain compares a model with its candidates at the base model's
+    residual count, record by record."""
     cfg = RigConfig()
     cfg.sim.effects.drift = DriftParams(rate_N_per_s=0.004)
     proto = ("name: ramp\nsteps:\n  - ramp: {to_mm: 30, speed_mm_s: 3}\n  - hold: {duration_s: 30}\n"
@@ -112,11 +115,12 @@ def test_one_bic_everywhere(tmp_path):
     assert base.white_L > 10  # a missed drift: a smooth, correlated residual
     assert base.n_eff == pytest.approx(n / base.white_L)
     rss = float(r @ r)
-    assert base.bic == pytest.approx(base.n_eff * np.log(rss / n) + k * np.log(base.n_eff))
-    plain = n * np.log(rss / n) + k * np.log(n)
-    assert abs(base.bic - plain) > 0.5 * abs(plain)
+    counted = n / base.noise_L
+    assert base.bic_samples == pytest.approx(counted)
+    assert base.bic == pytest.approx(counted * np.log(rss / n) + k * np.log(counted))
     out = result_json(base, ["x"])["fit"]
-    assert out["bic"] == base.bic and out["effective_samples"] == base.n_eff
+    assert out["bic"] == base.bic and out["effective_samples"] == base.bic_samples
+    assert out["residual_effective_samples"] == base.n_eff
     ex = explain(base, {k: CATALOGUE[k] for k in ("drift", "offset", "friction")})
     top = ex.ranked[0]
     assert top.effect == "drift" and ex.n_eff == base.n_eff
