@@ -370,7 +370,8 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         auto=args.auto, design=args.design, design_config=design_config, save=args.save,
         report=args.report, indenter=args.indenter, poisson=args.poisson, segment=args.segment,
         curve=args.curve, spring_constant_N_per_m=args.spring_constant, sensitivity_m_per_V=args.sensitivity,
-        bootstrap=args.bootstrap, progress=_progress if args.bootstrap and sys.stderr.isatty() else None))
+        bootstrap=args.bootstrap, profile=args.profile,
+        progress=_progress if args.bootstrap and sys.stderr.isatty() else None))
     print(json.dumps(done.json, indent=2, default=float) if args.json else done.text)
     return 0
 
@@ -668,6 +669,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="redraw the record N times from the fitted model and the measured noise and "
                         "analyse each as this one: each parameter's bias, scatter against its standard "
                         "error, how often +/-1.96 SE held it, how often the verdict stays (100 is a start)")
+    r.add_argument("--profile", action="store_true",
+                   help="profile-likelihood 95 %% intervals for the parameters that trade off (|correlation| "
+                        ">= 0.9 with another): each end where the cost has risen, the others refitted")
     r.add_argument("--report", metavar="DIR", help="write figures and report.md here")
     r.add_argument("--save", metavar="MODEL.json",
                    help="save the fitted model (effects, parameters, what it was fitted on) to run it "

@@ -50,6 +50,7 @@ class AnalyzeRequest:
     spring_constant_N_per_m: float | None = None
     sensitivity_m_per_V: float | None = None
     bootstrap: int | None = None  # draws of the parametric bootstrap (rig.analysis.bootstrap)
+    profile: bool = False  # profile-likelihood intervals of the parameters that trade off
     progress: Any = None  # called with (draws done, draws) as the bootstrap goes
 
 
@@ -103,6 +104,12 @@ def analyze(req: AnalyzeRequest) -> Analysis:
 
         boot = bootstrap(res, req.bootstrap, progress=req.progress)
         out["bootstrap"] = boot.as_dict()
+    profiled = None
+    if req.profile:
+        from rig.analysis.profile import intervals
+
+        profiled = intervals(res)
+        out["profile"] = {iv.name: iv.as_dict() for iv in profiled}
     ex = explain(res, inputs.registry) if req.explain else None
     if ex is not None:
         out["suggestions"] = [s.as_dict() for s in ex.suggestions]
@@ -147,6 +154,10 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         parts.append(compare_text)
     if held:
         parts.append(format_holdout(held, res.force_unit))
+    if profiled is not None:
+        from rig.analysis.profile import format_intervals
+
+        parts.append(format_intervals(profiled, res))
     if boot is not None:
         from rig.analysis.bootstrap import format_bootstrap
 
