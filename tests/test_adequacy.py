@@ -27,7 +27,6 @@ from tests.conftest import per_seed
 SIGMA = 5e-12  # N: the noise's standard deviation as the sensor delivers it
 E_TRUE, R = 12e3, 5e-6
 INDENTER = "paraboloid:R=5um"
-SEEDS = range(40)
 SENSORS = ("quantised 2 sigma", "quantised 4 sigma", "first-order low-pass", "second-order low-pass",
            "10-sample boxcar", "short approach")
 
@@ -117,11 +116,17 @@ def _verdicts(seed: int, kind: str, record: str) -> tuple[bool, bool, str]:
     return perfect.adequate, missed.adequate, perfect.verdict()
 
 
-@pytest.mark.parametrize("record", ["afm", "rig"])
-@pytest.mark.parametrize("kind", SENSORS)
-def test_a_perfect_model_is_adequate_and_a_misfit_is_caught(kind, record):
-    out = per_seed(_verdicts, SEEDS, kind, record)
+def check(kind: str, record: str, seeds: range, perfect_at_least: int, caught_at_least: int) -> None:
+    out = per_seed(_verdicts, seeds, kind, record)
     perfect = sum(a for a, _, _ in out)
     caught = sum(not b for _, b, _ in out)
     said = sorted({v for a, _, v in out if not a})[:3]
-    assert perfect >= 38 and caught >= 36, (perfect, caught, said)
+    assert perfect >= perfect_at_least and caught >= caught_at_least, (perfect, caught, said)
+
+
+@pytest.mark.parametrize("record", ["afm", "rig"])
+@pytest.mark.parametrize("kind", SENSORS)
+def test_a_perfect_model_is_adequate_and_a_misfit_is_caught(kind, record):
+    """Twelve seeds here (11 adequate, 10 caught at least); the forty of the specification, 38
+    and 36, in tests/bench/test_bench_adequacy.py."""
+    check(kind, record, range(12), 11, 10)
