@@ -44,3 +44,17 @@ def test_the_table_reads_as_a_person_reads_it(tmp_path):
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--bootstrap: must be a whole number of draws, got 1.5" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+def test_too_few_independent_residuals_per_parameter_are_said(tmp_path, capsys):
+    """The paper's seven parameters (with the contact and the zero) on a short Hertz curve they do
+    not describe leave one smooth misfit: a handful of independent residuals, too few to trust
+    seven errors on; the right model leaves thousands."""
+    path = hertz_curve(tmp_path / "hertz.csv", seed=5)
+    assert main(["analyze", str(path), "--model", "proposed", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    said = [w for w in out["warnings"] if w.startswith("only ")]
+    assert said and "fewer than 5 each" in said[0], out["warnings"]
+    assert out["fit"]["residual_effective_samples"] < 5 * len(out["parameters"])
+    assert main(["analyze", str(path), "--model", "hertz", "--indenter", "paraboloid:R=5um", "--json"]) == 0
+    assert not [w for w in json.loads(capsys.readouterr().out)["warnings"] if w.startswith("only ")]

@@ -41,6 +41,7 @@ from rig.models.catalogue import CONTACT_POINT, RECORD_ZERO
 from rig.models.core import Effect, Model
 from rig.models.frame import NotConverged
 
+FEW_PER_PARAM = 5  # independent residuals per parameter below which the errors are not trusted
 SCREEN_SAMPLES = 4000  # per trial, for the starts of a long record
 AT_BOUND = 1e-4  # fit units (order one): closer than this to a bound is "at" it
 CORRELATION_FLOOR = 0.1  # parameter correlations reported from this size up (lmfit's default)
@@ -473,6 +474,11 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     n_eff = max(sum(len(r) / L for r, L in zip(residuals, scales_r, strict=True)), 10.0)
     counted = noise_count(lengths, noise)
     bic = effective_bic(n * overall.rmse_N ** 2, n, len(model.params), counted)
+    free = sum(1 for e in stderr.values() if e is not None and math.isfinite(e))
+    if free and n_eff < FEW_PER_PARAM * free:
+        warnings.append(f"only {n_eff:.0f} independent residuals for {free} fitted parameters (fewer than "
+                        f"{FEW_PER_PARAM} each): the standard errors rest on too little to be trusted "
+                        "(--bootstrap N shows how they hold if the model is right)")
     return FitResult(model, trials, values, stderr, predictions, residuals, overall, phases, noise.std_N,
                      noise.source, bic, warnings, time.perf_counter() - t0, nfev, per_trial, white,
                      noise.scale_samples, scales, dict(zip(model.param_names, map(float, z), strict=True)),
