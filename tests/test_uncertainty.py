@@ -53,7 +53,8 @@ def test_reported_errors_cover_the_truth_with_correlated_noise(rho):
     too narrow, about sqrt(L) times."""
     cov = _coverage(rho, 200)
     one, two = cov["hac"]
-    assert np.all((one > 0.58) & (one < 0.78)), one
+    # the prewhitening's bias correction errs on the wide side at rho 0.98 (1 SE holds 0.75-0.83)
+    assert np.all((one > 0.58) & (one < 0.86)), one
     assert np.all((two > 0.90) & (two < 0.99)), two
     assert np.all(cov["white"][1] < 0.6), cov["white"]
 
@@ -62,6 +63,68 @@ def test_white_noise_is_not_inflated():
     one, two = _coverage(0.0, 200)["hac"]
     assert np.all((one > 0.58) & (one < 0.78)), one
     assert np.all((two > 0.90) & (two < 0.99)), two
+
+
+N_LINEAR = 3000
+
+
+def linear_design(n: int = N_LINEAR) -> np.ndarray:
+    """Baseline, slope and a Hertz-like term E max(x - x_c, 0)^1.5 with x_c known: the
+    Jacobian of a linear least-squares fit of an indentation curve."""
+    x = np.linspace(0.0, 1.0, n)
+    return np.column_stack([np.ones(n), x, np.clip(x - 0.4, 0.0, None) ** 1.5])
+
+
+def ar1_noise(rng: np.random.Generator, n: int, seeds: int, rho: float) -> np.ndarray:
+    """(n, seeds) stationary AR(1) noise of unit variance."""
+    e = rng.normal(size=(n, seeds)) * np.sqrt(1 - rho ** 2)
+    e[0] = rng.normal(size=seeds)
+    return lfilter([1.0], [1.0, -rho], e, axis=0)
+
+
+def walk_noise(rng: np.random.Generator, n: int, seeds: int, size: float) -> np.ndarray:
+    """White noise of unit variance plus a random walk from zero whose end-to-end standard
+    deviation is `size` times the noise's."""
+    return rng.normal(size=(n, seeds)) + np.cumsum(rng.normal(size=(n, seeds)), axis=0) * size / np.sqrt(n)
+
+
+def linear_coverage(noise: np.ndarray, J: np.ndarray, covariance=hac_covariance) -> np.ndarray:
+    """Per parameter, the fraction of the noise's columns whose least-squares error lies
+    within 1.96 reported standard errors (the truth is zero)."""
+    beta = np.linalg.lstsq(J, noise, rcond=None)[0]
+    resid = noise - J @ beta
+    se = np.array([np.sqrt(np.diag(covariance(J, resid[:, s], [len(J)]))) for s in range(noise.shape[1])])
+    return np.mean(np.abs(beta.T) <= 1.96 * se, axis=0)
+
+
+def test_errors_cover_near_a_unit_root_and_under_a_drift():
+    """A linear indentation fit over 3000 samples, 200 seeds. AR(1) at rho 0.998 (about three
+    independent stretches per record): the previous estimator (rho clipped at 0.99, bandwidth
+    2) held the truth within 1.96 SE 40-48 % of the time, this one 96-98 %. White noise plus a
+    walk as large as the noise over the record: 17-26 % before, 77-83 % now, short of the 90 %
+    target (an honest limit, see the module docstring) but no longer far off."""
+    J = linear_design()
+    rng = np.random.default_rng(1)
+    near = linear_coverage(ar1_noise(rng, N_LINEAR, 200, 0.998), J)
+    assert np.all((near > 0.88) & (near < 0.995)), near
+    drift = linear_coverage(walk_noise(rng, N_LINEAR, 200, 1.0), J)
+    assert np.all(drift > 0.65), drift
+
+
+def test_doubtful_errors_say_why():
+    """Three independent stretches for three parameters: the note says so; a white residual
+    gets none, and the call without `notes` still returns the covariance."""
+    J = linear_design()
+    rng = np.random.default_rng(3)
+    cases = ((ar1_noise(rng, N_LINEAR, 1, 0.998)[:, 0], True), (rng.normal(size=N_LINEAR), False))
+    for noise, doubtful in cases:
+        resid = noise - J @ np.linalg.lstsq(J, noise, rcond=None)[0]
+        notes: list[str] = []
+        cov = hac_covariance(J, resid, [N_LINEAR], notes)
+        assert np.array_equal(cov, hac_covariance(J, resid, [N_LINEAR]))
+        assert any("independent samples for 3 parameters" in x for x in notes) == doubtful, notes
+        if not doubtful:
+            assert notes == []
 
 
 def test_fit_errors_match_the_spread_over_seeds(tmp_path):
