@@ -25,11 +25,12 @@ import numpy as np
 
 from rig.analysis.noise import (
     AT_REST,
+    MAX_ORDER,
     Noise,
+    ar_fit,
     autocovariance,
     from_residual,
     gauss_behind_levels,
-    level_and_spectrum,
     response,
     whiten,
 )
@@ -110,9 +111,15 @@ def _reestimated(noise: Noise, sims: list[np.ndarray], rng) -> tuple[np.ndarray,
     if noise.samples and noise.source == AT_REST:
         nb = min(noise.samples, MAX_SIM_BASELINE)
         base = quantise(noise.level_N + simulate(noise, nb, draws, rng), noise)
+        # every draw less its straight line at once, then each one's spectrum
+        u = np.linspace(-1.0, 1.0, nb)
+        A = np.column_stack([np.ones(nb), u])
+        detr = base - (A @ np.linalg.lstsq(A, base.T, rcond=None)[0]).T
+        gamma = autocovariance(detr, min(MAX_ORDER, nb // 4))
         stds, spectra = [], []
-        for b in base:
-            std, phi = level_and_spectrum(b)
+        for b, g in zip(base, gamma, strict=True):
+            std = math.sqrt(max(float(g[0]), 0.0))
+            phi = ar_fit(g, nb)[0] if g[0] > 0 else np.zeros(0)
             if noise.quantum_N:
                 gauss, _ = gauss_behind_levels(b, noise.quantum_N)
                 std = math.sqrt(gauss ** 2 + noise.quantum_N ** 2 / 12.0)

@@ -24,6 +24,7 @@ well the record pins the level down: the adequacy test (rig.analysis.adequacy) a
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass, replace
 
@@ -153,18 +154,6 @@ def integral_scale_ar(ar: tuple[float, ...] | np.ndarray) -> float:
     return float(max(1.0, 1.0 + 2.0 * acf[1:].sum()))
 
 
-def level_and_spectrum(x: np.ndarray) -> tuple[float, np.ndarray]:
-    """The std of a stretch of noise (less a line) and its AR(p) coefficients."""
-    n = len(x)
-    u = np.linspace(-1.0, 1.0, n)
-    d = x - np.polyval(np.polyfit(u, x, 1), u)
-    gamma = autocovariance(d, min(MAX_ORDER, n // 4))[0]
-    if gamma[0] <= 0.0:
-        return 0.0, np.zeros(0)
-    phi, _ = ar_fit(gamma, n)
-    return float(np.sqrt(gamma[0])), phi
-
-
 def whiten(r: np.ndarray, ar: tuple[float, ...] | np.ndarray) -> np.ndarray:
     """The residual with the noise's own correlation taken out: e_t = r_t - sum phi_k r_(t-k)
     (each row of `r`, or `r`); what a perfect model leaves is then white."""
@@ -187,10 +176,13 @@ def variance_scale(ar: tuple[float, ...] | np.ndarray) -> float:
 
 
 def _ar_acf(ar) -> np.ndarray:
-    """The AR process's autocorrelation, from its spectrum, to where it has died out."""
-    g = response(ar, 1 << 15) ** 2
-    acf = np.fft.irfft(g)
-    acf = acf[: len(acf) // 2] / acf[0]
+    """The AR process's autocorrelation, from its spectrum, to where it has died out (a short
+    transform first: most sensors forget within a few dozen samples)."""
+    for size in (1 << 11, 1 << 15, 1 << 19):
+        acf = np.fft.irfft(response(ar, size + 1) ** 2)
+        acf = acf[:size] / acf[0]
+        if abs(acf[-1]) < 1e-4:
+            break
     return acf
 
 
@@ -271,6 +263,19 @@ def from_baseline(baselines: list[np.ndarray | None]) -> Noise | None:
 
 
 def _one_baseline(b: np.ndarray) -> Noise:
+    # the same stretch is measured when a record is prepared and again when it is fitted
+    key = hashlib.blake2b(b.tobytes(), digest_size=16).digest()
+    if key not in _MEASURED:
+        if len(_MEASURED) > 256:
+            _MEASURED.clear()
+        _MEASURED[key] = _measure_baseline(b)
+    return _MEASURED[key]
+
+
+_MEASURED: dict[bytes, Noise] = {}
+
+
+def _measure_baseline(b: np.ndarray) -> Noise:
     n = len(b)
     q = quantum(b)
     u = np.linspace(-1.0, 1.0, n)
