@@ -440,7 +440,8 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     noise = noise_of(trials, residuals)
     lengths = [t.n for t in trials]
     to_si = ps.jacobian(z)
-    cov = _covariance(best, to_si, lengths)
+    doubts: list[str] = []
+    cov = _covariance(best, to_si, lengths, doubts)
     stderr = _stderr(cov, model.param_names)
     bound = ps.at_bound(z, lo, hi, AT_BOUND)
     lag, drive = ps.rate_form
@@ -475,10 +476,14 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     counted = noise_count(lengths, noise)
     bic = effective_bic(n * overall.rmse_N ** 2, n, len(model.params), counted)
     free = sum(1 for e in stderr.values() if e is not None and math.isfinite(e))
-    if free and n_eff < FEW_PER_PARAM * free:
+    few = bool(free) and n_eff < FEW_PER_PARAM * free
+    if few:
         warnings.append(f"only {n_eff:.0f} independent residuals for {free} fitted parameters (fewer than "
                         f"{FEW_PER_PARAM} each): the standard errors rest on too little to be trusted "
                         "(--bootstrap N shows how they hold if the model is right)")
+    # the sandwich's own doubts (a bound or a clip hit, a drift allowed for); its count of
+    # independent samples is said once, above, when it is the residual's
+    warnings += [f"standard errors: {d}" for d in doubts if not (few and "independent samples" in d)]
     return FitResult(model, trials, values, stderr, predictions, residuals, overall, phases, noise.std_N,
                      noise.source, bic, warnings, time.perf_counter() - t0, nfev, per_trial, white,
                      noise.scale_samples, scales, dict(zip(model.param_names, map(float, z), strict=True)),
@@ -494,11 +499,13 @@ def _inside(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.clip(z, lo_in, hi_in)
 
 
-def _covariance(sol, to_si: np.ndarray, lengths: list[int]) -> np.ndarray | None:
+def _covariance(sol, to_si: np.ndarray, lengths: list[int],
+                doubts: list[str] | None = None) -> np.ndarray | None:
     """Covariance of the parameters in SI: the correlated-residual sandwich
-    (`rig.analysis.uncertainty`) in the fit variables, carried to SI through `to_si` = d(SI)/dz."""
+    (`rig.analysis.uncertainty`) in the fit variables, carried to SI through `to_si` = d(SI)/dz;
+    why it may be doubtful appended to `doubts`."""
     try:
-        cov = hac_covariance(sol.jac, sol.fun, lengths)
+        cov = hac_covariance(sol.jac, sol.fun, lengths, doubts)
     except (np.linalg.LinAlgError, ValueError):
         return None
     # a direction the data do not determine (infinite variance) leaves every SI parameter
