@@ -154,10 +154,10 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
         rmse = base.overall.rmse_N * float(np.sqrt(ratio))
         drop = 1.0 - float(np.sqrt(ratio))
         sug = Suggestion(e.name, rmse, drop, float(dbic), _why(e, before, res), res, full_rate=full)
-        own = [w for w in res.warnings if w.startswith(f"{e.name}.") and "negative" in w]
-        if own:
-            sug.meaningless = own[0]
-            sug.why += f"; but {own[0]}"
+        bad = meaningless(res, base)
+        if bad:
+            sug.meaningless = bad
+            sug.why += f"; but {bad}"
         return sug
 
     ranked = [score(e, res_c, i < REFIT_LEADERS) for i, (_, e, res_c) in enumerate(screened)]
@@ -189,6 +189,24 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
     return Explanation(base, n_eff, ranked, passing, twins, base.adequate, summary,
                        best.effect if best else None, twins, unexplained,
                        closest.effect if closest else None)
+
+
+def meaningless(res: FitResult, base: FitResult) -> str:
+    """Why the fit `res` of a model with an added effect is physically meaningless, or "".
+
+    Every parameter of the model counts, not only the added effect's: an effect that fits only
+    by turning one of the model's own terms negative (a damping, a stiffness) is not the
+    answer. A parameter already negative in `base`, the fit without the effect, is the base
+    model's own problem (its fit says so) and is left out."""
+    for p in res.model.params:
+        v = res.values[p.name]
+        if not (p.warn_negative and v < 0) or base.values.get(p.name, 0.0) < 0:
+            continue
+        owner = next((e.name for e in res.model.effects if any(q.name == p.name for q in e.params)), "model")
+        said = f"{owner}.{p.name} is negative"
+        return next((w for w in res.warnings if w.startswith(said)),
+                    f"{said} ({v:.4g} {p.unit}): physically meaningless")
+    return ""
 
 
 def passes(delta_bic: float, rmse_drop: float, base_adequate: bool) -> bool:
@@ -353,7 +371,14 @@ def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexpl
 def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = 5) -> list[dict]:
     """Stepwise selection: add the best effect and refit, then drop any earlier addition the
     criterion no longer supports (effects hidden together can make a proxy look best first);
-    repeat while the criterion improves and the model is not adequate."""
+    repeat while the criterion improves and the model is not adequate.
+
+    Every step's model is refitted from several starts (`refit`): the previous step's
+    solution and the catalogue's own, so a step is not bound to the basin the first one found
+    and is no worse than the same model fitted alone (`rig analyze --add`). Whether an earlier
+    addition is dropped is judged from the fuller model's solution without it (the nearest
+    fit of the slimmer model, and a cheap one); a drop is then refitted from several starts
+    too. Two models are compared at the simpler one's N_eff, as every delta_BIC is."""
     steps = [{"step": 0, "added": None, "removed": None, "fit": base, "delta_bic": 0.0, "why": ""}]
     current = base
     added: list[str] = []
@@ -364,26 +389,51 @@ def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = 5) -> li
         if not ex.suggestions:
             break
         best = ex.suggestions[0]
-        current = best.fit
+        before = current
+        current = refit(best.fit)
+        dk = len(current.model.params) - len(before.model.params)
+        dbic = delta_bic(_rss(current) / max(_rss(before), 1e-300), dk, before.n_eff)
         added.append(best.effect)
         steps.append({"step": i, "added": best.effect, "removed": None, "fit": current,
-                      "delta_bic": best.delta_bic, "why": best.why,
-                      "indistinguishable": ex.indistinguishable})
+                      "delta_bic": float(dbic), "why": best.why, "indistinguishable": ex.indistinguishable})
         for name in list(added[:-1]):
             slimmer = Model([e for e in current.model.effects if e.name != name], name="")
-            trial_fit = fit(slimmer, current.trials, starts=1, initial=current.values, tol=1e-8,
-                            max_nfev=REFIT_NFEV, polish=False)
-            rss_now = float(np.sum(np.concatenate(current.residuals) ** 2))
-            rss_without = float(np.sum(np.concatenate(trial_fit.residuals) ** 2))
-            dk = len(current.model.params) - len(slimmer.params)
-            # the slimmer model against the current one, at the current one's N_eff
-            dbic = -delta_bic(rss_now / rss_without, dk, current.n_eff)
+            without = fit(slimmer, current.trials, starts=1, initial=current.values, tol=1e-8,
+                          max_nfev=REFIT_NFEV, polish=False)
+            dk = len(current.model.params) - len(without.model.params)
+            # the slimmer model against the current one, at the slimmer one's N_eff
+            dbic = -delta_bic(_rss(current) / max(_rss(without), 1e-300), dk, without.n_eff)
             if dbic < 0:  # simpler is better: the earlier effect was a stand-in
+                without = refit(without)
+                dbic = -delta_bic(_rss(current) / max(_rss(without), 1e-300), dk, without.n_eff)
                 added.remove(name)
-                current = trial_fit
+                current = without
                 steps.append({"step": i, "added": None, "removed": name, "fit": current,
                               "delta_bic": float(dbic), "why": f"{name} no longer needed"})
     return steps
+
+
+def refit(warm: FitResult, starts: int = 3) -> FitResult:
+    """`warm`'s model refitted from several starts: `warm`'s own solution (the previous step's,
+    carried on) and `starts` from the catalogue's starting values, as `fit` starts the model
+    on its own (`rig analyze --add`). The catalogue's starts run on a decimated copy, as
+    `explain` screens; the start with the lower error on every sample is refitted there."""
+    model, trials = warm.model, warm.trials
+    stride = max(1, min(t.n for t in trials) // SCREEN_SAMPLES)
+    coarse = [decimate(t, stride) for t in trials] if stride > 1 else trials
+    fresh = fit(model, coarse, starts=starts, tol=1e-8, polish=False)
+    rss_fresh = float(sum(np.sum(r ** 2) for r in _residuals(model, fresh.values, trials)))
+    start = fresh.values if rss_fresh < _rss(warm) else warm.values
+    res = fit(model, trials, starts=1, initial=start, tol=1e-8, max_nfev=REFIT_NFEV, polish=False)
+    return res if _rss(res) <= _rss(warm) else warm
+
+
+def _residuals(model: Model, values: dict[str, float], trials: list[TrialData]) -> list[np.ndarray]:
+    return [t.force_N - p for t, p in zip(trials, evaluate(model, values, trials), strict=True)]
+
+
+def _rss(res: FitResult) -> float:
+    return float(np.sum(np.concatenate(res.residuals) ** 2))
 
 
 def format_explain(ex: Explanation, top: int = 6) -> str:

@@ -1,0 +1,61 @@
+"""`--auto` and `--explain` on what the user reads: a step is no worse than its model fitted on
+its own, a suggestion whose fit turns any of the model's parameters negative is not made, and a
+drop is judged at the simpler model's N_eff."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from rig.cli import main
+
+REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
+GEL = REALDATA / "polymergel-creep.jpk-force"
+
+
+def _jpk(path: Path) -> None:
+    if not path.is_file():
+        pytest.skip(f"the real measurement is not at {path}")
+    pytest.importorskip("afmformats", reason="reading JPK files needs the afm extra (afmformats)")
+
+
+def _run(capsys, *args: str) -> dict:
+    assert main(["analyze", *args, "--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_a_step_is_no_worse_than_its_model_fitted_alone(capsys):
+    """Kelvin on the gel: the step that adds fractional relaxation stayed in the first step's
+    basin (0.0261 nN) where the same model fitted on its own reaches 0.0160 nN."""
+    _jpk(GEL)
+    steps = _run(capsys, str(GEL), "--model", "kelvin", "--auto")["auto"]
+    assert len(steps) > 1, steps
+    effects: list[str] = []
+    for s in steps[1:]:
+        if s["added"]:
+            effects.append(s["added"])
+        else:
+            effects.remove(s["removed"])
+        alone = _run(capsys, str(GEL), "--model", "kelvin", *(a for e in effects for a in ("--add", e)))
+        assert s["rmse_N"] <= 1.01 * alone["fit"]["rmse_N"], (effects, s["rmse_N"], alone["fit"]["rmse_N"])
+
+
+def test_no_suggestion_turns_a_parameter_of_the_model_negative(capsys):
+    """Hunt-Crossley on the gel: fractional relaxation was named first although its fit turns the
+    base model's damping (hc_damping.b, not a parameter of the effect) negative."""
+    _jpk(GEL)
+    base = _run(capsys, str(GEL), "--model", "hunt_crossley", "--explain")
+    assert not any("negative" in w for w in base["warnings"])  # the base model's fit is physical
+    named = [s["effect"] for s in base["suggestions"]]
+    assert named and "fractional_relaxation" not in named, named
+    assert base["diagnosis"]["best"] != "fractional_relaxation"
+    assert not base["diagnosis"]["text"].startswith("most likely missing: fractional_relaxation")
+    # what it was left out for: fitted with it, the model's damping turns negative
+    added = _run(capsys, str(GEL), "--model", "hunt_crossley", "--add", "fractional_relaxation")
+    negative = [w for w in added["warnings"] if w.startswith("hc_damping.b_N_s_per_m_n1 is negative")]
+    assert negative, added["warnings"]
+    # and the answer it names instead is physical when fitted on its own
+    best = _run(capsys, str(GEL), "--model", "hunt_crossley", "--add", named[0])
+    assert not any("is negative" in w for w in best["warnings"]), (named[0], best["warnings"])
