@@ -42,5 +42,6 @@ def ranking(rss: dict[str, float], params: dict[str, int], samples: list[int], n
 
 
 def describe(noise: Noise, samples: list[int]) -> str:
-    return (f"ranked by BIC = {DEFINITION}: N_eff = {noise_count(samples, noise):.4g} "
-            f"({sum(samples)} samples, noise correlated over {noise.scale_samples:.3g}; {noise.source})")
+    return (f"ranked by BIC = N_eff ln(RSS / N) + k ln(N_eff), one N_eff for every model: "
+            f"{noise_count(samples, noise):.4g} of {sum(samples)} samples, the noise correlated over "
+            f"{noise.scale_samples:.3g}")
