@@ -27,7 +27,7 @@ from rig.analysis.noise import (
     AT_REST,
     MAX_ORDER,
     Noise,
-    ar_fit,
+    ar_fit_rows,
     autocovariance,
     from_residual,
     gauss_behind_levels,
@@ -86,9 +86,20 @@ def limits(noise: Noise, predictions: list[np.ndarray], phases: list[np.ndarray]
         r = np.concatenate([s[:, m == ph] for s, m in zip(sims, phases, strict=True)], axis=1)
         if r.shape[1]:
             phase[ph] = _upper(np.sqrt(np.mean(r ** 2, axis=1)) / stds) * ADEQUATE_PHASE
-    white = np.mean([[batch_integral_scale(whiten(s[k:k + 1], ar))[0] for s in sims]
-                     for k, ar in enumerate(spectra)], axis=1)
+    white = np.mean([_whitened_scales(s, spectra) for s in sims], axis=0)
     return Limits(_upper(rmse) * ADEQUATE_RMSE, phase, _upper(white) * ADEQUATE_WHITE)
+
+
+def _whitened_scales(sims: np.ndarray, spectra: list[np.ndarray]) -> np.ndarray:
+    """Each draw whitened by its own re-estimated spectrum, all measured in one transform (the
+    first samples, which a longer filter has no history for, dropped alike from every draw)."""
+    p = max((len(ar) for ar in spectra), default=0)
+    n = sims.shape[1]
+    out = np.empty((len(spectra), n - p))
+    for k, ar in enumerate(spectra):
+        e = sims[k].copy() if len(ar) == 0 else whiten(sims[k], ar)
+        out[k] = e[len(e) - (n - p):]
+    return batch_integral_scale(out)
 
 
 def whitened_scale(residuals: list[np.ndarray], noise: Noise) -> float:
@@ -116,16 +127,12 @@ def _reestimated(noise: Noise, sims: list[np.ndarray], rng) -> tuple[np.ndarray,
         A = np.column_stack([np.ones(nb), u])
         detr = base - (A @ np.linalg.lstsq(A, base.T, rcond=None)[0]).T
         gamma = autocovariance(detr, min(MAX_ORDER, nb // 4))
-        stds, spectra = [], []
-        for b, g in zip(base, gamma, strict=True):
-            std = math.sqrt(max(float(g[0]), 0.0))
-            phi = ar_fit(g, nb)[0] if g[0] > 0 else np.zeros(0)
-            if noise.quantum_N:
-                gauss, _ = gauss_behind_levels(b, noise.quantum_N)
-                std = math.sqrt(gauss ** 2 + noise.quantum_N ** 2 / 12.0)
-            stds.append(max(std, 1e-300))
-            spectra.append(phi)
-        return np.array(stds), spectra
+        spectra = ar_fit_rows(gamma, nb)
+        stds = np.sqrt(np.maximum(gamma[:, 0], 0.0))
+        if noise.quantum_N:
+            q = noise.quantum_N
+            stds = np.array([math.sqrt(gauss_behind_levels(b, q)[0] ** 2 + q ** 2 / 12.0) for b in base])
+        return np.maximum(stds, 1e-300), spectra
     est = [from_residual([s[k] for s in sims]) for k in range(draws)]
     return np.array([max(e.std_N, 1e-300) for e in est]), [np.array(e.ar) for e in est]
 

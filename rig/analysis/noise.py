@@ -140,6 +140,32 @@ def ar_fit(gamma: np.ndarray, n: int, max_order: int = MAX_ORDER) -> tuple[np.nd
     return best[1], best[2]
 
 
+def ar_fit_rows(gamma: np.ndarray, n: int, max_order: int = MAX_ORDER) -> list[np.ndarray]:
+    """`ar_fit` of each row of autocovariances at once (the same recursion, every row a step at a
+    time), each row's order chosen by BIC."""
+    rows = gamma.shape[0]
+    order = min(max_order, gamma.shape[1] - 1, max(n // 10, 1))
+    g0 = gamma[:, 0]
+    ok = g0 > 0
+    v = np.where(ok, g0, 1.0)
+    phi = np.zeros((rows, 0))
+    best_crit = n * np.log(v)
+    best = [np.zeros(0)] * rows
+    alive = ok.copy()
+    for k in range(1, order + 1):
+        acc = gamma[:, k] - np.einsum("ij,ij->i", phi, gamma[:, k - 1:0:-1]) if k > 1 else gamma[:, 1].copy()
+        refl = acc / v
+        phi = np.column_stack([phi - refl[:, None] * phi[:, ::-1], refl])
+        v = v * (1.0 - refl ** 2)
+        alive &= v > 0
+        crit = n * np.log(np.where(alive, v, 1.0)) + k * math.log(n)
+        better = alive & (crit < best_crit)
+        for i in np.flatnonzero(better):
+            best[i] = phi[i].copy()
+        best_crit = np.where(better, crit, best_crit)
+    return best
+
+
 def response(ar: tuple[float, ...] | np.ndarray, nfreq: int) -> np.ndarray:
     """|1 / phi(e^-iw)| at nfreq frequencies from 0 to Nyquist: the AR filter's gain."""
     a = np.concatenate([[1.0], -np.asarray(ar, dtype=float)])
