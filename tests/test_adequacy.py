@@ -121,6 +121,7 @@ def check(kind: str, record: str, seeds: range, perfect_at_least: int, caught_at
     perfect = sum(a for a, _, _ in out)
     caught = sum(not b for _, b, _ in out)
     said = sorted({v for a, _, v in out if not a})[:3]
+    print(f"{record} {kind}: adequate {perfect}/{len(out)}, misfit caught {caught}/{len(out)}")
     assert perfect >= perfect_at_least and caught >= caught_at_least, (perfect, caught, said)
 
 
