@@ -100,15 +100,25 @@ def linear_coverage(noise: np.ndarray, J: np.ndarray, covariance=hac_covariance)
 def test_errors_cover_near_a_unit_root_and_under_a_drift():
     """A linear indentation fit over 3000 samples, 200 seeds. AR(1) at rho 0.998 (about three
     independent stretches per record): the previous estimator (rho clipped at 0.99, bandwidth
-    2) held the truth within 1.96 SE 40-48 % of the time, this one 96-98 %. White noise plus a
-    walk as large as the noise over the record: 17-26 % before, 77-83 % now, short of the 90 %
-    target (an honest limit, see the module docstring) but no longer far off."""
+    2) held the truth within 1.96 SE 40-48 % of the time, this one 94-98 %. White noise plus a
+    walk as large as the noise over the record: 17-26 % with that estimator, 77-83 % with AR(8)
+    prewhitening and a drift check, 88-93 % now that a local-level model competes with the AR."""
     J = linear_design()
     rng = np.random.default_rng(1)
     near = linear_coverage(ar1_noise(rng, N_LINEAR, 200, 0.998), J)
     assert np.all((near > 0.88) & (near < 0.995)), near
     drift = linear_coverage(walk_noise(rng, N_LINEAR, 200, 1.0), J)
-    assert np.all(drift > 0.65), drift
+    assert np.all((drift > 0.85) & (drift < 0.99)), drift
+
+
+@pytest.mark.parametrize("size", [1.0, 3.0, 10.0])
+def test_errors_cover_under_a_random_walk(size):
+    """White noise plus a walk from zero 1, 3 and 10 times the noise end to end, 150 seeds: the
+    residual's noise model is chosen between an AR(p) and white plus a walk by their restricted
+    likelihoods, so an AR(8) that follows part of a large walk no longer hides it. With the AR
+    alone and a drift check the truth was within 1.96 SE 77-81 %, 35-42 % and 65-83 % of the time."""
+    cover = linear_coverage(walk_noise(np.random.default_rng(2), N_LINEAR, 150, size), linear_design())
+    assert np.all((cover > 0.88) & (cover < 0.99)), cover
 
 
 def test_doubtful_errors_say_why():

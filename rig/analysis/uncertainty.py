@@ -5,18 +5,20 @@ noise, a drift wanders under it, and a model that misses something leaves a smoo
 The textbook covariance s^2 (J^T J)^-1 then counts every sample as new information and its
 standard errors come out about sqrt(L) too small (L: the residual's integral time scale).
 
-The covariance here is the HAC sandwich B^-1 Omega B^-1, B = J^T J, Omega the long-run
-covariance of the score g_t = J_t r_t within each trial (trials are independent), estimated
-after prewhitening (Andrews and Monahan 1992), in three parts:
+The covariance here is the sandwich B^-1 Omega B^-1, B = J^T J, Omega the covariance of the
+score sum_t J_t r_t within each trial (trials are independent). Each trial's noise is first
+given a model, one of two, whichever has the larger BIC of the restricted likelihood of the
+residual (the likelihood of what the fit left: the fitted directions out, `_reml`):
 
-- prewhitening: an AR(p) fitted to the trial's residual, p <= MAX_AR_ORDER by BIC, filters the
-  score; its coefficients are corrected for the bias a fitted residual and a short record put
-  into them (`_prewhitening`), and bounded so that the noise they describe is correlated over
-  at most the record (recolouring by 1 / (1 - sum phi)^2 stays finite);
-- the Bartlett sum over what the filter left, with Andrews' (1991) plug-in bandwidth from an
-  AR(1) fitted to each prewhitened score column (`bandwidth`), then recoloured;
-- a random-walk drift, when the prewhitened residual's lowest frequencies show one
-  (`_drift`), added as its exact covariance through J.
+- an AR(p), p <= MAX_AR_ORDER by BIC, its coefficients corrected for the bias a fitted residual
+  and a short record put into them (`_prewhitening`) and bounded so that the noise they describe
+  is correlated over at most the record (recolouring by 1 / (1 - sum phi)^2 stays finite). Omega
+  is then the HAC estimate after prewhitening (Andrews and Monahan 1992): the Bartlett sum over
+  the filtered score with Andrews' (1991) plug-in bandwidth (`bandwidth`), recoloured, plus a
+  random-walk drift when the prewhitened residual's lowest frequencies still show one (`_drift`);
+- white noise plus a random walk from the trial's start (a local level: `_level`), whose
+  covariance s_eps^2 I + s_eta^2 min(i, j) goes through J exactly (the walk as the reverse
+  cumulative sum of J), both variances by restricted maximum likelihood.
 
 Why this one. The previous version (AR(1) prewhitening, rho clipped at 0.99, bandwidth twice
 the prewhitened residual's time scale, so almost always 2) held the truth within 1.96 SE only
@@ -25,14 +27,23 @@ the prewhitened residual's time scale, so almost always 2) held the truth within
 reads about 4/N too large (the fit absorbed the slow part of the noise) and the clip cut; and
 a drift under white noise hardly moves the lag-one correlation. The textbook Andrews-Monahan
 estimator (VAR(1) on the scores, eigenvalues clipped at 0.97) did no better there (54-73 %,
-8-21 %). A block bootstrap or refit would cost a hundred fits. Measured over 200 seeds
-(tests/bench/test_bench_coverage.py prints the table): AR(1) and second-order low-pass noise
-cover 92-98 %; a drift is covered only when it is small (72-77 % at a walk as large as the
-noise over the record, 33-84 % for larger ones, where an AR(8) follows part of it and the
-walk is missed): that is the weak case.
+8-21 %). A block bootstrap or refit would cost a hundred fits. AR(8) prewhitening with the drift
+check alone then covered AR(1) and low-pass noise (92-98 %) but a walk under white noise only
+24-84 %: an AR(8) follows part of a large walk (white plus a walk is an ARIMA(0,1,1) whose
+moving-average root is near one, an AR of very long memory), so the drift check finds nothing
+in what it leaves and the rest is missed; capping the order fixed one walk and broke another
+walk and the low-pass noises. Chosen as a whole by likelihood, the walk wins where it is one and
+the AR everywhere else (a smooth noise is far from white plus a walk). The restricted likelihood
+matters: the offset and slope took most of a walk's low frequencies out of the residual, and
+the plain likelihood of the residual would read the walk as smaller. White plus a walk costs
+one FFT (K's eigenvectors are sines, so its likelihood at any ratio of the two variances is a
+weighted sum), the AR's likelihood one filtering. Measured over 200 seeds
+(tests/bench/test_bench_coverage.py prints the table): AR(1), low-pass noise and white plus a
+walk 1, 3 and 10 times the noise over the record all cover 86-98 %. A walk under a coloured noise
+is covered only by the AR's drift check: the weak case left.
 
 `hac_covariance` appends to `notes` why an estimate is doubtful: a bound was hit (the AR
-filter at the record's length, the bandwidth at its limit), a drift was included, or the
+filter at the record's length, the bandwidth at its limit), a drift or a walk was included, or the
 residual holds fewer than MIN_EFFECTIVE_PER_PARAM independent samples per parameter (then no
 residual-based error is reliable: a few independent stretches cannot show their own spread).
 
@@ -211,6 +222,89 @@ def _drift(w: np.ndarray, skip: int) -> float:
     return float(theta[1]) if lr > DRIFT_LR else 0.0
 
 
+def _reml(X: np.ndarray, logdet: float, k: int) -> float:
+    """Restricted log-likelihood (constants left out, s^2 at its maximum) of a residual whose noise
+    has covariance s^2 Sigma_0, from X = [W r, W Q] with W^T W = Sigma_0^-1 and log det Sigma_0 =
+    `logdet`; Q's k orthonormal columns are the directions the fit took out. It depends on r only
+    through what the fit left: P r, with P Q = 0."""
+    G = X.T @ X
+    m = len(X)
+    if k:
+        c = np.linalg.cholesky(G[1:, 1:])
+        b = np.linalg.solve(c, G[1:, 0])
+        rss, logdet = G[0, 0] - b @ b, logdet + 2.0 * float(np.sum(np.log(np.diag(c))))
+    else:
+        rss = G[0, 0]
+    s2 = max(float(rss), np.finfo(float).tiny) / (m - k)
+    return -0.5 * ((m - k) * math.log(s2) + logdet)
+
+
+def _ar_reml(r: np.ndarray, Q: np.ndarray, phi: np.ndarray) -> float:
+    """`_reml` of the residual under a stationary AR(phi): the first len(phi) samples whitened by
+    their stationary covariance's Cholesky factor, the rest by the filter."""
+    q = len(phi)
+    X = np.column_stack([r, Q])
+    if q == 0:
+        return _reml(X, 0.0, Q.shape[1])
+    A = np.eye(q + 1)
+    for k in range(q + 1):
+        for j in range(1, q + 1):
+            A[k, abs(k - j)] -= phi[j - 1]
+    gamma = np.linalg.solve(A, np.eye(q + 1)[0])
+    G = gamma[np.abs(np.subtract.outer(np.arange(q), np.arange(q)))]
+    try:
+        c = np.linalg.cholesky(G)
+    except np.linalg.LinAlgError:  # a root so near one that the first samples' covariance is singular
+        return _reml(_whiten(X, phi), 0.0, Q.shape[1])  # to rounding: the likelihood given them
+    W = np.vstack([np.linalg.solve(c, X[:q]), _whiten(X, phi)])
+    return _reml(W, 2.0 * float(np.sum(np.log(np.diag(c)))), Q.shape[1])
+
+
+def _level(r: np.ndarray, Q: np.ndarray) -> tuple[float, float, float]:
+    """White noise plus a random walk from the trial's start under the residual `r`: restricted
+    log-likelihood at its maximum, the white variance and the walk's increment variance (REML).
+
+    Sigma = s^2 (I + q K), K_ij = min(i, j), whose eigenvectors are known: sin(a_k t), a_k =
+    (2k - 1) pi / (2m + 1), eigenvalues 1 / (4 sin^2(a_k / 2)). One FFT turns r and Q into that
+    basis; then the likelihood at any q is a weighted sum, evaluated on a grid of log q and
+    refined by a parabola through the best three."""
+    m, k = Q.shape
+    X = np.column_stack([r, Q])
+    a = (2 * np.arange(1, m + 1) - 1) * np.pi / (2 * m + 1)
+    Y = -np.fft.rfft(np.vstack([np.zeros((1, k + 1)), X]), 4 * m + 2, axis=0).imag[1:2 * m:2]
+    Y *= 2.0 / math.sqrt(2 * m + 1)
+    mu = 0.25 / np.sin(0.5 * a) ** 2
+    i, j = np.triu_indices(k + 1)
+    P = Y[:, i] * Y[:, j]
+
+    def values(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        w = 1.0 / (1.0 + np.exp(u)[:, None] * mu)  # (grid, m)
+        G = np.zeros((len(u), k + 1, k + 1))
+        G[:, i, j] = w @ P
+        G[:, j, i] = G[:, i, j]
+        logdet = -np.sum(np.log(w), axis=1)
+        if k:
+            c = np.linalg.cholesky(G[:, 1:, 1:])
+            b = np.linalg.solve(c, G[:, 1:, :1])[..., 0]
+            rss = G[:, 0, 0] - np.sum(b * b, axis=1)
+            logdet = logdet + 2.0 * np.sum(np.log(np.diagonal(c, axis1=1, axis2=2)), axis=1)
+        else:
+            rss = G[:, 0, 0]
+        s2 = np.maximum(rss, np.finfo(float).tiny) / (m - k)
+        return -0.5 * ((m - k) * np.log(s2) + logdet), s2
+
+    grid = np.arange(math.log(1e-2 / m ** 2), math.log(1e3), 1.0)
+    ll, _ = values(grid)
+    best = int(np.argmax(ll))
+    u = grid[best]
+    if 0 < best < len(grid) - 1:
+        y0, y1, y2 = ll[best - 1:best + 2]
+        curve = y0 - 2 * y1 + y2
+        if curve < 0:
+            u += 0.5 * (y0 - y2) / curve
+    ll, s2 = values(np.array([u]))
+    return float(ll[0]), float(s2[0]), float(s2[0] * math.exp(u))
+
 def _basis(J: np.ndarray) -> np.ndarray:
     """Orthonormal columns spanning J's (its numerically dependent ones left out)."""
     U, sv, _ = np.linalg.svd(J, full_matrices=False)
@@ -228,6 +322,7 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
     g = J * r[:, None]
     rng = np.random.default_rng(0)  # the same answer for the same fit
     meat = np.zeros((p, p))
+    level_meat = np.zeros((p, p))
     bounded, clipped, drifting = [], [], []
     start = 0
     for k, m in enumerate(lengths):
@@ -242,6 +337,17 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
         Qk = _basis(J[sl])
         rk = rk - Qk @ (Qk.T @ rk)
         phi, hit = _prewhitening(rk, Qk, rng)
+        # the noise model: the AR(p), or white noise plus a walk, whichever the BIC of the
+        # restricted likelihood (of the residual, the fitted directions out) prefers
+        ll_lv, s_eps, s_eta = _level(rk, Qk) if m > 2 * Qk.shape[1] + 2 else (-math.inf, 0.0, 0.0)
+        if s_eta > 0.0 and ll_lv - _ar_reml(rk, Qk, phi) > 0.5 * (1 - len(phi)) * math.log(m):
+            # Sigma = s_eps I + s_eta K, K = C C^T: the parameters see
+            # sum_t J_t W_t = sum_s (sum_{t>=s} J_t) dW_s
+            Jk = J[sl]
+            C = np.cumsum(Jk[::-1], axis=0)[::-1]
+            level_meat += s_eps * (Jk.T @ Jk) + s_eta * (C.T @ C)
+            drifting.append(k)
+            continue
         e = _whiten(gk, phi)
         M, lim = bandwidth(e)
         # recolouring: the prewhitened score's long-run covariance, back through 1 / phi(1)
@@ -259,6 +365,7 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
             clipped.append(k)
     # the residual is smaller than the noise by the p directions the fit took out of it
     meat *= n / max(n - p, 1)
+    meat += level_meat  # its variances are restricted-likelihood estimates: already for the residual's n - p
     bread = np.linalg.pinv(J.T @ J)
     cov = _undetermined(0.5 * (bread @ meat @ bread + (bread @ meat @ bread).T), J)
     if notes is not None:

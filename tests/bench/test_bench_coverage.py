@@ -50,8 +50,10 @@ CASES = [("AR(1) rho", 0.9), ("AR(1) rho", 0.99), ("AR(1) rho", 0.998),
 ASSERTED = ("AR(1) rho", "LP2 bilinear fc", "LP2 analog fc")
 
 
-def previous_hac(J: np.ndarray, r: np.ndarray, lengths: list[int]) -> np.ndarray:
-    """The estimator before this benchmark (commit 3816ee5), for the 'before' column."""
+def previous_hac(J: np.ndarray, r: np.ndarray, lengths: list[int],
+                 notes: list[str] | None = None) -> np.ndarray:
+    """The estimator before this benchmark (commit 3816ee5), for the 'before' column (`notes`
+    is accepted, as `fit` passes it, and left alone)."""
     n, p = J.shape
     g = J * r[:, None]
     meat = np.zeros((p, p))
