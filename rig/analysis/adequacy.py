@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rig.analysis.draws import Draws
 from rig.analysis.noise import (
     AT_REST,
     MAX_ORDER,
@@ -38,7 +39,7 @@ from rig.analysis.noise import (
 ADEQUATE_RMSE = 1.2
 ADEQUATE_PHASE = 1.5
 ADEQUATE_WHITE = 1.5  # residual correlation time over the noise's own
-DRAWS = 32
+DRAWS = 24
 Z = 2.0  # how far into the simulated tail a perfect model may go (one-sided, about 2 %)
 MAX_SIM_BASELINE = 20000
 
@@ -50,7 +51,7 @@ class Limits:
     white: float  # the residual's correlation time, the noise's own taken out (samples), at most
 
 
-def simulate(noise: Noise, n: int, draws: int, rng: np.random.Generator) -> np.ndarray:
+def simulate(noise: Noise, n: int, draws: int, rng: Draws) -> np.ndarray:
     """`draws` stationary series of `n` samples of the noise before quantisation (its AR
     spectrum, by spectral synthesis on a period long enough that the wrap does not matter)."""
     span = int(min(max(4 * noise.scale_samples, 64), 1 << 16))
@@ -73,7 +74,7 @@ def limits(noise: Noise, predictions: list[np.ndarray], phases: list[np.ndarray]
     records' `phases`, per sample) carry `noise`, by simulating perfect models."""
     if noise.std_N <= 0.0:
         return Limits(ADEQUATE_RMSE, dict.fromkeys(names, ADEQUATE_PHASE), ADEQUATE_WHITE)
-    rng = np.random.default_rng(seed)
+    rng = Draws(seed)
     sims = []
     for p in predictions:
         x = simulate(noise, len(p), DRAWS, rng)

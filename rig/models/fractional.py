@@ -33,6 +33,8 @@ has to return its parameters, and AFM noise is ~0.05 % of the peak force. Hence:
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 CELLS_PER_DECADE = 6
@@ -42,8 +44,14 @@ FAST_EDGE_PER_DT = 100.0  # fastest cell edge, in units of 1/dt
 PEAK_HALF_WIDTH = np.log(10.0)  # log-rate either side of 1/tau always covered by cells
 
 _SINGLE_THREAD_GEMM = 1 << 19  # multiply-adds per matrix product (see modes_kernel)
-_GL_X, _GL_W = np.polynomial.legendre.leggauss(10)  # each cell's moments under g
-_LAG_X, _LAG_W = np.polynomial.laguerre.laggauss(24)  # the tails' moments, to ~1e-14
+
+
+@functools.cache
+def _rules() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss-Legendre (10 points: each cell's moments under g) and Gauss-Laguerre (24: the tails'
+    moments, to ~1e-14) nodes and weights; made on first use (numpy.polynomial costs an import a
+    fit without the branch need not pay)."""
+    return (*np.polynomial.legendre.leggauss(10), *np.polynomial.laguerre.laggauss(24))
 
 
 def mittag_leffler_cdf(r: np.ndarray, alpha: float) -> np.ndarray:
@@ -65,8 +73,9 @@ def _cell_gauss_rules(edges: np.ndarray, alpha: float) -> tuple[np.ndarray, np.n
     within pi (1 - a) / a of the real axis, so even at alpha 0.95 that rule holds ~1e-8."""
     lo, hi = edges[:-1], edges[1:]
     half = 0.5 * (hi - lo)
-    xi = _GL_X[None, :]  # the cell mapped to [-1, 1]
-    p = _GL_W[None, :] * log_rate_density((lo + half)[:, None] + half[:, None] * xi, alpha)
+    gl_x, gl_w, _, _ = _rules()
+    xi = gl_x[None, :]  # the cell mapped to [-1, 1]
+    p = gl_w[None, :] * log_rate_density((lo + half)[:, None] + half[:, None] * xi, alpha)
     mass = np.diff(mittag_leffler_cdf(np.exp(edges), alpha))
     m0 = np.sum(p, axis=1)
     m0 = np.where(m0 > 0, m0, 1.0)
@@ -89,8 +98,9 @@ def _tail_moment(edge: float, alpha: float, power: float) -> float:
     (power > 0: below the edge, power < 0: above), by Gauss-Laguerre: past the peak g is a
     power law times a smooth factor."""
     rate = alpha + abs(power)
-    y = edge - np.sign(power) * _LAG_X / rate
-    return float(np.sum(_LAG_W * log_rate_density(y, alpha) * np.exp(power * (y - edge) + _LAG_X)) / rate)
+    _, _, lag_x, lag_w = _rules()
+    y = edge - np.sign(power) * lag_x / rate
+    return float(np.sum(lag_w * log_rate_density(y, alpha) * np.exp(power * (y - edge) + lag_x)) / rate)
 
 
 def modes(duration_s: float, dt_s: float, tau_s: float, alpha: float,
