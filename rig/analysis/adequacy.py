@@ -32,6 +32,7 @@ from rig.analysis.noise import (
     autocovariance,
     from_residual,
     gauss_behind_levels,
+    integral_scales,
     response,
     whiten,
 )
@@ -51,7 +52,7 @@ class Limits:
     white: float  # the residual's correlation time, the noise's own taken out (samples), at most
 
 
-def simulate(noise: Noise, n: int, draws: int, rng: Draws) -> np.ndarray:
+def simulate(noise: Noise, n: int, draws: int, rng: Draws | np.random.Generator) -> np.ndarray:
     """`draws` stationary series of `n` samples of the noise before quantisation (its AR
     spectrum, by spectral synthesis on a period long enough that the wrap does not matter)."""
     span = int(min(max(4 * noise.scale_samples, 64), 1 << 16))
@@ -98,15 +99,15 @@ def _whitened_scales(sims: np.ndarray, spectra: list[np.ndarray]) -> np.ndarray:
     n = sims.shape[1]
     out = np.empty((len(spectra), n - p))
     for k, ar in enumerate(spectra):
-        e = sims[k].copy() if len(ar) == 0 else whiten(sims[k], ar)
+        e = whiten(sims[k], ar)
         out[k] = e[len(e) - (n - p):]
-    return batch_integral_scale(out)
+    return integral_scales(out)
 
 
 def whitened_scale(residuals: list[np.ndarray], noise: Noise) -> float:
     """The residual's correlation time once the noise's own is taken out (its AR filter): about
     one sample for a perfect model whatever the sensor's filter, many for a shape it misses."""
-    return float(np.mean([batch_integral_scale(whiten(r[None, :], noise.ar))[0] for r in residuals]))
+    return float(np.mean([integral_scales(whiten(r[None, :], noise.ar))[0] for r in residuals]))
 
 
 def _upper(stat: np.ndarray) -> float:
@@ -136,18 +137,3 @@ def _reestimated(noise: Noise, sims: list[np.ndarray], rng) -> tuple[np.ndarray,
         return np.maximum(stds, 1e-300), spectra
     est = [from_residual([s[k] for s in sims]) for k in range(draws)]
     return np.array([max(e.std_N, 1e-300) for e in est]), [np.array(e.ar) for e in est]
-
-
-def batch_integral_scale(r: np.ndarray, max_lag: int = 3000) -> np.ndarray:
-    """rig.analysis.noise.integral_scale of each row of `r`."""
-    n = r.shape[1]
-    if n < 10:
-        return np.ones(r.shape[0])
-    lag = min(max_lag, n // 4)
-    acf = autocovariance(r, lag)
-    acf = acf / np.maximum(acf[:, :1], 1e-300)
-    below = acf < 0.05
-    cut = np.where(below.any(axis=1), below.argmax(axis=1), lag)
-    csum = np.concatenate([np.zeros((len(r), 1)), np.cumsum(acf[:, 1:], axis=1)], axis=1)
-    s = csum[np.arange(len(r)), np.maximum(cut - 1, 0)]
-    return np.clip(1.0 + 2.0 * s, 1.0, n / 20.0)

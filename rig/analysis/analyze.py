@@ -10,7 +10,7 @@ import numpy as np
 from rig.analysis import criterion
 from rig.analysis.data import PHASES, TrialData, load_trial
 from rig.analysis.fit import FitResult, error_table, evaluate, fit, with_record_params
-from rig.analysis.noise import Noise, measure
+from rig.analysis.noise import Noise
 from rig.errors import RigError, SpecError
 from rig.models.catalogue import (
     CATALOGUE,
@@ -232,8 +232,7 @@ def compare(trials: list[TrialData], registry: dict[str, Effect]) -> Comparison:
     """Each named model fitted; one noise for all (the records' force at rest, else the residual of
     the model that fits best) and one BIC count (rig.analysis.criterion)."""
     results = [fit(build_model(name, registry=registry), trials) for name in named_models(registry)]
-    closest = min(results, key=lambda r: r.overall.rmse_N)
-    noise = measure([t.baseline_N for t in trials], closest.residuals)
+    noise = min(results, key=lambda r: r.overall.rmse_N).noise  # measured with its own residual
     samples = [t.n for t in trials]
     rows = criterion.ranking({r.model.name: r.overall.n * r.overall.rmse_N ** 2 for r in results},
                              {r.model.name: len(r.model.params) for r in results}, samples, noise)

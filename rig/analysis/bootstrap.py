@@ -97,14 +97,14 @@ def bootstrap(res: FitResult, draws: int, seed: int = 0,
             b = fit(res.model, trials)
         except RigError as exc:
             failed.append(f"draw {i + 1}: {exc}")
-            continue
-        for k in values:
-            values[k].append(b.values.get(k, math.nan) + _origin(k, b))
-            e = b.stderr.get(k)
-            errors[k].append(math.nan if e is None else e)
-        kept += b.adequate == res.adequate
-        adequate += b.adequate
-        if progress:
+        else:
+            for k in values:
+                values[k].append(b.values.get(k, math.nan) + _origin(k, b))
+                e = b.stderr.get(k)
+                errors[k].append(math.nan if e is None else e)
+            kept += b.adequate == res.adequate
+            adequate += b.adequate
+        if progress:  # a draw that failed is done too
             progress(i + 1, draws)
     n = draws - len(failed)
     if n == 0:

@@ -51,10 +51,6 @@ class Noise:
     spread: float = 0.0  # standard deviation of ln(std_N) from those samples
     note: str = ""  # the other estimate, when it disagrees
 
-    @property
-    def effective_samples(self) -> float:
-        return self.samples / max(variance_scale(self.ar), 1.0)
-
     def describe(self) -> str:
         parts = [self.source]
         if self.ar:
@@ -115,34 +111,17 @@ def autocovariance(x: np.ndarray, lags: int) -> np.ndarray:
     return np.fft.irfft(f * np.conj(f), nfft, axis=1)[:, : lags + 1] / n
 
 
-def ar_fit(gamma: np.ndarray, n: int, max_order: int = MAX_ORDER) -> tuple[np.ndarray, float]:
-    """AR coefficients and innovation variance from an autocovariance (Levinson-Durbin, the
-    Yule-Walker solution: always stationary), the order chosen by BIC."""
-    g0 = float(gamma[0])
-    if g0 <= 0.0:
-        return np.zeros(0), 0.0
-    order = min(max_order, len(gamma) - 1, max(n // 10, 1))
-    phi = np.zeros(0)
-    v = g0
-    # Schwarz's criterion: AIC's order on a few hundred samples of averaged noise overfits, and
-    # the spectrum at zero frequency (what the correlation time and the whitening rest on) swings
-    best = (n * math.log(v), phi, v)
-    for k in range(1, order + 1):
-        acc = float(gamma[k] - phi @ gamma[k - 1:0:-1]) if k > 1 else float(gamma[1])
-        refl = acc / v
-        phi = np.concatenate([phi - refl * phi[::-1], [refl]])
-        v *= 1.0 - refl ** 2
-        if v <= 0.0:
-            break
-        bic = n * math.log(v) + k * math.log(n)
-        if bic < best[0]:
-            best = (bic, phi.copy(), v)
-    return best[1], best[2]
+def ar_fit(gamma: np.ndarray, n: int, max_order: int = MAX_ORDER) -> np.ndarray:
+    """AR coefficients from an autocovariance (Levinson-Durbin, the Yule-Walker solution: always
+    stationary), the order chosen by BIC."""
+    return ar_fit_rows(np.asarray(gamma, dtype=float)[None, :], n, max_order)[0]
 
 
 def ar_fit_rows(gamma: np.ndarray, n: int, max_order: int = MAX_ORDER) -> list[np.ndarray]:
-    """`ar_fit` of each row of autocovariances at once (the same recursion, every row a step at a
-    time), each row's order chosen by BIC."""
+    """`ar_fit` of each row of autocovariances at once (every row a step of the recursion at a
+    time), each row's order chosen by BIC. Schwarz's criterion: AIC's order on a few hundred
+    samples of averaged noise overfits, and the spectrum at zero frequency (what the correlation
+    time and the whitening rest on) swings."""
     rows = gamma.shape[0]
     order = min(max_order, gamma.shape[1] - 1, max(n // 10, 1))
     g0 = gamma[:, 0]
@@ -215,16 +194,22 @@ def _ar_acf(ar) -> np.ndarray:
 def integral_scale(r: np.ndarray, max_lag: int = 3000) -> float:
     """Samples per independent value: 1 + 2 * the sum of the autocorrelation up to its first
     drop below 0.05 (the residual's; the noise's comes from its AR spectrum)."""
-    r = r - r.mean()
-    n = len(r)
-    if n < 10 or not np.any(r):
-        return 1.0
+    return float(integral_scales(np.asarray(r, dtype=float)[None, :], max_lag)[0])
+
+
+def integral_scales(r: np.ndarray, max_lag: int = 3000) -> np.ndarray:
+    """`integral_scale` of each row of `r`, in one transform."""
+    n = r.shape[1]
+    if n < 10:
+        return np.ones(r.shape[0])
     lag = min(max_lag, n // 4)
-    acf = autocovariance(r, lag)[0]
-    acf = acf / acf[0]
-    below = np.flatnonzero(acf < 0.05)
-    cut = below[0] if len(below) else lag
-    return float(np.clip(1.0 + 2.0 * acf[1:cut].sum(), 1.0, n / 20.0))
+    acf = autocovariance(r, lag)
+    acf = acf / np.maximum(acf[:, :1], 1e-300)
+    below = acf < 0.05
+    cut = np.where(below.any(axis=1), below.argmax(axis=1), lag)
+    csum = np.concatenate([np.zeros((len(r), 1)), np.cumsum(acf[:, 1:], axis=1)], axis=1)
+    s = csum[np.arange(len(r)), np.maximum(cut - 1, 0)]
+    return np.clip(1.0 + 2.0 * s, 1.0, n / 20.0)
 
 
 # --- quantisation ----------------------------------------------------------------------------
@@ -313,7 +298,7 @@ def _measure_baseline(b: np.ndarray) -> Noise:
         std = math.sqrt(gauss ** 2 + q ** 2 / 12.0)
     else:
         q = 0.0
-    phi, _ = ar_fit(autocovariance(detr, min(MAX_ORDER, n // 4))[0], n)
+    phi = ar_fit(autocovariance(detr, min(MAX_ORDER, n // 4))[0], n)
     ar = tuple(float(c) for c in phi)
     spread = math.sqrt(variance_scale(ar) / (2.0 * n))
     return Noise(std, integral_scale_ar(ar), AT_REST, ar, gauss, q, origin,
@@ -343,7 +328,7 @@ def from_residual(residuals: list[np.ndarray]) -> Noise:
     if var <= 0.0:
         return Noise(0.0, 1.0, source, samples=n)
     gamma = np.concatenate([[var], var - (D[: K // 2] - b * lags[: K // 2] ** 2) / 2.0])
-    phi, _ = ar_fit(gamma, n, max_order=K // 2 - 1)
+    phi = ar_fit(gamma, n, max_order=K // 2 - 1)
     ar = tuple(float(x) for x in phi)
     std = math.sqrt(var)
     return Noise(std, integral_scale_ar(ar), source, ar, std, samples=n,

@@ -66,7 +66,7 @@ MAX_BANDWIDTH_FRACTION = 0.25  # of a trial's samples: beyond that the lags are 
 MIN_SAMPLES = 32  # a trial shorter than this is summed as white: too short to fit a noise model to
 MIN_EFFECTIVE_PER_PARAM = 5.0
 
-__all__ = ["bandwidth", "bic", "correlation", "delta_bic", "effective_samples", "hac_covariance",
+__all__ = ["bandwidth", "bic", "correlation", "delta_bic", "hac_covariance",
            "notable_correlations", "white_covariance"]
 
 
@@ -461,11 +461,6 @@ def notable_correlations(names: list[str], corr: np.ndarray,
              for i in range(len(names)) for j in range(i + 1, len(names))
              if np.isfinite(corr[i, j]) and abs(corr[i, j]) >= floor]
     return sorted(pairs, key=lambda x: -abs(x[2]))
-
-
-def effective_samples(n: int, L: float) -> float:
-    """Independent residuals among `n` samples correlated over `L` samples (at least 10)."""
-    return max(n / max(L, 1.0), 10.0)
 
 
 def bic(rss: float, n: int, k: int, n_eff: float) -> float:
