@@ -167,6 +167,18 @@ def test_the_chiaro_modulus_agrees_with_the_instruments_own_fit():
     assert sphere["indenter"] == "sphere:R=27.5um" and sphere["E_Pa"] > m["E_Pa"]
 
 
+@pytest.mark.skipif(not CHIARO.exists(), reason=f"the shared real records are absent ({CHIARO})")
+def test_a_misfit_in_contact_is_not_taken_for_a_drifting_noise():
+    """The Chiaro curve's sphere fit leaves a smooth misfit in contact (6.5x the noise). Read over
+    the whole record as a random walk, it made E 124 +/- 98.5 Pa; the approach at rest shows no
+    walk, so none is assumed: E's error is a fraction of E, and no drift is claimed."""
+    out = analyze(AnalyzeRequest([str(CHIARO)], model="hertz", segment="approach"))
+    m = out.json["material"]
+    assert not out.json["adequate"]
+    assert m["E_Pa_stderr"] < 0.25 * m["E_Pa"], (m["E_Pa"], m["E_Pa_stderr"])
+    assert not any("random-walk drift" in w for w in out.json["warnings"]), out.json["warnings"]
+
+
 def test_a_rig_config_names_its_probe_and_the_log_carries_it(tmp_path):
     cfg = tmp_path / "rig.yaml"
     cfg.write_text(f"probe: cylinder:R=2mm\nrecorder: {{out_dir: {tmp_path}}}\n")

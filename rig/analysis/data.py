@@ -73,6 +73,15 @@ class TrialData:
     def n(self) -> int:
         return len(self.force_N)
 
+    @property
+    def quiet_n(self) -> int:
+        """Samples at the start of the record where the force is at rest (its own approach
+        before contact); 0 when the force at rest was recorded apart from it (a tare)."""
+        b = self.baseline_N
+        if b is None or not 0 < len(b) <= self.n or not np.array_equal(self.force_N[:len(b)], b):
+            return 0
+        return len(b)
+
     def mask(self, phase: str) -> np.ndarray:
         return self.phase == phase
 

@@ -441,7 +441,8 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     lengths = [t.n for t in trials]
     to_si = ps.jacobian(z)
     doubts: list[str] = []
-    cov = _covariance(best, to_si, lengths, doubts)
+    quiet = [t.quiet_n for t in trials]
+    cov = _covariance(best, to_si, lengths, doubts, quiet)
     stderr = _stderr(cov, model.param_names)
     bound = ps.at_bound(z, lo, hi, AT_BOUND)
     lag, drive = ps.rate_form
@@ -451,7 +452,7 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     if integrator:
         # the lag's time constant and the amplitudes over it run off together; their ratios
         # are the model at this limit, and what the record determines
-        warnings.append(_integrator_rates(model, ps, best, si, to_si, lengths))
+        warnings.append(_integrator_rates(model, ps, best, si, to_si, lengths, quiet))
         stderr_named = {k: e for i, (k, e) in enumerate(stderr.items()) if i != lag and i not in drive}
         warnings += _undetermined(model, values, stderr_named)
     else:
@@ -483,7 +484,7 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
                         "(--bootstrap N shows how they hold if the model is right)")
     # the sandwich's own doubts (a bound or a clip hit, a drift allowed for); its count of
     # independent samples is said once, above, when it is the residual's
-    warnings += [f"standard errors: {d}" for d in doubts if not (few and "independent samples" in d)]
+    warnings += [f"standard errors: {d}" for d in doubts if not (few and "independent sample" in d)]
     return FitResult(model, trials, values, stderr, predictions, residuals, overall, phases, noise.std_N,
                      noise.source, bic, warnings, time.perf_counter() - t0, nfev, per_trial, white,
                      noise.scale_samples, scales, dict(zip(model.param_names, map(float, z), strict=True)),
@@ -499,13 +500,13 @@ def _inside(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.clip(z, lo_in, hi_in)
 
 
-def _covariance(sol, to_si: np.ndarray, lengths: list[int],
-                doubts: list[str] | None = None) -> np.ndarray | None:
+def _covariance(sol, to_si: np.ndarray, lengths: list[int], doubts: list[str] | None = None,
+                quiet: list[int] | None = None) -> np.ndarray | None:
     """Covariance of the parameters in SI: the correlated-residual sandwich
     (`rig.analysis.uncertainty`) in the fit variables, carried to SI through `to_si` = d(SI)/dz;
     why it may be doubtful appended to `doubts`."""
     try:
-        cov = hac_covariance(sol.jac, sol.fun, lengths, doubts)
+        cov = hac_covariance(sol.jac, sol.fun, lengths, doubts, quiet)
     except (np.linalg.LinAlgError, ValueError):
         return None
     # a direction the data do not determine (infinite variance) leaves every SI parameter
@@ -533,7 +534,7 @@ def _owner(model: Model, p) -> Effect:
 
 
 def _integrator_rates(model: Model, ps: ParamScaling, sol, si: np.ndarray, to_si: np.ndarray,
-                      lengths: list[int]) -> str:
+                      lengths: list[int], quiet: list[int]) -> str:
     """The model at the integrator limit, df/dt = sum of (amplitude / tau) x term: those ratios
     with their standard errors (the sandwich covariance in the fit variables, carried through
     `to_si` = d(SI)/dz by the quotient rule, the rate held at its bound)."""
@@ -542,7 +543,7 @@ def _integrator_rates(model: Model, ps: ParamScaling, sol, si: np.ndarray, to_si
     value = si[drive] / si[lag]
     free = [j for j in range(len(si)) if j != lag]
     try:
-        cov_z = hac_covariance(sol.jac[:, free], sol.fun, lengths)
+        cov_z = hac_covariance(sol.jac[:, free], sol.fun, lengths, quiet=quiet)
         J = (to_si[drive][:, free] * si[lag] - np.outer(si[drive], to_si[lag, free])) / si[lag] ** 2
         err = np.sqrt(np.clip(np.diag(J @ cov_z @ J.T), 0.0, None))
     except (np.linalg.LinAlgError, ValueError):

@@ -51,9 +51,9 @@ ASSERTED = ("AR(1) rho", "white + walk x", "LP2 bilinear fc", "LP2 analog fc")
 
 
 def previous_hac(J: np.ndarray, r: np.ndarray, lengths: list[int],
-                 notes: list[str] | None = None) -> np.ndarray:
+                 notes: list[str] | None = None, quiet: list[int] | None = None) -> np.ndarray:
     """The estimator before this benchmark (commit 3816ee5), for the 'before' column (`notes`
-    is accepted, as `fit` passes it, and left alone)."""
+    and `quiet` are accepted, as `fit` passes them, and left alone)."""
     n, p = J.shape
     g = J * r[:, None]
     meat = np.zeros((p, p))
@@ -134,7 +134,10 @@ def hertz_hits(seed: int, kind: str, arg: float, tmp: str, before: bool) -> np.n
     trial, model = clean_curve(Path(tmp), f"clean-{seed}-{before}")
     truth = fit_module.fit(model, [trial]).values
     u = noise(kind, arg, trial.n, 1, np.random.default_rng(1000 + seed))[:, 0] * NOISE_N
-    res = fit_module.fit(model, [dataclasses.replace(trial, force_N=trial.force_N + u, scales=None)])
+    noisy = trial.force_N + u
+    # the force at rest is the record's own first samples, noise included, as prepare() keeps it
+    quiet = noisy[:trial.quiet_n] if trial.quiet_n else trial.baseline_N
+    res = fit_module.fit(model, [dataclasses.replace(trial, force_N=noisy, baseline_N=quiet, scales=None)])
     return np.array([abs(res.values[k] - truth[k]) <= 1.96 * (res.stderr[k] or 0.0) for k in truth])
 
 
