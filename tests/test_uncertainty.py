@@ -105,8 +105,11 @@ def test_errors_cover_near_a_unit_root_and_under_a_drift():
     prewhitening and a drift check, 88-93 % now that a local-level model competes with the AR."""
     J = linear_design()
     rng = np.random.default_rng(1)
-    near = linear_coverage(ar1_noise(rng, N_LINEAR, 200, 0.998), J)
-    assert np.all((near > 0.88) & (near < 0.995)), near
+    noise = ar1_noise(rng, N_LINEAR, 200, 0.998)
+    told = lambda J, r, lengths: hac_covariance(J, r, lengths, quiet=[_approach(J)])  # noqa: E731
+    for covariance in (hac_covariance, told):  # a slow noise is as slow at rest: not taken for a misfit
+        near = linear_coverage(noise, J, covariance)
+        assert np.all((near > 0.88) & (near < 0.995)), near
     drift = linear_coverage(walk_noise(rng, N_LINEAR, 200, 1.0), J)
     assert np.all((drift > 0.85) & (drift < 0.99)), drift
 
@@ -128,6 +131,27 @@ def test_errors_cover_under_a_random_walk(size):
 
 def _approach(J: np.ndarray) -> int:
     return int(np.argmax(J[:, 2] > 0))  # samples before the contact term starts
+
+
+@pytest.mark.parametrize("misfit", [1.5, 3.0, 10.0])
+def test_a_misfit_gets_the_errors_of_the_noise_at_rest(misfit):
+    """The same misfits, 20 seeds: read as a correlated noise, the misfit multiplied the standard
+    errors (up to 100x on real AFM curves). The approach at rest shows white noise, so the errors
+    are that noise's, as if the model were right (within 25 % of the white-noise formula on the
+    noise alone), and the note says the misfit is not in them."""
+    J = linear_design()
+    x = np.linspace(0.0, 1.0, N_LINEAR)
+    shape = misfit * np.where(x > 0.4, np.sin(3 * np.pi * (x - 0.4) / 0.6), 0.0)
+    rng = np.random.default_rng(6)
+    for _ in range(20):
+        e = rng.normal(size=N_LINEAR)
+        y = e + shape
+        r = y - J @ np.linalg.lstsq(J, y, rcond=None)[0]
+        notes: list[str] = []
+        se = np.sqrt(np.diag(hac_covariance(J, r, [N_LINEAR], notes, [_approach(J)])))
+        noise_only = np.sqrt(np.diag(white_covariance(J, e - J @ np.linalg.lstsq(J, e, rcond=None)[0])))
+        assert np.all(np.abs(se / noise_only - 1) < 0.25), se / noise_only
+        assert any("a misfit, not noise" in n for n in notes), notes
 
 
 @pytest.mark.parametrize("misfit", [1.5, 3.0, 10.0])
