@@ -18,6 +18,7 @@ from rig.errors import RigError
 EXIT_ERROR = 2  # bad input: file, argument, limits
 EXIT_FAULT = 3  # the trial ran but ended on a fault
 EXIT_INTERRUPTED = 130
+EXIT_CURVES_FAILED = 64  # a batch: plus the number of curves it could not analyse (at most 61: 125)
 
 
 def _positive_or_zero(text: str) -> float:
@@ -34,6 +35,16 @@ def _positive_float(text: str) -> float:
     value = _positive_or_zero(text)
     if not (value > 0 and value < float("inf")):
         raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text}")
     return value
 
 
@@ -361,8 +372,17 @@ def _progress(done: int, total: int) -> None:
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
+    from rig.analysis.each import is_batch
     from rig.analysis.session import AnalyzeRequest, analyze
+    from rig.records import ReadOptions
 
+    options = ReadOptions(spring_constant_N_per_m=args.spring_constant, sensitivity_m_per_V=args.sensitivity)
+    if is_batch(args.inputs, args.curve, args.each, options):
+        return cmd_analyze_each(args)
+    for flag in ("table", "resume", "workers", "scheduler"):
+        if getattr(args, flag):
+            raise RigError(f"--{flag} is for a batch (--each, a folder, a glob or a map file alone): "
+                           "one record gives one analysis")
     design_config = _design_args(args)  # refused before the long work, not after it
     done = analyze(AnalyzeRequest(
         inputs=args.inputs, model=args.model, add=args.add or [], holdout=args.holdout or [],
@@ -374,6 +394,40 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         progress=_progress if args.bootstrap and sys.stderr.isatty() else None))
     print(json.dumps(done.json, indent=2, default=float) if args.json else done.text)
     return 0
+
+
+BATCH_REFUSED = ("compare", "auto", "holdout", "design", "save", "bootstrap", "profile", "report", "curve")
+
+
+def cmd_analyze_each(args: argparse.Namespace) -> int:
+    """Every curve on its own: a table (--table), a summary; the exit status is 0, or 64 plus the
+    number of curves that could not be analysed (up to 125, clear of the other statuses)."""
+    from rig.analysis.batch import BatchRequest
+    from rig.analysis.each import format_rows, format_summary, run_each
+    from rig.analysis.table import jsonable
+
+    given = [f for f in BATCH_REFUSED if getattr(args, f)]
+    if given:
+        raise RigError(f"--{given[0].replace('_', '-')} is not for a batch: each curve is analysed on its own "
+                       "(give one record, or --curve N of a map, to use it)")
+    if args.resume and not args.table:
+        raise RigError("--resume continues the table of an earlier batch: give it with --table")
+    if args.workers is not None and args.scheduler:
+        raise RigError("--workers sets local processes; with --scheduler the cluster's workers do the work")
+    req = BatchRequest(model=args.model, add=tuple(args.add or ()), plugins=tuple(args.plugin or ()),
+                       explain=args.explain, indenter=args.indenter, poisson=args.poisson, segment=args.segment,
+                       spring_constant_N_per_m=args.spring_constant, sensitivity_m_per_V=args.sensitivity,
+                       block=args.block)
+    res = run_each(args.inputs, req, table=args.table, resume=args.resume, workers=args.workers,
+                   scheduler=args.scheduler, progress=not args.json or sys.stderr.isatty())
+    if args.json:
+        for r in res.rows:
+            print(json.dumps(jsonable(r)))
+    else:
+        if not args.table:
+            print(format_rows(res.rows))
+        print(format_summary(res, req))
+    return EXIT_CURVES_FAILED + min(len(res.failed), 61) if res.failed else 0
 
 
 def _design_args(args: argparse.Namespace):
@@ -676,7 +730,25 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--save", metavar="MODEL.json",
                    help="save the fitted model (effects, parameters, what it was fitted on) to run it "
                         "in the loop (rig run --model)")
-    r.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    r.add_argument("--json", action="store_true",
+                   help="one JSON object on stdout (a batch: one line per curve)")
+    b = r.add_argument_group("batches", "every curve of a map, every file of a folder or a glob, each analysed "
+                                        "on its own (a folder, a glob, or a map file given alone without "
+                                        "--curve, are analysed so without --each). Exit status: 0 when every "
+                                        "curve was analysed, else 64 plus how many could not be (up to 125)")
+    b.add_argument("--each", action="store_true",
+                   help="analyse every curve of every input on its own (several files without --each are "
+                        "fitted jointly)")
+    b.add_argument("--table", metavar="OUT",
+                   help="write one row per curve to OUT (.csv, .jsonl, or .parquet with the table extra): "
+                        "position, parameters with standard errors, contact, RMSE over noise, verdict, why a "
+                        "curve failed")
+    b.add_argument("--resume", action="store_true",
+                   help="keep the rows of an interrupted (or finished) batch in --table and do only the rest")
+    b.add_argument("--workers", type=_positive_int, metavar="N",
+                   help="local processes (default: every core)")
+    b.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                   help="send the curves to this Dask distributed scheduler (the cluster extra)")
     r.set_defaults(func=cmd_analyze)
 
     r = sub.add_parser("import", help="read an instrument's file and write the canonical CSV",

@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from rig.analysis import criterion
-from rig.analysis.data import PHASES, TrialData, load_trial
+from rig.analysis.data import PHASES, TrialData, load_trial, prepare
 from rig.analysis.fit import FitResult, error_table, evaluate, fit, with_record_params
 from rig.analysis.noise import Noise
 from rig.errors import RigError, SpecError
@@ -24,7 +24,7 @@ from rig.models.catalogue import (
 from rig.models.contact import Indenter, parse_indenter
 from rig.models.core import Effect, Model, Param
 from rig.models.plugins import check_plugin_effect, load_plugin
-from rig.records import ReadOptions
+from rig.records import ReadOptions, Record
 
 
 @dataclass
@@ -56,9 +56,10 @@ def _named_indenter(trials: list[TrialData]) -> tuple[Indenter, str] | None:
 
 def load_inputs(paths: list[str], holdout: list[str], plugins: list[str],
                 options: ReadOptions | int | None = None, *, indenter: str | None = None,
-                poisson: float = 0.5, segment: str = "all") -> Inputs:
+                poisson: float = 0.5, segment: str = "all", records: list[Record] | None = None) -> Inputs:
     """The records prepared, and the catalogue with the user's effects and, when the indenter
-    is known (`indenter`, else the first record that names its own), its elastic contact."""
+    is known (`indenter`, else the first record that names its own), its elastic contact.
+    `records`, when given, are the inputs already read (one per path: a batch reads a map once)."""
     if not (math.isfinite(poisson) and -1.0 < poisson <= 0.5):
         raise RigError(f"--poisson {poisson:g}: Poisson's ratio lies in (-1, 0.5] (0.5: incompressible, "
                        "the usual choice for tissue and cells)")
@@ -68,7 +69,8 @@ def load_inputs(paths: list[str], holdout: list[str], plugins: list[str],
             if e.name in CATALOGUE:
                 raise RigError(f"{p}: effect '{e.name}' would replace the catalogue's; rename it")
             registry[e.name] = e
-    trials = [load_trial(p, options, segment) for p in paths]
+    trials = ([prepare(r, str(p), segment) for r, p in zip(records, paths, strict=True)] if records is not None
+              else [load_trial(p, options, segment) for p in paths])
     held = [load_trial(p, options, segment) for p in holdout]
     ind, source = None, ""
     named = _named_indenter(trials)

@@ -52,6 +52,7 @@ class AnalyzeRequest:
     bootstrap: int | None = None  # draws of the parametric bootstrap (rig.analysis.bootstrap)
     profile: bool = False  # profile-likelihood intervals of the parameters that trade off
     progress: Any = None  # called with (draws done, draws) as the bootstrap goes
+    records: list | None = None  # the inputs already read (rig.records.Record, one per input): a batch's
 
 
 @dataclass
@@ -64,7 +65,7 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     options = ReadOptions(curve=req.curve, spring_constant_N_per_m=req.spring_constant_N_per_m,
                           sensitivity_m_per_V=req.sensitivity_m_per_V, block=req.block)
     inputs = load_inputs(req.inputs, req.holdout, req.plugins, options, indenter=req.indenter,
-                         poisson=req.poisson, segment=req.segment)
+                         poisson=req.poisson, segment=req.segment, records=req.records)
     model = build_model(req.model, req.add, inputs.registry)
     if req.save:
         from rig.models.saved import savable

@@ -16,6 +16,7 @@ from rig.records.afm import (
     CurveInfo,
     ReadOptions,
     detect_afm,
+    each_record,
     iter_records,
     list_curves,
     read_afm,
@@ -27,7 +28,8 @@ MCAP_MAGIC = b"\x89MCAP"
 LOOKED_FOR = ("an MCAP log, a CSV with t_s,position_mm,force_N (or units in the column names), a JPK "
               f"text export, a Mach-1 .txt, an Instron Bluehill CSV, or {AFM_LOOKED_FOR}")
 
-__all__ = ["LOOKED_FOR", "CurveInfo", "ReadOptions", "Record", "iter_records", "list_curves", "read_record"]
+__all__ = ["LOOKED_FOR", "CurveInfo", "ReadOptions", "Record", "each_record", "iter_records", "list_curves",
+           "read_record"]
 
 
 def read_record(path: str | Path, options: ReadOptions | int | None = None, *,

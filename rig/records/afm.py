@@ -231,6 +231,35 @@ def iter_records(path: str | Path, options: ReadOptions | None = None) -> Iterat
         yield _record(path, fmt, d, n, header, caught if i == 0 else [])
 
 
+def each_record(path: str | Path, options: ReadOptions | None = None,
+                curves: set[int] | None = None) -> Iterator[tuple[int, Record | RigError]]:
+    """The curves numbered in `curves` (every curve if None), in the file's order, from one load
+    of the file: (number, Record), or (number, the error that curve alone gave), so that one bad
+    curve does not end a batch. A file that cannot be opened at all raises, as `read_afm` does."""
+    path = Path(path)
+    options = options or ReadOptions()
+    fmt = format_of(path)
+    data, caught = _load(path, fmt, options)
+    header = _header(path, fmt)
+    n = len(data)
+    first = True
+    for i in range(n):
+        d, data[i] = data[i], None
+        enum = i
+        try:
+            with _translated(path, fmt):
+                enum = _enum(d)
+            if curves is not None and enum not in curves:
+                continue
+            rec = _record(path, fmt, d, n, header, caught if first else [])
+        except RigError as exc:
+            if curves is not None and enum not in curves:
+                continue
+            rec = exc
+        first = False
+        yield enum, rec
+
+
 def list_curves(path: str | Path, options: ReadOptions | None = None) -> list[CurveInfo]:
     """The curves a file holds: number, position on the sample and on the map's grid."""
     path = Path(path)

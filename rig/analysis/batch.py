@@ -1,0 +1,270 @@
+"""Many curves, one analysis each: every curve of a force map, every file of a folder.
+
+A unit of work is one curve: a file and, for a file of many (an AFM map or QI series), the
+curve's number as the instrument numbers it. Each is analysed exactly as `rig analyze` analyses
+one record (`rig.analysis.session.analyze`, the record already read), and gives one row: where
+it was taken, every parameter with its standard error, the contact point, the error over the
+noise, the verdict and, for a curve that could not be analysed, why.
+
+Curves go to workers in chunks of neighbours (a worker opens each file once per chunk); the
+workers are local processes (`concurrent.futures`), or a Dask distributed cluster when a
+scheduler's address is given (`rig[cluster]`). A curve's row depends on that curve alone: the
+table is the same whatever the order the curves were done in and however many workers did
+them (rows are put back in the order of the inputs and, within a file, of its curves).
+"""
+
+from __future__ import annotations
+
+import glob
+import math
+import multiprocessing
+import os
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rig.errors import RigError
+
+__all__ = ["BatchRequest", "Curve", "analyze_chunk", "expand_inputs", "plan", "row_order", "run"]
+
+CHUNKS_PER_WORKER = 4  # enough to keep every worker busy to the end, few enough to open each file rarely
+MAX_CHUNK = 64
+
+
+@dataclass(frozen=True)
+class Curve:
+    """One unit of work: a file, the curve's number in it (None: a file of one record), and where
+    the curve was taken (on the sample, in m, and on the map's grid), when the file says."""
+
+    file: str
+    curve: int | None = None
+    x_m: float | None = None
+    y_m: float | None = None
+    grid_x: int | None = None
+    grid_y: int | None = None
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return self.file, "" if self.curve is None else str(self.curve)
+
+
+@dataclass(frozen=True)
+class BatchRequest:
+    """What every curve is asked: the same as `rig analyze` of one record (see AnalyzeRequest)."""
+
+    model: str = "proposed"
+    add: tuple[str, ...] = ()
+    plugins: tuple[str, ...] = ()
+    explain: bool = False
+    indenter: str | None = None
+    poisson: float = 0.5
+    segment: str = "all"
+    spring_constant_N_per_m: float | None = None
+    sensitivity_m_per_V: float | None = None
+    block: int | None = None
+
+
+def expand_inputs(inputs: list[str]) -> list[str]:
+    """Files named, found by a glob, or held in a folder (its files, recursively, in name order;
+    hidden ones and the table being written are left out by the caller). One clear error for
+    a name that is none of them."""
+    out: list[str] = []
+    for name in inputs:
+        p = Path(name)
+        if p.is_dir():
+            found = sorted(str(f) for f in p.rglob("*") if f.is_file() and not any(
+                part.startswith(".") for part in f.relative_to(p).parts))
+            if not found:
+                raise RigError(f"{name}: an empty folder")
+            out += found
+        elif p.is_file():
+            out.append(name)
+        elif glob.has_magic(name):
+            found = sorted(f for f in glob.glob(name, recursive=True) if Path(f).is_file())
+            if not found:
+                raise RigError(f"{name}: no file matches")
+            out += found
+        else:
+            raise RigError(f"{name}: no such file or folder")
+    seen: set[str] = set()
+    return [f for f in out if not (f in seen or seen.add(f))]
+
+
+def plan(files: list[str], req: BatchRequest,
+         skip: Callable[[str, Exception], None] | None = None) -> list[Curve]:
+    """Every curve of `files`, in order: a file of many curves gives one unit per curve (their
+    positions from its metadata), any other file one unit. A file that cannot be opened is one
+    unit, whose row will say why."""
+    from rig.records import ReadOptions, list_curves
+    from rig.records.afm import format_of
+
+    options = ReadOptions(spring_constant_N_per_m=req.spring_constant_N_per_m,
+                          sensitivity_m_per_V=req.sensitivity_m_per_V)
+    out: list[Curve] = []
+    for f in files:
+        try:
+            format_of(f)
+        except (RigError, OSError):
+            out.append(Curve(f))  # not an AFM file: one record
+            continue
+        try:
+            infos = list_curves(f, options)
+        except RigError as exc:
+            if skip:
+                skip(f, exc)
+            out.append(Curve(f))
+            continue
+        if len(infos) == 1:
+            i = infos[0]
+            out.append(Curve(f, None, i.x_m, i.y_m, i.grid_x, i.grid_y))
+        else:
+            out += [Curve(f, i.enum, i.x_m, i.y_m, i.grid_x, i.grid_y) for i in infos]
+    return out
+
+
+def chunks(curves: list[Curve], workers: int) -> list[list[Curve]]:
+    """Neighbouring curves of one file together, about CHUNKS_PER_WORKER chunks per worker."""
+    size = max(1, min(MAX_CHUNK, math.ceil(len(curves) / max(1, workers * CHUNKS_PER_WORKER))))
+    out: list[list[Curve]] = []
+    for c in curves:
+        if out and len(out[-1]) < size and out[-1][-1].file == c.file:
+            out[-1].append(c)
+        else:
+            out.append([c])
+    return out
+
+
+def analyze_chunk(chunk: list[Curve], req: BatchRequest) -> list[dict]:
+    """The rows of a chunk of curves (of one file, or of files of one record each). Never raises
+    for a curve: a curve that cannot be read or fitted gets a row that says why."""
+    import warnings
+
+    from rig.records import ReadOptions, each_record, read_record
+
+    options = ReadOptions(spring_constant_N_per_m=req.spring_constant_N_per_m,
+                          sensitivity_m_per_V=req.sensitivity_m_per_V, block=req.block)
+    rows: list[dict] = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # what a curve's fit warns of is in its row
+        if chunk[0].curve is not None:
+            wanted = {c.curve: c for c in chunk}
+            try:
+                got = dict(each_record(chunk[0].file, options, set(wanted)))
+            except (RigError, OSError) as exc:
+                return [_failed(c, exc) for c in chunk]
+            for n, c in wanted.items():
+                rec = got.get(n, RigError(f"curve {n} is no longer in the file"))
+                rows.append(_failed(c, rec) if isinstance(rec, Exception) else _analyze(c, rec, req))
+        else:
+            for c in chunk:
+                try:
+                    rec = read_record(c.file, options)
+                except (RigError, OSError) as exc:
+                    rows.append(_failed(c, exc))
+                    continue
+                rows.append(_analyze(c, rec, req))
+    return rows
+
+
+def _analyze(c: Curve, rec: Any, req: BatchRequest) -> dict:
+    from rig.analysis.session import AnalyzeRequest, analyze
+
+    try:
+        out = analyze(AnalyzeRequest(
+            [c.file], model=req.model, add=list(req.add), plugins=list(req.plugins), explain=req.explain,
+            indenter=req.indenter, poisson=req.poisson, segment=req.segment, records=[rec])).json
+    except RigError as exc:
+        return _failed(c, exc)
+    except Exception as exc:  # noqa: BLE001 (a curve the analysis cannot handle must not end the batch)
+        return _failed(c, exc, internal=True)
+    row = _place(c)
+    for name, p in out["parameters"].items():
+        row[name] = p["value"]
+        row[f"{name}_stderr"] = p["stderr"] if p["determined"] else math.inf
+    m = out.get("material") or {}
+    placed = out["records"][0]
+    if "contact_point_m" in placed:
+        row["contact_point_m"] = placed["contact_point_m"]
+        row["contact_point_m_stderr"] = placed.get("contact_point_m_stderr")
+    if m:
+        row["E_Pa"], row["E_Pa_stderr"] = m["E_Pa"], m["E_Pa_stderr"]
+    fit = out["fit"]
+    row.update(rmse_N=fit["rmse_N"], noise_N=fit["noise_N"], rmse_over_noise=fit["rmse_over_noise"],
+               adequate=out["adequate"])
+    if req.explain:
+        d = out.get("diagnosis") or {}
+        row["effect"] = d.get("best") or ""
+        row["effect_dbic"] = next((s["delta_bic"] for s in out.get("suggestions", [])
+                                   if s["effect"] == d.get("best")), None)
+    row["error"] = ""
+    return row
+
+
+def _place(c: Curve) -> dict:
+    return {"file": c.file, "curve": c.curve, "x_m": c.x_m, "y_m": c.y_m, "grid_x": c.grid_x,
+            "grid_y": c.grid_y}
+
+
+def _failed(c: Curve, exc: BaseException, internal: bool = False) -> dict:
+    why = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    why = why.removeprefix(f"{c.file}: ")  # the row already names the file
+    if internal:
+        why = f"internal error ({type(exc).__name__}): {why}"
+    return {**_place(c), "error": why}
+
+
+def row_order(curves: Iterable[Curve]) -> dict[tuple[str, str], int]:
+    return {c.key: i for i, c in enumerate(curves)}
+
+
+def key_of(row: dict) -> tuple[str, str]:
+    curve = row.get("curve")
+    return str(row["file"]), "" if curve in (None, "") else str(int(float(curve)))
+
+
+def run(curves: list[Curve], req: BatchRequest, *, workers: int | None = None, scheduler: str | None = None,
+        on_rows: Callable[[list[dict]], None] | None = None) -> Iterator[list[dict]]:
+    """Analyse `curves`, giving each chunk's rows as it is done (in whatever order they finish):
+    on local processes (`workers`, default every core), or on the Dask cluster at `scheduler`."""
+    if not curves:
+        return
+    workers = max(1, workers or os.cpu_count() or 1)
+    parts = chunks(curves, workers)
+    if scheduler:
+        yield from _on_dask(parts, req, scheduler)
+        return
+    if workers == 1 or len(parts) == 1:
+        for part in parts:
+            yield analyze_chunk(part, req)
+        return
+    # workers start afresh (not forked): a forked worker would share the parent's open files, and
+    # afmformats keeps a map's archive open to read its curves lazily
+    ctx = multiprocessing.get_context("forkserver")
+    with ProcessPoolExecutor(max_workers=min(workers, len(parts)), mp_context=ctx) as pool:
+        futures = [pool.submit(analyze_chunk, part, req) for part in parts]
+        try:
+            for f in as_completed(futures):
+                yield f.result()
+        finally:
+            for f in futures:
+                f.cancel()
+
+
+def _on_dask(parts: list[list[Curve]], req: BatchRequest, scheduler: str) -> Iterator[list[dict]]:
+    try:
+        from distributed import Client
+        from distributed import as_completed as dask_completed
+    except ImportError:
+        raise RigError("--scheduler needs Dask distributed: pip install 'indentation-rig[cluster]'") from None
+    try:
+        client = Client(scheduler, timeout="10s")
+    except (OSError, TimeoutError) as exc:
+        raise RigError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc})") from None
+    try:
+        futures = client.map(analyze_chunk, parts, req=req, pure=False)
+        for f in dask_completed(futures):
+            yield f.result()
+    finally:
+        client.close()

@@ -1,0 +1,270 @@
+"""`rig analyze --each`: every curve of every input analysed on its own, a table, a summary.
+
+The Python API for notebooks is `analyze_curves` (a pandas DataFrame, one row per curve) and
+`on_grid` (an xarray Dataset on a map's grid); both run the same batch as the command line:
+
+    >>> from rig.analysis.each import analyze_curves, on_grid
+    >>> df = analyze_curves(["map.jpk-force-map"], model="hertz", indenter="paraboloid:R=10um",
+    ...                     segment="approach")
+    >>> df[["curve", "x_m", "y_m", "E_Pa", "E_Pa_stderr", "adequate"]]
+    >>> grid = on_grid(df)          # grid["E_Pa"].plot() draws the map
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rig.analysis.batch import BatchRequest, Curve, expand_inputs, key_of, plan, row_order, run
+from rig.analysis.table import Journal, columns, read_rows, table_format, write_table
+from rig.errors import RigError
+
+__all__ = ["EachResult", "analyze_curves", "format_summary", "on_grid", "run_each"]
+
+
+@dataclass
+class EachResult:
+    rows: list[dict]
+    curves: int
+    resumed: int = 0  # rows kept from an earlier run (--resume)
+    seconds: float = 0.0
+    table: str | None = None
+
+    @property
+    def failed(self) -> list[dict]:
+        return [r for r in self.rows if r.get("error")]
+
+
+class Progress:
+    """Curves done, rate and time left, on one line of stderr (a terminal) or every tenth (a log)."""
+
+    def __init__(self, total: int, stream=None, every_s: float = 0.5) -> None:
+        self.total, self.done, self.t0 = total, 0, time.monotonic()
+        self.stream = stream or sys.stderr
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self._last, self._decile, self.every_s = 0.0, 0, every_s
+
+    def add(self, n: int) -> None:
+        self.done += n
+        now = time.monotonic()
+        decile = 10 * self.done // max(self.total, 1)
+        if self.tty and (now - self._last >= self.every_s or self.done == self.total):
+            self._last = now
+            print(f"\r{self.line(now)}\x1b[K", end="" if self.done < self.total else "\n", file=self.stream,
+                  flush=True)
+        elif not self.tty and decile > self._decile:
+            self._decile = decile
+            print(self.line(now), file=self.stream, flush=True)
+
+    def line(self, now: float) -> str:
+        dt = max(now - self.t0, 1e-9)
+        rate = self.done / dt
+        left = (self.total - self.done) / rate if rate > 0 else math.inf
+        eta = "" if self.done >= self.total else f", about {_duration(left)} left"
+        return f"  {self.done}/{self.total} curves, {rate:.3g}/s{eta}"
+
+
+def _duration(s: float) -> str:
+    if not math.isfinite(s):
+        return "?"
+    if s < 90:
+        return f"{s:.0f} s"
+    if s < 5400:
+        return f"{s / 60:.0f} min"
+    return f"{s / 3600:.1f} h"
+
+
+def run_each(inputs: list[str], req: BatchRequest, *, table: str | None = None, resume: bool = False,
+             workers: int | None = None, scheduler: str | None = None, progress: bool = True) -> EachResult:
+    """Plan, skip what an earlier run of `table` did (`resume`), analyse the rest, write the table."""
+    t0 = time.monotonic()
+    if table:
+        table_format(table)
+        if not resume and (Path(table).exists() or Path(table + ".partial.jsonl").exists()):
+            raise RigError(f"--table {table}: the file (or an interrupted batch's rows beside it) already "
+                           "exists: "
+                           "--resume to finish it, or remove it")
+    files = expand_inputs(inputs)
+    if table:
+        files = [f for f in files
+                 if Path(f).resolve() != Path(table).resolve() and not f.endswith(".partial.jsonl")]
+    curves = plan(files, req)  # a file that cannot be opened is one row that says why
+    order = row_order(curves)
+    done: dict[tuple[str, str], dict] = {}
+    if table and resume:
+        for r in read_rows(table):
+            k = key_of(r)
+            if k in order:
+                done[k] = r
+    todo = [c for c in curves if c.key not in done]
+    # from here the journal alone holds every row done so far (an earlier table's rows moved in)
+    journal = Journal(table, list(done.values())) if table else None
+    if table and Path(table).exists():
+        Path(table).unlink()
+    shown = Progress(len(todo)) if progress and todo else None
+    finished = False
+    try:
+        for rows in run(todo, req, workers=workers, scheduler=scheduler):
+            for r in rows:
+                done[key_of(r)] = r
+            if journal:
+                journal.add(rows)
+            if shown:
+                shown.add(len(rows))
+        finished = True
+    finally:
+        if journal:
+            journal.close()
+    rows = sorted(done.values(), key=lambda r: order[key_of(r)])
+    if table and finished:
+        write_table(rows, table)
+        journal.path.unlink(missing_ok=True)  # the table holds them all now
+    return EachResult(rows, len(curves), len(curves) - len(todo), time.monotonic() - t0, table)
+
+
+def parameters(rows: list[dict]) -> list[str]:
+    """The fitted parameters' columns (not their errors), in table order."""
+    from rig.analysis.table import PLACE, TAIL
+
+    return [c for c in columns(rows) if c not in PLACE and c not in TAIL and not c.endswith("_stderr")]
+
+
+def format_summary(res: EachResult, req: BatchRequest) -> str:
+    rows = res.rows
+    ok = [r for r in rows if not r.get("error")]
+    lines = [f"{res.curves} curves from {len({r['file'] for r in rows})} file(s), model {req.model}"
+             + (f" (+{', +'.join(req.add)})" if req.add else "")
+             + f": {len(ok)} analysed, {len(res.failed)} could not be"
+             + (f"; {res.resumed} kept from the earlier run" if res.resumed else "")
+             + f"; {res.seconds:.1f} s ({len(rows) - res.resumed} curves at "
+             + f"{(len(rows) - res.resumed) / max(res.seconds, 1e-9):.3g}/s)"]
+    for p in parameters(ok):
+        vals = [r[p] for r in ok if isinstance(r.get(p), int | float) and math.isfinite(r[p])]
+        if len(vals) >= 1:
+            q = statistics.quantiles(vals, n=4) if len(vals) >= 2 else [vals[0]] * 3
+            lines.append(f"  {p:<28} median {statistics.median(vals):.4g}, quartiles {q[0]:.4g} to {q[2]:.4g} "
+                         f"({len(vals)} curves)")
+    if ok:
+        adequate = sum(1 for r in ok if r.get("adequate") in (True, "True"))
+        lines.append(f"  adequate (residual at the noise): {adequate} of {len(ok)}")
+    if req.explain and ok:
+        named = Counter(r["effect"] for r in ok if r.get("effect"))
+        if named:
+            effect, n = named.most_common(1)[0]
+            where = [_where(r) for r in ok if r.get("effect") == effect]
+            lines.append(f"  most often missing: {effect}, on {n} of {len(ok)} curves ("
+                         + ", ".join(where[:8]) + (", ..." if len(where) > 8 else "") + ")"
+                         + "".join(f"; {e}: {k}" for e, k in named.most_common()[1:4]))
+        else:
+            lines.append("  no effect named missing on any curve")
+    for r in res.failed[:10]:
+        lines.append(f"  could not analyse {_where(r, True)}: {r['error']}")
+    if len(res.failed) > 10:
+        lines.append(f"  ... and {len(res.failed) - 10} more (the table's `error` column says why)")
+    if res.table:
+        lines.append(f"table: {res.table}")
+    return "\n".join(lines)
+
+
+def _where(r: dict, file: bool = False) -> str:
+    name = Path(str(r["file"])).name
+    place = f"curve {r['curve']}" if r.get("curve") not in (None, "") else name
+    if r.get("grid_x") not in (None, "") and r.get("grid_y") not in (None, ""):
+        place += f" at ({r['grid_x']}, {r['grid_y']})"
+    return f"{name} {place}" if file and r.get("curve") not in (None, "") else place
+
+
+def format_rows(rows: list[dict], most: int = 100) -> str:
+    """A short table a person reads, for a few curves."""
+    ps = parameters(rows)
+    head = f"{'curve':<28}" + "".join(f"{p:>14}" for p in ps) + f"{'RMSE/noise':>12}  verdict"
+    out = [head]
+    for r in rows[:most]:
+        if r.get("error"):
+            out.append(f"{_where(r):<28}  could not analyse: {r['error']}")
+            continue
+        vals = "".join(f"{_num(r.get(p)):>14}" for p in ps)
+        verdict = "adequate" if r.get("adequate") in (True, "True") else "NOT adequate"
+        if r.get("effect"):
+            verdict += f"; missing: {r['effect']}"
+        out.append(f"{_where(r):<28}{vals}{_num(r.get('rmse_over_noise')):>12}  {verdict}")
+    if len(rows) > most:
+        out.append(f"... {len(rows) - most} more (--table OUT.csv writes them all)")
+    return "\n".join(out)
+
+
+def _num(v: Any) -> str:
+    if isinstance(v, int | float) and not isinstance(v, bool):
+        return f"{v:.4g}"
+    return "" if v is None else str(v)
+
+
+def analyze_curves(inputs: list[str] | str, *, model: str = "hertz", add: list[str] | None = None,
+                   indenter: str | None = None, poisson: float = 0.5, segment: str = "approach",
+                   explain: bool = False, spring_constant_N_per_m: float | None = None,
+                   sensitivity_m_per_V: float | None = None, workers: int | None = None,
+                   scheduler: str | None = None, table: str | None = None, resume: bool = False,
+                   progress: bool = True):
+    """Every curve of `inputs` (files, folders, globs) analysed on its own, as a pandas DataFrame
+    with the columns of `rig analyze --each --table` (pandas is needed: `indentation-rig[table]`)."""
+    try:
+        import pandas as pd
+    except ImportError:
+        raise RigError("analyze_curves returns a pandas DataFrame: "
+                       "pip install 'indentation-rig[table]'") from None
+    req = BatchRequest(model=model, add=tuple(add or ()), explain=explain, indenter=indenter, poisson=poisson,
+                       segment=segment, spring_constant_N_per_m=spring_constant_N_per_m,
+                       sensitivity_m_per_V=sensitivity_m_per_V)
+    res = run_each([inputs] if isinstance(inputs, str) else list(inputs), req, table=table, resume=resume,
+                   workers=workers, scheduler=scheduler, progress=progress)
+    cols = columns(res.rows)
+    return pd.DataFrame([{c: r.get(c) for c in cols} for r in res.rows], columns=cols)
+
+
+def on_grid(df) -> Any:
+    """A map's rows on its grid: an xarray Dataset over (grid_y, grid_x) with every numeric column
+    and x_m, y_m as coordinates where the instrument gave them (xarray is needed)."""
+    try:
+        import xarray as xr
+    except ImportError:
+        raise RigError("on_grid returns an xarray Dataset: pip install xarray") from None
+    g = df.dropna(subset=["grid_x", "grid_y"])
+    if g.empty:
+        raise RigError("these curves carry no grid position (not a map)")
+    g = g.astype({"grid_x": int, "grid_y": int}).set_index(["grid_y", "grid_x"])
+    numeric = [c for c in g.columns if c != "file" and g[c].dtype.kind in "fiub"]
+    return xr.Dataset.from_dataframe(g[numeric])
+
+
+def is_batch(inputs: list[str], curve: int | None, each: bool, options: Any = None) -> bool:
+    """Whether `rig analyze` analyses curve by curve: --each; a folder or a glob; or one file of
+    many curves given alone without --curve."""
+    if each:
+        return True
+    if any(Path(i).is_dir() or (not Path(i).exists() and _magic(i)) for i in inputs):
+        return True
+    if len(inputs) == 1 and curve is None:
+        try:
+            from rig.records import list_curves
+            from rig.records.afm import format_of
+
+            format_of(inputs[0])
+            return len(list_curves(inputs[0], options)) > 1
+        except (RigError, OSError):
+            return False
+    return False
+
+
+def _magic(name: str) -> bool:
+    import glob
+
+    return glob.has_magic(name)
+
+
+__all__ += ["Curve", "format_rows", "is_batch"]
