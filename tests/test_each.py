@@ -1,0 +1,124 @@
+"""`rig analyze --each`: every curve of a map, a folder or a glob analysed on its own, through the
+command line as a user runs it, on the shared real AFM records: one row per curve, the same
+answer as the curve analysed alone, a table that does not depend on the workers or on an
+interruption, bad curves that never stop a batch."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from rig.cli import EXIT_CURVES_FAILED, EXIT_ERROR, main
+
+AFM = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "afm-fd"
+MAP = AFM / "fmt-jpk-fd_map2x2_extracted.jpk-force-map"
+QI = AFM / "fmt-jpk-fd_2020.02.07-16.29.05.036.jpk-qi-data"
+HERTZ = ["--model", "hertz", "--indenter", "paraboloid:R=10um", "--segment", "approach"]
+
+
+@pytest.fixture(autouse=True)
+def _records():
+    if not MAP.is_file():
+        pytest.skip(f"the shared real records are absent ({AFM})")
+    pytest.importorskip("afmformats", reason="reading AFM maps needs the afm extra (afmformats)")
+
+
+def _rows(path: Path) -> list[dict]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_a_map_alone_gives_one_row_per_curve_each_as_analysed_alone(tmp_path, capsys):
+    table = tmp_path / "map.csv"
+    assert main(["analyze", str(MAP), *HERTZ, "--table", str(table)]) == 0
+    rows = _rows(table)
+    assert [r["curve"] for r in rows] == ["0", "1", "2", "3"]
+    assert all(r["error"] == "" for r in rows)
+    # where each curve was taken, from the map's own metadata
+    assert len({(r["grid_x"], r["grid_y"]) for r in rows}) == 4
+    assert all(float(r["x_m"]) != 0 or float(r["y_m"]) != 0 for r in rows)
+    out = capsys.readouterr().out
+    assert "4 curves from 1 file(s), model hertz: 4 analysed, 0 could not be" in out
+    for r in rows:
+        assert main(["analyze", str(MAP), *HERTZ, "--curve", r["curve"], "--json"]) == 0
+        alone = json.loads(capsys.readouterr().out)
+        assert float(r["E_Pa"]) == alone["material"]["E_Pa"]
+        assert float(r["E_Pa_stderr"]) == alone["material"]["E_Pa_stderr"]
+        assert (r["adequate"] == "True") == alone["adequate"]
+        assert float(r["contact_point_m"]) == alone["material"]["contact_point_m"][0]
+
+
+def test_the_table_does_not_depend_on_the_workers(tmp_path):
+    tables = []
+    for workers in ("1", "2"):
+        t = tmp_path / f"w{workers}.csv"
+        assert main(["analyze", str(MAP), str(QI), "--each", *HERTZ, "--workers", workers,
+                     "--table", str(t)]) == 0
+        tables.append(t.read_bytes())
+    assert tables[0] == tables[1]
+    assert len(tables[0].splitlines()) == 1 + 4 + 4
+
+
+def test_bad_curves_never_stop_a_batch_and_the_exit_status_counts_them(tmp_path, capsys):
+    folder = tmp_path / "study"
+    folder.mkdir()
+    (folder / "a.jpk-force-map").write_bytes(MAP.read_bytes())
+    (folder / "b-cut.jpk-force-map").write_bytes(MAP.read_bytes()[:5000])  # cut short in transfer
+    (folder / "notes.txt").write_text("specimen 3, second site\n")
+    code = main(["analyze", str(folder), *HERTZ, "--json"])
+    lines = capsys.readouterr().out.splitlines()
+    rows = [json.loads(x) for x in lines]
+    bad = [r for r in rows if r["error"]]
+    assert code == EXIT_CURVES_FAILED + len(bad) and len(bad) == 2, (code, bad)
+    assert sum(1 for r in rows if not r["error"]) == 4
+    assert {Path(r["file"]).name for r in bad} == {"b-cut.jpk-force-map", "notes.txt"}
+    assert all(len(r["error"].splitlines()) == 1 and "Traceback" not in r["error"] for r in bad)
+
+
+def test_an_interrupted_batch_resumes_to_the_same_table(tmp_path):
+    """Killed (SIGKILL) after its first rows reached the journal, then --resume: the same table,
+    byte for byte, as a batch that ran through; without --resume the table is not overwritten."""
+    full = tmp_path / "full.csv"
+    args = [str(MAP), str(QI), "--each", *HERTZ, "--workers", "1"]
+    assert main(["analyze", *args, "--table", str(full)]) == 0
+    cut = tmp_path / "cut.csv"
+    journal = Path(str(cut) + ".partial.jsonl")
+    proc = subprocess.Popen([sys.executable, "-m", "rig", "analyze", *args, "--table", str(cut)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not (journal.exists() and journal.read_text().count("\n") >= 2):
+        time.sleep(0.02)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not cut.exists(), "killed midway: no table yet, only the journal"
+    done = journal.read_text().count("\n")
+    assert 2 <= done < 8, done
+    assert main(["analyze", *args, "--table", str(cut)]) == EXIT_ERROR  # refuses to overwrite
+    assert main(["analyze", *args, "--table", str(cut), "--resume"]) == 0
+    assert cut.read_bytes() == full.read_bytes()
+    assert not journal.exists()
+    # a finished table resumed: nothing to do, the same table
+    assert main(["analyze", *args, "--table", str(cut), "--resume"]) == 0
+    assert cut.read_bytes() == full.read_bytes()
+
+
+def test_what_a_batch_cannot_do_is_refused_in_one_line(tmp_path, capsys):
+    cases = [
+        ([str(MAP), *HERTZ, "--compare"], "--compare is not for a batch"),
+        ([str(MAP), *HERTZ, "--resume"], "--resume continues the table of an earlier batch"),
+        ([str(MAP), *HERTZ, "--table", str(tmp_path / "t.xlsx")], "a .csv, .jsonl or .parquet file"),
+        ([str(MAP), *HERTZ, "--curve", "1", "--table", str(tmp_path / "t.csv")], "--table is for a batch"),
+        ([str(tmp_path / "nothing-*.jpk-force")], "no file matches"),
+    ]
+    for args, message in cases:
+        assert main(["analyze", *args]) == EXIT_ERROR, args
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1, err
