@@ -94,9 +94,9 @@ def expand_inputs(inputs: list[str]) -> list[str]:
 
 def plan(files: list[str], req: BatchRequest,
          skip: Callable[[str, Exception], None] | None = None) -> list[Curve]:
-    """Every curve of `files`, in order: a file of many curves gives one unit per curve (their
-    positions from its metadata), any other file one unit. A file that cannot be opened is one
-    unit, whose row will say why."""
+    """Every curve of `files`, in order: an AFM file gives one unit per curve (numbered as the
+    instrument numbers it, placed as its metadata says), any other file one unit. A file that
+    cannot be opened is one unit, whose row will say why."""
     from rig.records import ReadOptions, list_curves
     from rig.records.afm import format_of
 
@@ -116,11 +116,7 @@ def plan(files: list[str], req: BatchRequest,
                 skip(f, exc)
             out.append(Curve(f))
             continue
-        if len(infos) == 1:
-            i = infos[0]
-            out.append(Curve(f, None, i.x_m, i.y_m, i.grid_x, i.grid_y))
-        else:
-            out += [Curve(f, i.enum, i.x_m, i.y_m, i.grid_x, i.grid_y) for i in infos]
+        out += [Curve(f, i.enum, i.x_m, i.y_m, i.grid_x, i.grid_y) for i in infos]
     return out
 
 
