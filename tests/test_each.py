@@ -122,3 +122,47 @@ def test_what_a_batch_cannot_do_is_refused_in_one_line(tmp_path, capsys):
         assert main(["analyze", *args]) == EXIT_ERROR, args
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_dask_cluster_gives_the_same_table(tmp_path):
+    """A real Dask scheduler and two workers, started on loopback as a cluster's would be (the
+    `dask` command line), do the batch: the table is the local run's, byte for byte."""
+    pytest.importorskip("distributed", reason="the cluster extra (Dask distributed) is not installed")
+    dask = Path(sys.executable).with_name("dask")
+    if not dask.exists():
+        pytest.skip(f"the dask command line is not beside {sys.executable}")
+    info = tmp_path / "scheduler.json"
+    procs = [subprocess.Popen([str(dask), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                               "--scheduler-file", str(info)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not info.exists():
+            time.sleep(0.1)
+        address = json.loads(info.read_text())["address"]
+        procs.append(subprocess.Popen([str(dask), "worker", address, "--nworkers", "2", "--nthreads", "1",
+                                       "--no-dashboard", "--host", "127.0.0.1"],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        wait = ("from distributed import Client\n"
+                f"with Client({address!r}, timeout='30s') as c: c.wait_for_workers(2, timeout=60)")
+        subprocess.run([sys.executable, "-c", wait], check=True, timeout=120)
+        args = [str(MAP), str(QI), "--each", *HERTZ]
+        local, remote = tmp_path / "local.csv", tmp_path / "dask.csv"
+        assert main(["analyze", *args, "--table", str(local)]) == 0
+        # in its own process, as a user runs it (a Dask client keeps a thread for its connection)
+        done = subprocess.run([sys.executable, "-m", "rig", "analyze", *args, "--table", str(remote),
+                               "--scheduler", address], capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        assert remote.read_bytes() == local.read_bytes()
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in procs:
+            p.wait(timeout=30)
+
+
+def test_a_scheduler_that_does_not_answer_is_said_in_one_line():
+    pytest.importorskip("distributed", reason="the cluster extra (Dask distributed) is not installed")
+    done = subprocess.run([sys.executable, "-m", "rig", "analyze", str(MAP), *HERTZ, "--scheduler",
+                           "tcp://127.0.0.1:9"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == EXIT_ERROR, done.stderr
+    assert "cannot reach the Dask scheduler" in done.stderr and "Traceback" not in done.stderr, done.stderr
