@@ -132,16 +132,16 @@ def test_a_dask_cluster_gives_the_same_table(tmp_path):
     if not dask.exists():
         pytest.skip(f"the dask command line is not beside {sys.executable}")
     info = tmp_path / "scheduler.json"
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
     procs = [subprocess.Popen([str(dask), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                               "--scheduler-file", str(info)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+                               "--scheduler-file", str(info)], **quiet)]
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and not info.exists():
             time.sleep(0.1)
         address = json.loads(info.read_text())["address"]
         procs.append(subprocess.Popen([str(dask), "worker", address, "--nworkers", "2", "--nthreads", "1",
-                                       "--no-dashboard", "--host", "127.0.0.1"],
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+                                       "--no-dashboard", "--host", "127.0.0.1"], **quiet))
         wait = ("from distributed import Client\n"
                 f"with Client({address!r}, timeout='30s') as c: c.wait_for_workers(2, timeout=60)")
         subprocess.run([sys.executable, "-c", wait], check=True, timeout=120)
