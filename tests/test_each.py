@@ -166,3 +166,29 @@ def test_a_scheduler_that_does_not_answer_is_said_in_one_line():
                            "tcp://127.0.0.1:9"], capture_output=True, text=True, timeout=120)
     assert done.returncode == EXIT_ERROR, done.stderr
     assert "cannot reach the Dask scheduler" in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
+def test_the_notebook_api_gives_a_dataframe_and_a_grid(tmp_path):
+    """analyze_curves: the rows of --table as a pandas DataFrame; on_grid: the map on its grid as an
+    xarray Dataset; a Parquet table reads back as the same frame."""
+    pytest.importorskip("pandas", reason="the table extra (pandas) is not installed")
+    pytest.importorskip("xarray", reason="the table extra (xarray) is not installed")
+    from rig.analysis.each import analyze_curves, on_grid
+
+    df = analyze_curves(str(MAP), indenter="paraboloid:R=10um", workers=1, progress=False)
+    assert list(df["curve"]) == [0, 1, 2, 3] and df["error"].eq("").all()
+    table = tmp_path / "map.csv"
+    assert main(["analyze", str(MAP), *HERTZ, "--table", str(table), "--workers", "1"]) == 0
+    assert [float(r["E_Pa"]) for r in _rows(table)] == list(df["E_Pa"])
+    grid = on_grid(df)
+    assert grid["E_Pa"].sizes == {"grid_y": 2, "grid_x": 2}
+    e = {(int(gy), int(gx)): v for (gy, gx), v in zip(zip(df["grid_y"], df["grid_x"]), df["E_Pa"])}
+    for (gy, gx), v in e.items():
+        assert float(grid["E_Pa"].sel(grid_y=gy, grid_x=gx)) == v
+    pytest.importorskip("pyarrow", reason="the table extra (pyarrow) is not installed")
+    import pandas as pd
+
+    pq = tmp_path / "map.parquet"
+    assert main(["analyze", str(MAP), *HERTZ, "--table", str(pq), "--workers", "1"]) == 0
+    back = pd.read_parquet(pq)
+    assert list(back["E_Pa"]) == list(df["E_Pa"]) and list(back.columns) == list(df.columns)
