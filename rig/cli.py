@@ -396,7 +396,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     return 0
 
 
-BATCH_REFUSED = ("compare", "auto", "holdout", "design", "save", "bootstrap", "profile", "report", "curve")
+BATCH_REFUSED = ("compare", "auto", "holdout", "design", "save", "bootstrap", "profile", "curve")
 
 
 def cmd_analyze_each(args: argparse.Namespace) -> int:
@@ -420,13 +420,19 @@ def cmd_analyze_each(args: argparse.Namespace) -> int:
                        block=args.block)
     res = run_each(args.inputs, req, table=args.table, resume=args.resume, workers=args.workers,
                    scheduler=args.scheduler, progress=not args.json or sys.stderr.isatty())
+    summary = format_summary(res, req)
+    if args.report:
+        from rig.analysis.each import parameters
+        from rig.analysis.map_report import write_map_report
+
+        summary += f"\nreport: {write_map_report(res.rows, args.report, parameters(res.rows), summary)}"
     if args.json:
         for r in res.rows:
             print(json.dumps(jsonable(r)))
     else:
         if not args.table:
             print(format_rows(res.rows))
-        print(format_summary(res, req))
+        print(summary)
     return EXIT_CURVES_FAILED + min(len(res.failed), 61) if res.failed else 0
 
 

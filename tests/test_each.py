@@ -192,3 +192,17 @@ def test_the_notebook_api_gives_a_dataframe_and_a_grid(tmp_path):
     assert main(["analyze", str(MAP), *HERTZ, "--table", str(pq), "--workers", "1"]) == 0
     back = pd.read_parquet(pq)
     assert list(back["E_Pa"]) == list(df["E_Pa"]) and list(back.columns) == list(df.columns)
+
+
+def test_a_batch_report_draws_the_map_and_says_what_is_missing_where(tmp_path, capsys):
+    rep = tmp_path / "rep"
+    assert main(["analyze", str(MAP), *HERTZ, "--explain", "--report", str(rep), "--table",
+                 str(tmp_path / "t.csv")]) == 0
+    out = capsys.readouterr().out
+    assert f"report: {rep / 'report.md'}" in out
+    names = {p.name for p in rep.iterdir()}
+    assert {"map1_E_Pa.png", "map1_rmse_over_noise.png", "map1_effect.png", "hist_E_Pa.png", "report.md"} <= names
+    text = (rep / "report.md").read_text()
+    effects = {r["effect"] for r in _rows(tmp_path / "t.csv") if r["effect"]}
+    assert effects and all(f"| {e} |" in text for e in effects)
+    assert "4 curves from 1 file(s), model hertz" in text and "![" in text
