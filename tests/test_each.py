@@ -182,9 +182,8 @@ def test_the_notebook_api_gives_a_dataframe_and_a_grid(tmp_path):
     assert [float(r["E_Pa"]) for r in _rows(table)] == list(df["E_Pa"])
     grid = on_grid(df)
     assert grid["E_Pa"].sizes == {"grid_y": 2, "grid_x": 2}
-    e = {(int(gy), int(gx)): v for (gy, gx), v in zip(zip(df["grid_y"], df["grid_x"]), df["E_Pa"])}
-    for (gy, gx), v in e.items():
-        assert float(grid["E_Pa"].sel(grid_y=gy, grid_x=gx)) == v
+    for gy, gx, v in zip(df["grid_y"], df["grid_x"], df["E_Pa"], strict=True):
+        assert float(grid["E_Pa"].sel(grid_y=int(gy), grid_x=int(gx))) == v
     pytest.importorskip("pyarrow", reason="the table extra (pyarrow) is not installed")
     import pandas as pd
 
