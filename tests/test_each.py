@@ -200,7 +200,8 @@ def test_a_batch_report_draws_the_map_and_says_what_is_missing_where(tmp_path, c
     out = capsys.readouterr().out
     assert f"report: {rep / 'report.md'}" in out
     names = {p.name for p in rep.iterdir()}
-    assert {"map1_E_Pa.png", "map1_rmse_over_noise.png", "map1_effect.png", "hist_E_Pa.png", "report.md"} <= names
+    assert {"map1_E_Pa.png", "map1_rmse_over_noise.png", "map1_effect.png", "hist_E_Pa.png",
+            "report.md"} <= names
     text = (rep / "report.md").read_text()
     effects = {r["effect"] for r in _rows(tmp_path / "t.csv") if r["effect"]}
     assert effects and all(f"| {e} |" in text for e in effects)
