@@ -10,16 +10,22 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import jsonschema
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from mcap.records import Attachment, Channel, Chunk, Footer, Message, MessageIndex, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 
 from rig.errors import RigError
-from rig.recording.logs import export_csv, read_log
-from rig.recording.messages import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE_TOPIC
+from rig.recording.logs import TrialLog, export_csv, read_log
+from rig.recording.mcap_chunks import LogStreamReader, chunk_bytes, split_chunk
+from rig.recording.messages import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE, SAMPLE_TOPIC
 from rig.records.csvfile import read_csv_trial
+from rig.specs.config import RigConfig
+from rig.specs.frames import FrameTrack
 from rig.views.replay import summarize
 from tests.conftest import PROTOCOLS, ROOT, run_sim
 
@@ -166,3 +172,331 @@ def test_bad_csv(tmp_path, text, fragment):
     with pytest.raises(SpecError) as info:
         read_csv_trial(p)
     assert fragment in str(info.value)
+
+
+# ------------------------------------------------ the reader against decoding message by message
+
+def _read_log_per_message(path, keep_raw=False) -> TrialLog:
+    """The reader as it was before chunks were decoded at once (rig 0.1, 2026-11): every record
+    through `StreamReader`, every message through its own `json.loads`, columns and zeros one
+    sample at a time. The reference the fast reader must match in every field."""
+    path = Path(path)
+    try:
+        fh = open(path, "rb")  # noqa: SIM115 - closed below
+    except OSError as exc:
+        raise RigError(f"{path}: cannot open log: {exc.strerror or exc}") from None
+    schemas_by_id, channels, topic_schema = {}, {}, {}
+    rows = {SAMPLE_TOPIC: [], EVENT_TOPIC: [], HEALTH_TOPIC: []}
+    metadata, attachments = {}, {}
+    complete, error, seen_any = False, "", False
+    with fh:
+        try:
+            for rec in StreamReader(fh, record_size_limit=1 << 30).records:
+                seen_any = True
+                if isinstance(rec, Message):
+                    topic = channels.get(rec.channel_id)
+                    if topic in rows:
+                        rows[topic].append(json.loads(rec.data))
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec.topic
+                    if rec.schema_id in schemas_by_id:
+                        topic_schema[rec.topic] = schemas_by_id[rec.schema_id]
+                elif isinstance(rec, Schema):
+                    schemas_by_id[rec.id] = json.loads(rec.data) if rec.data else {}
+                elif isinstance(rec, Metadata):
+                    metadata[rec.name] = dict(rec.metadata)
+                elif isinstance(rec, Attachment):
+                    attachments[rec.name] = bytes(rec.data)
+                elif isinstance(rec, Footer):
+                    complete = True
+        except Exception as exc:  # noqa: BLE001
+            error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+            if not seen_any:
+                raise RigError(f"{path}: not a readable MCAP log ({error})") from None
+    samples = rows[SAMPLE_TOPIC]
+    cols = {name: np.array([s.get(name, np.nan) for s in samples], dtype=float) for name in SAMPLE.numeric}
+    for name in SAMPLE.optional_numeric:
+        if samples and name in samples[0]:
+            cols[name] = np.array([s.get(name, np.nan) for s in samples], dtype=float)
+    kinds = [s.get("step_kind", "") for s in samples]
+    frames = _frame_track_per_sample(cols, kinds, rows[EVENT_TOPIC])
+    return TrialLog(
+        path=path, samples=cols, step_kind=kinds, frames=frames,
+        contact=np.array([bool(s.get("contact", False)) for s in samples]),
+        events=rows[EVENT_TOPIC], health=rows[HEALTH_TOPIC], metadata=metadata,
+        attachments=attachments, schemas=topic_schema, complete=complete, read_error=error,
+        raw_messages=rows if keep_raw else {},
+    )
+
+
+def _frame_track_per_sample(cols, kinds, events) -> FrameTrack:
+    n = len(cols.get("t_s", ()))
+    start = next((float(e["data"]["start_mm"]) for e in events
+                  if e.get("kind") == "trial_start" and "start_mm" in (e.get("data") or {})), 0.0)
+    zeros = {}
+    for e in events:
+        data = e.get("data") or {}
+        if e.get("kind") == "step_start" and "step" in data and "zero_mm" in data:
+            zeros[int(data["step"])] = float(data["zero_mm"])
+    step = cols.get("step", np.full(n, -1.0))
+    working = np.empty(n)
+    zero = start
+    for i in range(n):
+        if not np.isnan(step[i]):
+            zero = zeros.get(int(step[i]), zero)
+        working[i] = zero
+    slider = cols.get("slider_mm")
+    if slider is None or np.isnan(slider).any():
+        before = np.concatenate([[start], working[:-1]]) if n else working
+        slider = cols["position_mm"] + before if n else np.zeros(0)
+    surface = working.copy()
+    for i in range(n - 2, -1, -1):
+        if kinds[i] in ("approach", "tare"):
+            surface[i] = surface[i + 1]
+    return FrameTrack(np.asarray(slider, dtype=float), working, surface, start)
+
+
+def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    """Equal value for value, NaN payload and sign of zero included."""
+    if a.dtype != b.dtype or a.shape != b.shape:
+        return False
+    if a.dtype == float:
+        return np.array_equal(a.view(np.uint64), b.view(np.uint64))
+    return np.array_equal(a, b)
+
+
+def assert_reads_as_per_message(path) -> TrialLog:
+    """`read_log` gives, field for field, what decoding message by message gives."""
+    new, ref = read_log(path, keep_raw=True), _read_log_per_message(path, keep_raw=True)
+    assert list(new.samples) == list(ref.samples)
+    for name in ref.samples:
+        assert _same_bits(new.samples[name], ref.samples[name]), name
+    assert new.step_kind == ref.step_kind
+    assert _same_bits(new.contact, ref.contact)
+    assert new.raw_messages == ref.raw_messages  # every message, in order, on every topic
+    assert list(new.raw_messages) == list(ref.raw_messages)
+    assert new.events is new.raw_messages[EVENT_TOPIC] and new.health is new.raw_messages[HEALTH_TOPIC]
+    for name in ("events", "health", "metadata", "attachments", "schemas", "complete", "read_error"):
+        assert getattr(new, name) == getattr(ref, name), name
+    assert list(new.metadata) == list(ref.metadata)
+    for name in ("slider_mm", "working_zero_mm", "surface_mm"):
+        assert _same_bits(getattr(new.frames, name), getattr(ref.frames, name)), name
+    assert new.frames.start_mm == ref.frames.start_mm
+    assert read_log(path).raw_messages == {}
+    return new
+
+
+def _small_chunks(compression: str) -> RigConfig:
+    """Chunks closed about every millisecond of the writer's time: many chunks and indexes even in
+    virtual time, as a real-clock trial (one chunk a second) has."""
+    config = RigConfig()
+    config.recorder.compression = compression
+    config.recorder.flush_s = 0.001
+    return config
+
+
+@pytest.fixture(scope="module")
+def sim_logs(tmp_path_factory, demo_log, paper_075_log) -> dict[str, Path]:
+    tmp = tmp_path_factory.mktemp("readers")
+    logs = {"demo-zstd": demo_log, "paper-zstd": paper_075_log.log_path}
+    for compression in ("zstd", "lz4", "none"):
+        logs[f"demo-small-chunks-{compression}"] = run_sim(
+            PROTOCOLS / "demo.yaml", _small_chunks(compression), tmp_path=tmp,
+            name=f"demo-{compression}.mcap").log_path
+    logs["approach-lz4"] = run_sim(PROTOCOLS / "approach-relax.yaml", _small_chunks("lz4"), tmp_path=tmp,
+                                   name="approach.mcap").log_path
+    return logs
+
+
+@pytest.mark.parametrize("name", ["demo-zstd", "paper-zstd", "demo-small-chunks-zstd", "demo-small-chunks-lz4",
+                                  "demo-small-chunks-none", "approach-lz4"])
+def test_reads_as_decoding_message_by_message(sim_logs, name):
+    log = assert_reads_as_per_message(sim_logs[name])
+    assert log.complete and log.n > 1000 and not log.read_error
+    assert np.array_equal(log.samples["seq"], np.arange(log.n))  # none dropped, none reordered
+    if name.startswith("approach"):
+        assert "approach" in log.step_kind and not np.array_equal(log.frames.surface_mm,
+                                                                   log.frames.working_zero_mm)
+
+
+def test_the_simulators_logs_never_need_the_slow_path(sim_logs, monkeypatch):
+    """Every chunk the rig writes is split and decoded at once (the library's per-message
+    reading of a chunk is only for what the fast path cannot be sure of)."""
+    import rig.recording.logs as logs
+
+    def no_slow_path(chunk, *args, **kwargs):
+        raise AssertionError("a chunk of the rig's own log was read message by message")
+
+    monkeypatch.setattr(logs, "breakup_chunk", no_slow_path)
+    for path in sim_logs.values():
+        assert read_log(path).complete
+
+
+def _count_slow_chunks(monkeypatch) -> list[int]:
+    import rig.recording.logs as logs
+
+    calls = [0]
+
+    def counted(chunk, *args, **kwargs):
+        calls[0] += 1
+        return breakup_chunk(chunk, *args, **kwargs)
+
+    monkeypatch.setattr(logs, "breakup_chunk", counted)
+    return calls
+
+
+def _chunks(path) -> list:
+    with open(path, "rb") as fh:
+        return [r for r in StreamReader(fh, emit_chunks=True).records if isinstance(r, Chunk)]
+
+
+def test_chunks_split_as_the_library_splits_them(sim_logs):
+    """Every chunk of every log: the same messages per channel, in order, and the same schema and
+    channel records as `breakup_chunk`."""
+    for path in sim_logs.values():
+        chunks = _chunks(path)
+        assert chunks
+        for chunk in chunks:
+            split = split_chunk(chunk_bytes(chunk))
+            library = breakup_chunk(chunk)
+            assert split is not None and split.count == len(library)
+            ours = {}
+            for rec in split.records:
+                for channel_id, payloads in (rec.items() if isinstance(rec, dict) else ()):
+                    ours.setdefault(channel_id, []).extend(payloads)
+            theirs = {}
+            for rec in library:
+                if isinstance(rec, Message):
+                    theirs.setdefault(rec.channel_id, []).append(rec.data)
+            assert ours == theirs
+            assert [r for r in split.records if not isinstance(r, dict)] == \
+                [r for r in library if not isinstance(r, Message)]
+
+
+def test_message_indexes_are_read_past_not_decoded(sim_logs):
+    """The scan yields what the library's scan yields, but no message index entries."""
+    path = sim_logs["demo-small-chunks-zstd"]
+    with open(path, "rb") as fh:
+        theirs = list(StreamReader(fh, emit_chunks=True, record_size_limit=1 << 30).records)
+    with open(path, "rb") as fh:
+        ours = list(LogStreamReader(fh, record_size_limit=1 << 30).records)
+    assert [type(r) for r in ours] == [type(r) for r in theirs]
+    indexes = [(a, b) for a, b in zip(ours, theirs, strict=True) if isinstance(b, MessageIndex)]
+    assert len(indexes) > 10
+    assert all(a.channel_id == b.channel_id and a.records == [] and b.records for a, b in indexes)
+    assert [a for a in ours if not isinstance(a, MessageIndex)] == \
+        [b for b in theirs if not isinstance(b, MessageIndex)]
+
+
+def _cut_points(path) -> list[int]:
+    """Where a crash may cut a log: spread over the file, and at and just past the start of every
+    chunk, message index and summary record (inside their opcode, length and first fields)."""
+    size = path.stat().st_size
+    points = set(range(8, size, max(size // 40, 1)))
+    with open(path, "rb") as fh:
+        summary = make_reader(fh).get_summary()
+    starts = [c.chunk_start_offset for c in summary.chunk_indexes]
+    starts += [c.chunk_start_offset + c.chunk_length for c in summary.chunk_indexes]
+    starts += [offset for c in summary.chunk_indexes for offset in c.message_index_offsets.values()]
+    for start in starts[:60]:
+        points.update(start + d for d in (0, 1, 5, 9, 11, 17, 40, 200))
+    return sorted(p for p in points if 0 < p < size)
+
+
+@pytest.mark.parametrize("name", ["demo-small-chunks-zstd", "demo-small-chunks-none"])
+def test_a_log_cut_anywhere_reads_as_decoding_message_by_message(sim_logs, tmp_path, name):
+    """A log cut short anywhere: the same samples (a clean prefix), the same error, or the same
+    clear RigError for a cut before the first record."""
+    data = sim_logs[name].read_bytes()
+    cut = tmp_path / "cut.mcap"
+    prefixes = errors = 0
+    for point in _cut_points(sim_logs[name]):
+        cut.write_bytes(data[:point])
+        try:
+            ref = _read_log_per_message(cut)
+        except RigError as exc:
+            with pytest.raises(RigError) as info:
+                read_log(cut)
+            assert str(info.value) == str(exc)
+            errors += 1
+            continue
+        log = assert_reads_as_per_message(cut)
+        assert log.n == ref.n and np.array_equal(log.samples["seq"], np.arange(log.n))
+        assert log.read_error and (not log.complete or point > len(data) - 8)  # or in the closing magic
+        prefixes += 1
+    assert prefixes > 50 and errors >= 1
+
+
+def test_a_damaged_payload_ends_the_log_where_it_always_did(sim_logs, tmp_path, monkeypatch):
+    """A message that does not decode (a flipped byte in an uncompressed chunk) stops reading at
+    that message, after the messages before it in the same chunk, as decoding one by one did."""
+    data = sim_logs["demo-small-chunks-none"].read_bytes()
+    at = data.index(b'{"seq":500,')
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(data[:at + 7] + b"?" + data[at + 8:])  # {"seq":?00,
+    log = assert_reads_as_per_message(damaged)
+    assert log.n == 500 and log.read_error.startswith("JSONDecodeError")
+    slow = _count_slow_chunks(monkeypatch)
+    read_log(damaged)
+    assert slow[0] == 1  # that chunk alone, read again message by message
+
+
+def _hand_made_log(path, messages: list[tuple[int, bytes]], topics: tuple[str, ...] = (SAMPLE_TOPIC,),
+                   chunk_size: int = 1 << 20) -> Path:
+    """A log written by the mcap library alone: channel i+1 on topics[i], the given payloads."""
+    from mcap.writer import Writer
+
+    with open(path, "wb") as fh:
+        w = Writer(fh, chunk_size=chunk_size)
+        w.start()
+        sid = w.register_schema("rig.Sample", "jsonschema", b"{}")
+        for topic in topics:
+            w.register_channel(topic, "json", sid)
+        for i, (channel, payload) in enumerate(messages):
+            w.add_message(channel, log_time=i, data=payload, publish_time=i, sequence=i)
+        w.finish()
+    return path
+
+
+def _sample(seq: int, **changes) -> bytes:
+    row = {"seq": seq, "t_s": seq / 100, "position_mm": 1.0, "position_cmd_mm": 1.0, "force_N": 0.1 * seq,
+           "stiffness_N_per_m": 80.0, "force_pred_N": 0.5, "error_N": 0.0, "forgetting": 1.0,
+           "contact": True, "step": 0, "step_kind": "ramp", "late_ms": 0.0}
+    row.update(changes)
+    return json.dumps({k: v for k, v in row.items() if v is not ...}).encode()
+
+
+@pytest.mark.parametrize("case", ["odd-values", "missing-fields", "not-an-object", "two-channels-one-topic",
+                                  "utf8-bom", "one-message-per-chunk", "empty"])
+def test_unusual_payloads_read_as_decoding_message_by_message(tmp_path, case, monkeypatch):
+    """Logs the rig never writes, which must still read exactly as before (through the slow path
+    where the fast one cannot be sure)."""
+    topics = (SAMPLE_TOPIC,)
+    rows = [(1, _sample(i)) for i in range(300)]
+    if case == "odd-values":  # numbers as strings, null, ints, bools, NaN; read as numpy converts them
+        rows[10] = (1, _sample(10, force_N="1.5", t_s=None, late_ms=True, error_N=float("nan"), step=3))
+        rows[11] = (1, _sample(11, contact=1, step_kind=7))
+    elif case == "missing-fields":
+        rows[20] = (1, _sample(20, contact=..., step_kind=..., force_N=...))
+    elif case == "not-an-object":
+        rows[30] = (1, b"[1, 2]")
+    elif case == "two-channels-one-topic":
+        topics = (SAMPLE_TOPIC, SAMPLE_TOPIC)
+        rows = [(1 + i % 2, _sample(i)) for i in range(300)]
+    elif case == "utf8-bom":
+        rows[40] = (1, b"\xef\xbb\xbf" + _sample(40))
+    elif case == "empty":
+        rows = []
+    path = _hand_made_log(tmp_path / f"{case}.mcap", rows, topics,
+                          chunk_size=1 if case == "one-message-per-chunk" else 1 << 20)
+    if case == "not-an-object":  # decoded as before; the columns then fail as before
+        with pytest.raises(AttributeError):
+            _read_log_per_message(path)
+        with pytest.raises(AttributeError):
+            read_log(path)
+        return
+    slow = _count_slow_chunks(monkeypatch)
+    log = assert_reads_as_per_message(path)
+    assert log.n == len(rows) and log.complete
+    # payloads that are not one JSON object each, or one topic on two channels: read one by one
+    assert (slow[0] > 0) == (case in ("utf8-bom", "two-channels-one-topic"))

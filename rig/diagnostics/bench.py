@@ -170,14 +170,21 @@ def bench_record(n: int = 50_000) -> dict:
             "bytes_per_sample": size / n}
 
 
-def bench_replay(path: Path) -> dict:
+def bench_replay(path: Path, reads: int = 5) -> dict:
+    """Reading a trial's log into arrays (`read_log`, as `rig replay` and the analysis read it):
+    samples per second, the median of `reads` reads (one read of a minute's log takes tens of
+    milliseconds, which one scheduler hiccup can double); the first read is given apart."""
     from rig.recording.logs import read_log
 
-    t0 = time.perf_counter()
-    log = read_log(path)
-    dt = time.perf_counter() - t0
+    rates = []
+    for _ in range(max(reads, 1)):
+        t0 = time.perf_counter()
+        log = read_log(path)
+        dt = time.perf_counter() - t0
+        rates.append(log.n / dt if dt > 0 else float("inf"))
     late = log.samples["late_ms"]
-    return {"samples": log.n, "samples_per_s": log.n / dt if dt > 0 else float("inf"),
+    return {"samples": log.n, "reads": len(rates), "samples_per_s": float(np.median(rates)),
+            "first_read_samples_per_s": rates[0],
             "lateness_p99_ms": float(np.percentile(late, 99)), "lateness_max_ms": float(late.max())}
 
 
@@ -228,7 +235,9 @@ def format_bench(r: dict) -> str:
         "model     " + "; ".join(f"{k} {v:.2f} us per tick" for k, v in r["model"]["step_us"].items()),
         f"record    {rec['put_us']:.2f} us per sample on the loop side; writer "
         f"{rec['writer_us_per_sample']:.1f} us/sample; {rec['bytes_per_sample']:.1f} bytes/sample on disk",
-        f"replay    {lp['replay']['samples_per_s']:,.0f} samples/s",
+        f"replay    {lp['replay']['samples_per_s']:,.0f} samples/s reading the log into arrays (median of "
+        f"{lp['replay']['reads']} reads of its {lp['replay']['samples']} samples; first read "
+        f"{lp['replay']['first_read_samples_per_s']:,.0f})",
         f"machine   a loop that only sleeps, {base['duration_s']:g} s: lateness p99 "
         f"{base['lateness_p99_ms']:.3f} ms, max {base['lateness_max_ms']:.3f} ms, "
         f"{base['over_5ms']} ticks over 5 ms",

@@ -1,0 +1,119 @@
+"""Reading MCAP logs in file order, fast: message indexes read past, chunks split in one pass.
+
+`LogStreamReader` is the library's `StreamReader(emit_chunks=True)`, except for message index
+records: the library decodes them into a tuple per indexed message, two stream reads each, which
+cost as much as all the rest of the scan, and a reader in file order never uses them. They are
+yielded without their entries. Where one is not all there (a file cut inside it) or overruns
+itself, the library's own parser reads the bytes there are, so reading stops as it always did.
+
+`mcap.stream_reader.breakup_chunk` builds a `Message` through five stream reads for every
+message, which costs more than decoding its JSON. Here the chunk, decompressed by the library
+(`chunk_bytes`), is walked once with `struct.unpack_from`, and a message becomes only its channel
+id and a slice of its payload. Schema and channel records, a few per log, are still parsed by
+the library's own record classes.
+
+Only what is certain is split: a record that does not fit its chunk, a message shorter than
+its fixed fields, or a schema or channel record whose fields do not fill it exactly makes
+`split_chunk` return None, and the caller hands the whole chunk to the library, which reads
+such damage in its own way. The format (MCAP spec, "Records"): every record is an opcode
+(uint8) and a length (uint64) followed by that many bytes; a message's are channel id
+(uint16), sequence (uint32), log time and publish time (uint64 each), then its data.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+from io import BytesIO
+from typing import BinaryIO
+
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, McapRecord, MessageIndex, Schema
+from mcap.stream_reader import StreamReader, get_chunk_data_stream
+
+_HEAD = struct.Struct("<BQH")  # opcode, record length, and a message's channel id
+_MESSAGE_FIXED = 2 + 4 + 8 + 8  # channel id, sequence, log time, publish time
+_CHANNEL_ID = struct.Struct("<H")
+_INDEX_LENGTH = struct.Struct("<I")  # a message index: channel id (uint16), then this, its entries' bytes
+
+
+class LogStreamReader(StreamReader):
+    """`StreamReader(emit_chunks=True)` that yields message indexes without their entries."""
+
+    def __init__(self, stream: BinaryIO, record_size_limit: int) -> None:
+        super().__init__(stream, emit_chunks=True, record_size_limit=record_size_limit)
+
+    # `_read_record` and `_stream` are the library's own (mcap 1.x); tests/test_logs.py checks
+    # that this override is used and that every log reads as it does through the library alone.
+    def _read_record(self, opcode: int, length: int) -> McapRecord | None:
+        if opcode != Opcode.MESSAGE_INDEX:
+            return super()._read_record(opcode, length)
+        body = self._stream.read(length)
+        if len(body) < length or not _index_fits(body):
+            # as the library would have read it (the file ends inside it, or it overruns itself)
+            return MessageIndex.read(ReadDataStream(BytesIO(body)))
+        return MessageIndex(_CHANNEL_ID.unpack_from(body)[0], [])  # a record was read, its entries not
+
+
+def _index_fits(body: bytes) -> bool:
+    """The library's parser of this message index stays inside it (entries of 16 bytes)."""
+    if len(body) < 6:
+        return False
+    entries = _INDEX_LENGTH.unpack_from(body, 2)[0]
+    return 6 + -(-entries // 16) * 16 <= len(body)
+
+
+@dataclass
+class SplitChunk:
+    """A chunk's records in order: each item is a schema or channel record, or a run of messages
+    between them as {channel id: [payload, ...]} (payloads in the order written)."""
+
+    records: list[Schema | Channel | dict[int, list[bytes]]] = field(default_factory=list)
+    count: int = 0  # records the library would yield for this chunk
+
+
+def chunk_bytes(chunk: Chunk) -> bytes:
+    """The chunk's records, decompressed once (by the library: zstd, lz4 or none)."""
+    stream, size = get_chunk_data_stream(chunk)
+    return stream.read(size)
+
+
+def split_chunk(data: bytes) -> SplitChunk | None:
+    """The records of a decompressed chunk, or None where the library must read it instead."""
+    out = SplitChunk()
+    run: dict[int, list[bytes]] = {}
+    end_of_data = len(data)
+    pos = 0
+    unpack = _HEAD.unpack_from
+    message = Opcode.MESSAGE.value
+    while pos < end_of_data:
+        if pos + _HEAD.size > end_of_data:
+            return None
+        opcode, length, channel_id = unpack(data, pos)
+        body = pos + 9
+        pos = body + length
+        if pos > end_of_data:
+            return None
+        if opcode == message:
+            if length < _MESSAGE_FIXED:
+                return None
+            payloads = run.get(channel_id)
+            if payloads is None:
+                payloads = run[channel_id] = []
+            payloads.append(data[body + _MESSAGE_FIXED:pos])
+            out.count += 1
+        elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
+            stream = ReadDataStream(BytesIO(data[body:pos]))
+            rec = (Schema if opcode == Opcode.SCHEMA else Channel).read(stream)
+            if stream.count != length:
+                return None
+            if run:
+                out.records.append(run)
+                run = {}
+            out.records.append(rec)
+            out.count += 1
+        # any other record inside a chunk is skipped, as the library skips it
+    if run:
+        out.records.append(run)
+    return out
