@@ -144,6 +144,11 @@ def format_summary(res: EachResult, req: BatchRequest) -> str:
              + (f"; {res.resumed} kept from the earlier run" if res.resumed else "")
              + f"; {res.seconds:.1f} s ({len(rows) - res.resumed} curves at "
              + f"{(len(rows) - res.resumed) / max(res.seconds, 1e-9):.3g}/s)"]
+    read = sum(r.get("_read_s", 0.0) for r in rows)
+    fitted = sum(r.get("_fit_s", 0.0) for r in rows)
+    if read + fitted > 0:
+        lines.append(f"  time in the workers: reading {read:.3g} s ({100 * read / (read + fitted):.0f} %), "
+                     f"analysing {fitted:.3g} s ({100 * fitted / (read + fitted):.0f} %)")
     for p in parameters(ok):
         vals = [r[p] for r in ok if isinstance(r.get(p), int | float) and math.isfinite(r[p])]
         if len(vals) >= 1:

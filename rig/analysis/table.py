@@ -53,13 +53,18 @@ def journal_of(path: str | Path) -> Path:
 
 
 def columns(rows: Iterable[dict]) -> list[str]:
-    """The place, then the parameters in the order they first appear, then the rest."""
-    seen = [c for c in PLACE]
+    """The place, then the parameters in the order they first appear, then the rest (a row's
+    private columns, `_` first, are left out)."""
+    seen = list(PLACE)
     for r in rows:
         for k in r:
-            if k not in seen and k not in TAIL:
+            if k not in seen and k not in TAIL and not k.startswith("_"):
                 seen.append(k)
     return seen + TAIL
+
+
+def public(row: dict) -> dict:
+    return {k: v for k, v in row.items() if not k.startswith("_")}
 
 
 def _cell(v) -> str:
@@ -128,13 +133,13 @@ class Journal:
         tmp = self.path.with_name(self.path.name + ".tmp")
         with open(tmp, "w") as fh:
             for r in rows:
-                fh.write(json.dumps(r, default=str) + "\n")
+                fh.write(json.dumps(public(r), default=str) + "\n")
         os.replace(tmp, self.path)
         self._fh = open(self.path, "a")  # noqa: SIM115 (held open for the batch: rows go in as chunks finish)
 
     def add(self, rows: list[dict]) -> None:
         for r in rows:
-            self._fh.write(json.dumps(r, default=str) + "\n")
+            self._fh.write(json.dumps(public(r), default=str) + "\n")
         self._fh.flush()
         os.fsync(self._fh.fileno())
 
@@ -144,7 +149,8 @@ class Journal:
 
 def jsonable(row: dict) -> dict:
     """Non-finite floats as strings ("inf": a parameter the curve does not determine)."""
-    return {k: (_cell(v) if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
+    return {k: (_cell(v) if isinstance(v, float) and not math.isfinite(v) else v)
+            for k, v in public(row).items()}
 
 
 def write_table(rows: list[dict], path: str | Path) -> Path:
