@@ -16,6 +16,8 @@ from __future__ import annotations
 import csv
 import importlib
 import importlib.util
+import os
+import time
 from pathlib import Path
 
 import pytest
@@ -34,7 +36,7 @@ elif not AFM.is_dir():
     WHY = f"no shared AFM files at {AFM}"
 else:
     WHY = ""
-pytestmark = pytest.mark.skipif(bool(WHY), reason=WHY or "-")
+needs_nanite = pytest.mark.skipif(bool(WHY), reason=WHY or "-")
 
 
 def _table(tmp: Path, name: str) -> list[dict]:
@@ -51,6 +53,7 @@ def _table(tmp: Path, name: str) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
+@needs_nanite
 @pytest.mark.parametrize("name", MAPS)
 def test_each_curve_of_a_map_agrees_with_nanite(name, tmp_path):
     T = importlib.import_module("tests.bench.nanite_table")
@@ -71,3 +74,41 @@ def test_each_curve_of_a_map_agrees_with_nanite(name, tmp_path):
         undetermined = (se is not None and abs(row.rig.E_Pa - row.nanite0.E_Pa) <= 2 * se
                         and c.rig_rmse_N <= 1.005 * c.nanite_rmse_N)
         assert close or better or undetermined, T.explain(row)
+
+
+PAPER_TRIALS = int(os.environ.get("RIG_BENCH_TRIALS", "1000"))
+
+
+def _paper_trial(seed: int, out: str) -> str:
+    from rig.service.run import RunOptions, run_trial
+    from rig.specs.config import RigConfig
+    from rig.specs.protocol import load_protocol
+
+    protocols = sorted((Path(__file__).resolve().parents[2] / "protocols").glob("paper-*.yaml"))
+    cfg = RigConfig()
+    cfg.sim.seed = seed
+    proto = load_protocol(protocols[seed % len(protocols)], cfg)
+    path = Path(out) / f"paper-{seed:05d}.mcap"
+    run_trial(proto, cfg, RunOptions(speed=0, progress=False, log_path=path))
+    return str(path)
+
+
+def test_a_thousand_paper_trials(tmp_path):
+    """RIG_BENCH_TRIALS (default 1000) simulated paper trials (the three protocols in turn, a seed
+    each), then `rig analyze --each` over the folder with the paper's model: the summary gives the
+    wall time and how the workers' time splits between reading the MCAP logs and fitting."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor() as pool:
+        logs = list(pool.map(_paper_trial, range(PAPER_TRIALS), [str(tmp_path)] * PAPER_TRIALS, chunksize=16))
+    made = time.perf_counter() - t0
+    table = tmp_path / "paper.csv"
+    t0 = time.perf_counter()
+    code = main(["analyze", str(tmp_path), "--each", "--model", "proposed", "--table", str(table)])
+    wall = time.perf_counter() - t0
+    with open(table, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    print(f"\n{PAPER_TRIALS} paper trials simulated in {made:.1f} s; the batch took {wall:.1f} s "
+          f"({PAPER_TRIALS / wall:.3g} trials/s)")
+    assert code == 0 and len(rows) == len(logs) and all(r["error"] == "" for r in rows)
