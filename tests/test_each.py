@@ -206,3 +206,27 @@ def test_a_batch_report_draws_the_map_and_says_what_is_missing_where(tmp_path, c
     effects = {r["effect"] for r in _rows(tmp_path / "t.csv") if r["effect"]}
     assert effects and all(f"| {e} |" in text for e in effects)
     assert "4 curves from 1 file(s), model hertz" in text and "![" in text
+
+
+def test_a_mach1_file_is_analysed_site_by_site(tmp_path, capsys):
+    """A Mach-1 file of three test sites (one data block each): one row per block, numbered as the
+    file numbers them, each the block analysed alone with --block."""
+    from tests.test_records import sls_record, write_mach1
+
+    blocks = []
+    for k, stiffness in enumerate((2.0e4, 4.0e4, 8.0e4)):
+        t, x, f = sls_record(0.1, 40e-6, 40.0, 120.0, stiffness, 60.0, 3.6e6, seed=k, rest_s=5.0, noise_N=2e-4)
+        blocks.append((f"Stress Relaxation site {k + 1}", t, 0.1574 - x * 1000.0, -f))
+    path = tmp_path / "sites.txt"
+    write_mach1(path, blocks, "N")
+    table = tmp_path / "sites.csv"
+    assert main(["analyze", str(path), "--each", "--model", "kelvin", "--table", str(table)]) == 0
+    assert "3 curves from 1 file(s), model kelvin: 3 analysed" in capsys.readouterr().out
+    rows = _rows(table)
+    assert [r["curve"] for r in rows] == ["1", "2", "3"] and all(r["error"] == "" for r in rows)
+    for r in rows:
+        assert main(["analyze", str(path), "--model", "kelvin", "--block", r["curve"], "--json"]) == 0
+        alone = json.loads(capsys.readouterr().out)
+        assert float(r["k_N_per_m"]) == alone["parameters"]["k_N_per_m"]["value"]
+    k = [float(r["k_N_per_m"]) for r in rows]
+    assert k[0] < k[1] < k[2]

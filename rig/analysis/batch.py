@@ -22,7 +22,7 @@ import os
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -40,11 +40,12 @@ class Curve:
     the curve was taken (on the sample, in m, and on the map's grid), when the file says."""
 
     file: str
-    curve: int | None = None
+    curve: int | None = None  # an AFM file's curve; a Mach-1 file's data block (from 1)
     x_m: float | None = None
     y_m: float | None = None
     grid_x: int | None = None
     grid_y: int | None = None
+    block: bool = False  # `curve` is a Mach-1 data block
 
     @property
     def key(self) -> tuple[str, str]:
@@ -100,6 +101,7 @@ def plan(files: list[str], req: BatchRequest,
     cannot be opened is one unit, whose row will say why."""
     from rig.records import ReadOptions, list_curves
     from rig.records.afm import format_of
+    from rig.records.mach1 import count_blocks, looks_like_mach1
 
     options = ReadOptions(spring_constant_N_per_m=req.spring_constant_N_per_m,
                           sensitivity_m_per_V=req.sensitivity_m_per_V)
@@ -108,7 +110,11 @@ def plan(files: list[str], req: BatchRequest,
         try:
             format_of(f)
         except (RigError, OSError):
-            out.append(Curve(f))  # not an AFM file: one record
+            if req.block is None and _head(f) and looks_like_mach1(_head(f)):
+                n = count_blocks(Path(f))  # one block per site or test function
+                out += [Curve(f, b, block=True) for b in range(1, n + 1)] if n > 1 else [Curve(f)]
+            else:
+                out.append(Curve(f))  # one record
             continue
         try:
             infos = list_curves(f, options)
@@ -119,6 +125,14 @@ def plan(files: list[str], req: BatchRequest,
             continue
         out += [Curve(f, i.enum, i.x_m, i.y_m, i.grid_x, i.grid_y) for i in infos]
     return out
+
+
+def _head(path: str) -> str:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(4096).decode("utf-8", errors="replace")
+    except OSError:
+        return ""
 
 
 def chunks(curves: list[Curve], workers: int) -> list[list[Curve]]:
@@ -145,7 +159,7 @@ def analyze_chunk(chunk: list[Curve], req: BatchRequest) -> list[dict]:
     rows: list[dict] = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # what a curve's fit warns of is in its row
-        if chunk[0].curve is not None:
+        if chunk[0].curve is not None and not chunk[0].block:
             wanted = {c.curve: c for c in chunk}
             t0 = time.perf_counter()
             try:
@@ -160,7 +174,7 @@ def analyze_chunk(chunk: list[Curve], req: BatchRequest) -> list[dict]:
             for c in chunk:
                 t0 = time.perf_counter()
                 try:
-                    rec = read_record(c.file, options)
+                    rec = read_record(c.file, replace(options, block=c.curve) if c.block else options)
                 except (RigError, OSError) as exc:
                     rows.append(_failed(c, exc))
                     continue

@@ -18,6 +18,12 @@ def looks_like_mach1(head: str) -> bool:
     return "<Mach-1 File>" in head[:200] or ("<DATA>" in head and "<INFO>" in head)
 
 
+def count_blocks(path: Path) -> int:
+    """How many <DATA> blocks (test functions, one site each in a mapping test) the file holds."""
+    with open(path, errors="replace") as fh:
+        return sum(1 for line in fh if line.strip() == "<DATA>")
+
+
 def read_mach1(path: Path, block: int | None = None) -> Record:
     """One test function's data, dividers joined: block number `block` (from 1), by default the
     longest (a file often holds a short find-contact step before the test)."""
