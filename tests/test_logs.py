@@ -466,8 +466,8 @@ def _sample(seq: int, **changes) -> bytes:
     return json.dumps({k: v for k, v in row.items() if v is not ...}).encode()
 
 
-@pytest.mark.parametrize("case", ["odd-values", "missing-fields", "not-an-object", "two-channels-one-topic",
-                                  "utf8-bom", "one-message-per-chunk", "empty"])
+@pytest.mark.parametrize("case", ["odd-values", "missing-fields", "not-an-object", "not-a-number",
+                                  "two-channels-one-topic", "utf8-bom", "one-message-per-chunk", "empty"])
 def test_unusual_payloads_read_as_decoding_message_by_message(tmp_path, case, monkeypatch):
     """Logs the rig never writes, which must still read exactly as before (through the slow path
     where the fast one cannot be sure)."""
@@ -480,6 +480,8 @@ def test_unusual_payloads_read_as_decoding_message_by_message(tmp_path, case, mo
         rows[20] = (1, _sample(20, contact=..., step_kind=..., force_N=...))
     elif case == "not-an-object":
         rows[30] = (1, b"[1, 2]")
+    elif case == "not-a-number":
+        rows[30] = (1, _sample(30, force_N={"N": 1}))
     elif case == "two-channels-one-topic":
         topics = (SAMPLE_TOPIC, SAMPLE_TOPIC)
         rows = [(1 + i % 2, _sample(i)) for i in range(300)]
@@ -489,11 +491,14 @@ def test_unusual_payloads_read_as_decoding_message_by_message(tmp_path, case, mo
         rows = []
     path = _hand_made_log(tmp_path / f"{case}.mcap", rows, topics,
                           chunk_size=1 if case == "one-message-per-chunk" else 1 << 20)
-    if case == "not-an-object":  # decoded as before; the columns then fail as before
-        with pytest.raises(AttributeError):
+    if case in ("not-an-object", "not-a-number"):  # the old reader's traceback, now said as such
+        with pytest.raises((AttributeError, TypeError)):
             _read_log_per_message(path)
-        with pytest.raises(AttributeError):
+        with pytest.raises(RigError) as info:
             read_log(path)
+        assert str(info.value) == {
+            "not-an-object": f"{path}: message 31 on /rig/sample is not a JSON object: [1, 2]",
+            "not-a-number": f"{path}: message 31 on /rig/sample: force_N is not a number: {{'N': 1}}"}[case]
         return
     slow = _count_slow_chunks(monkeypatch)
     log = assert_reads_as_per_message(path)

@@ -182,10 +182,15 @@ def read_log(path: str | Path, keep_raw: bool = False) -> TrialLog:
             if not scan.seen_any:
                 raise RigError(f"{path}: not a readable MCAP log ({error})") from None
     rows = scan.rows
-    samples = rows[SAMPLE_TOPIC]
-    cols, kinds, contact = sample_columns(samples)
+    try:
+        cols, kinds, contact = sample_columns(rows[SAMPLE_TOPIC])
+        frames = frame_track(cols, kinds, rows[EVENT_TOPIC])
+    # valid JSON that is not what the rig writes (a sample that is not an object, a field that is
+    # not a number): said as such, with the message, rather than as a traceback
+    except (AttributeError, TypeError, ValueError, KeyError, OverflowError) as exc:
+        raise RigError(f"{path}: {_unreadable(rows, exc)}") from None
     return TrialLog(
-        path=path, samples=cols, step_kind=kinds, frames=frame_track(cols, kinds, rows[EVENT_TOPIC]),
+        path=path, samples=cols, step_kind=kinds, frames=frames,
         contact=contact, events=rows[EVENT_TOPIC], health=rows[HEALTH_TOPIC], metadata=scan.metadata,
         attachments=scan.attachments, schemas=scan.topic_schema, complete=scan.complete, read_error=error,
         raw_messages=rows if keep_raw else {},
@@ -214,6 +219,21 @@ def sample_columns(samples: list[dict]) -> tuple[dict[str, np.ndarray], list[str
     kinds = [s.get("step_kind", "") for s in samples]
     contact = np.array([bool(s.get("contact", False)) for s in samples])
     return cols, kinds, contact
+
+
+def _unreadable(rows: dict[str, list], exc: Exception) -> str:
+    """Which message of a log cannot be read as the rig's, and why."""
+    for topic, messages in rows.items():
+        for i, message in enumerate(messages):
+            if not isinstance(message, dict):
+                return f"message {i + 1} on {topic} is not a JSON object: {json.dumps(message)[:80]}"
+    for i, sample in enumerate(rows[SAMPLE_TOPIC]):
+        for name in (*SAMPLE.numeric, *SAMPLE.optional_numeric):
+            try:
+                np.array([sample.get(name, np.nan)], dtype=float)
+            except (TypeError, ValueError):
+                return f"message {i + 1} on {SAMPLE_TOPIC}: {name} is not a number: {sample[name]!r:.80}"
+    return f"its messages cannot be read as the rig's ({type(exc).__name__}: {exc})"
 
 
 def frame_track(cols: dict[str, np.ndarray], kinds: list[str], events: list[dict]) -> FrameTrack:

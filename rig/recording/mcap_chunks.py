@@ -3,8 +3,10 @@
 `LogStreamReader` is the library's `StreamReader(emit_chunks=True)`, except for message index
 records: the library decodes them into a tuple per indexed message, two stream reads each, which
 cost as much as all the rest of the scan, and a reader in file order never uses them. They are
-yielded without their entries. Where one is not all there (a file cut inside it) or overruns
-itself, the library's own parser reads the bytes there are, so reading stops as it always did.
+yielded without their entries. Where one is not all there (a file cut inside it), the library's
+own parser reads the bytes there are, so reading stops with the error it always gave; one whose
+entries overrun its own length (a damaged file: the library would read on into the records after
+it) ends reading there.
 
 `mcap.stream_reader.breakup_chunk` builds a `Message` through five stream reads for every
 message, which costs more than decoding its JSON. Here the chunk, decompressed by the library
@@ -51,7 +53,7 @@ class LogStreamReader(StreamReader):
             return super()._read_record(opcode, length)
         body = self._stream.read(length)
         if len(body) < length or not _index_fits(body):
-            # as the library would have read it (the file ends inside it, or it overruns itself)
+            # the library's error for a record cut short; for one that overruns itself, an error here
             return MessageIndex.read(ReadDataStream(BytesIO(body)))
         return MessageIndex(_CHANNEL_ID.unpack_from(body)[0], [])  # a record was read, its entries not
 
