@@ -1,9 +1,12 @@
 """The acquisition loop: one tick every 1/rate_Hz seconds.
 
-A tick reads the load cell and the slider position (status/alarm every
-`status_every` ticks), checks the limits, lets the sequencer issue at most one
-command (each move checked against the limits first, then watched until it arrives
-by its deadline), updates the RLS estimator and queues one sample for the recorder.
+A tick is a short sequence of named stages (`Trial._loop`): read (the load cell and the
+slider position, status/alarm every `status_every` ticks), check (the limits), operator
+(stop requests), confirm (a STOP until the drive stands still), command (the step's
+controller: the sequencer issues at most one command, each move checked against the limits
+first, then watched until it arrives by its deadline), estimate (the RLS estimator), record
+(one sample queued for the recorder). Each stage is a method on what the loop carries
+(`_Loop`) and what the tick read (`_Tick`), so a new kind of step changes `command` alone.
 On any fault the slider is told to stop before anything else happens; the STOP is
 re-sent until a fresh status says the drive stands still, the loop keeps logging for
 `post_fault_s` so the log shows the stop, and finishes the log. The loop never
@@ -78,6 +81,51 @@ class TrialResult:
     fault: str | None = None
     period_errors_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     bus_transactions: int = 0
+
+
+@dataclass
+class _Loop:
+    """What a trial's loop carries from one tick to the next."""
+
+    t0: float
+    seq: Sequencer
+    ending: Ending
+    speedometer: SpeedMeter
+    taring: bool
+    zero_N: float | None
+    next_health: float
+    return_speed: float
+    status: SliderStatus = field(default_factory=lambda: SliderStatus(True, False, True, False))
+    watch: MoveWatch | None = None
+    slot: int = 0
+    tare_sum: float = 0.0
+    tare_n: int = 0
+    tare_N: float = 0.0
+    preload_N: float = 0.0
+    x_prev_m: float = 0.0
+    last_step: int = -2
+    health_mark: int = 0
+
+
+@dataclass
+class _Tick:
+    """One tick's readings, as `_read` took them."""
+
+    now: float
+    t: float
+    t_log: float
+    lateness: float
+    reading: object
+    pr: object
+    pos: float
+    x_rel_mm: float
+    force_model: float | None
+    moving: bool | None
+    speed: float | None
+    raw: float
+    age: float | None
+    force: float
+    checked: float
 
 
 class StopTicket:
@@ -391,249 +439,266 @@ class Trial:
             return False
 
     def _loop(self, rec: Recorder, t0: float) -> tuple[str, str | None]:
+        """One tick per slot, in this order (safety's place in it visible here): read, check
+        (a fault stops the slider before anything else), operator (stop requests), confirm (a
+        STOP stands until the drive says it stands still), command (the step's controller),
+        estimate, record; then whether the trial has ended."""
+        L = self._start_loop(rec, t0)
+        while True:
+            k = self._read(L)
+            self._check(rec, L, k)
+            self._operator(rec, L, k)
+            self._confirm(rec, L, k)
+            self._command(rec, L, k)
+            est = self._estimate(L, k)
+            self._record(rec, L, k, est)
+            done = L.ending.result(k.t, self.post_fault_s, L.seq.done and L.watch is None)
+            if done is not None:
+                return done
+
+    def _start_loop(self, rec: Recorder, t0: float) -> _Loop:
         cfg = self.config
-        clock, slider, cell = self.clock, self.slider, self.loadcell
-        lim = self.limits
         self._seq = self._late = self._missed = 0
         self._tick_times = []
         self._last_age: float | None = None
-        late_tol = cfg.loop.late_tolerance_ms / 1000.0
-        status_every = cfg.loop.status_every
-        start_mm = self._start_mm
-        seq = Sequencer(self.proto, start_mm=start_mm, accel_mm_s2=cfg.slider.accel_mm_s2,
+        seq = Sequencer(self.proto, start_mm=self._start_mm, accel_mm_s2=cfg.slider.accel_mm_s2,
                         tare_s=cfg.loop.tare_s, tolerance_mm=cfg.slider.position_tolerance_mm,
                         rate_Hz=self.rate)
         self._event(rec, 0.0, "trial_start", f"protocol '{self.proto.name}'",
-                    {"specimen": self.info.specimen, "start_mm": start_mm,
+                    {"specimen": self.info.specimen, "start_mm": self._start_mm,
                      "steps": len(seq.steps)})
-        rls = self.rls
-        online = self.online
-        if online is not None:
-            online.reset()
-        status = SliderStatus(True, False, True, False)
-        tare_sum, tare_n, tare_N = 0.0, 0, 0.0
-        taring = cell is not None  # averaging the tare until tare_s, then judging its preload once
-        zero_N = self.zero.value_N if self.zero is not None else None
-        preload_N = 0.0
-        tol_mm = cfg.slider.position_tolerance_mm
-        speedometer = SpeedMeter(2.0 * self.period)
-        x_prev_m = 0.0
-        ending = Ending()
-        watch: MoveWatch | None = None
-        last_step = -2
-        next_health = cfg.loop.health_every_s
-        health_mark = 0
-        slot = 0
-        return_speed = min(self.return_speed_mm_s, lim.max_speed_mm_s)
+        if self.online is not None:
+            self.online.reset()
         self.snapshot = replace(self.snapshot, state="running")
+        return _Loop(t0=t0, seq=seq, ending=Ending(), speedometer=SpeedMeter(2.0 * self.period),
+                     taring=self.loadcell is not None,  # averaging the tare until tare_s, then judging it once
+                     zero_N=self.zero.value_N if self.zero is not None else None,
+                     next_health=cfg.loop.health_every_s,
+                     return_speed=min(self.return_speed_mm_s, self.limits.max_speed_mm_s))
 
-        def send_stop(t: float) -> bool:
-            ok = self._safe_stop()
-            ending.on_stop_sent(t)
-            return ok
-
-        def raise_fault(found: Fault, t: float, force: float, pos: float) -> None:
-            nonlocal watch
-            send_stop(t)  # stop first, explain after
-            watch = None
-            ending.on_fault(found, t)
-            self._event(rec, t, "fault", found.message,
-                        {"kind": found.kind, "seq": self._seq, "force_N": force,
-                         "position_mm": pos - seq.zero_mm})
-            self.snapshot = replace(self.snapshot, state="stopping", fault=found.message)
-
-        while True:
-            scheduled = t0 + slot * self.period
-            clock.sleep_until(scheduled)
-            now = clock.now()
+    # ------------------------------------------------------------- the tick's stages
+    def _read(self, L: _Loop) -> _Tick:
+        """Wait for the slot, then measure: only fresh values feed the speed estimate and the
+        move checks."""
+        cfg, clock = self.config, self.clock
+        scheduled = L.t0 + L.slot * self.period
+        clock.sleep_until(scheduled)
+        now = clock.now()
+        lateness = now - scheduled
+        if lateness > self.period:  # fell behind by whole periods: skip, and say so
+            skipped = int(lateness / self.period)
+            self._missed += skipped
+            L.slot += skipped
+            scheduled = L.t0 + L.slot * self.period
             lateness = now - scheduled
-            if lateness > self.period:  # fell behind by whole periods: skip, and say so
-                skipped = int(lateness / self.period)
-                self._missed += skipped
-                slot += skipped
-                scheduled = t0 + slot * self.period
-                lateness = now - scheduled
-            if lateness > late_tol:
-                self._late += 1
-            slot += 1
-            t = now - t0
-            self._tick_times.append(now)
+        if lateness > cfg.loop.late_tolerance_ms / 1000.0:
+            self._late += 1
+        L.slot += 1
+        t = now - L.t0
+        self._tick_times.append(now)
+        cell, seq, lim = self.loadcell, L.seq, self.limits
+        reading = cell.latest() if cell is not None else None
+        pr = self.slider.position()
+        pos = pr.value
+        x_rel_mm = pos - seq.zero_mm  # from the trial's zero as it stands at the start of the tick
+        t_log = round(t, 6)
+        force_model = self.online.step(t_log, x_rel_mm / 1000.0) if self.online is not None else None
+        status_fresh = False
+        # A move's arrival needs a fresh "standing still": near its target, read it every tick.
+        watch, ending = L.watch, L.ending
+        confirming = ((ending.stop is not None and not ending.stop.confirmed)
+                      or (seq.done and watch is not None)
+                      or (watch is not None and pr.fresh
+                          and abs(pos - watch.to_mm) <= cfg.slider.position_tolerance_mm))
+        if self._seq % cfg.loop.status_every == 0 or confirming:
+            sr = self.slider.status()
+            L.status, status_fresh = sr.value, sr.fresh
+        moving = L.status.moving if status_fresh else None
+        speed = L.speedometer.update(pr)
+        raw = reading.force_N if reading else 0.0
+        age = reading.age_s if reading else None
+        if cell is None:  # no load cell: the model's estimate stands in, and is what is checked
+            raw, age = force_model, 0.0
+        self._last_age = age
+        if L.taring and reading is not None and not reading.over_range:
+            L.tare_sum += raw  # taring: zero the load cell on the mean of the first tare_s
+            L.tare_n += 1
+            L.tare_N = L.tare_sum / L.tare_n
+        force = raw - L.tare_N  # logged and sequenced relative to the tare, as analysis expects
+        if cell is None:
+            checked = force * (1.0 + lim.model_force_margin)
+        elif L.zero_N is None:
+            checked = force
+        else:  # the force the tissue carries, preload included (never less than the tared one)
+            checked = max(raw - L.zero_N, force)
+        return _Tick(now, t, t_log, lateness, reading, pr, pos, x_rel_mm, force_model, moving, speed, raw, age,
+                     force, checked)
 
-            # ---- measure: only fresh values feed the speed estimate and the move checks
-            reading = cell.latest() if cell is not None else None
-            pr = slider.position()
-            pos = pr.value
-            x_rel_mm = pos - seq.zero_mm  # from the trial's zero as it stands at the start of the tick
-            t_log = round(t, 6)
-            force_model = online.step(t_log, x_rel_mm / 1000.0) if online is not None else None
-            status_fresh = False
-            # A move's arrival needs a fresh "standing still": near its target, read it every tick.
-            confirming = ((ending.stop is not None and not ending.stop.confirmed)
-                          or (seq.done and watch is not None)
-                          or (watch is not None and pr.fresh and abs(pos - watch.to_mm) <= tol_mm))
-            if self._seq % status_every == 0 or confirming:
-                sr = slider.status()
-                status, status_fresh = sr.value, sr.fresh
-            moving = status.moving if status_fresh else None
-            speed = speedometer.update(pr)
-            raw = reading.force_N if reading else 0.0
-            age = reading.age_s if reading else None
-            if cell is None:  # no load cell: the model's estimate stands in, and is what is checked
-                raw, age = force_model, 0.0
-            self._last_age = age
-            if taring and reading is not None and not reading.over_range:
-                tare_sum += raw  # taring: zero the load cell on the mean of the first tare_s
-                tare_n += 1
-                tare_N = tare_sum / tare_n
-            force = raw - tare_N  # logged and sequenced relative to the tare, as analysis expects
-            if cell is None:
-                checked = force * (1.0 + lim.model_force_margin)
-            elif zero_N is None:
-                checked = force
-            else:  # the force the tissue carries, preload included (never less than the tared one)
-                checked = max(raw - zero_N, force)
+    def _check(self, rec: Recorder, L: _Loop, k: _Tick) -> None:
+        """Safety first: on a fault, stop, then explain. The tare's preload is judged here,
+        once, before the sequencer's first move, so a refused preload moves nothing."""
+        if L.ending.fault is not None:
+            return
+        cfg, lim, seq = self.config, self.limits, L.seq
+        status = L.status
+        found = check(TickState(k.checked, k.pos, k.speed, k.age, status.alarm_code if status.alarm else 0,
+                                bool(k.reading and k.reading.over_range), k.raw,
+                                "measured" if self.loadcell is not None else "estimated", L.preload_N), lim)
+        if found is None and rec.failure:
+            found = Fault("recording", rec.failure)
+        if found is None and seq.fault:
+            found = Fault("protocol", seq.fault)
+        if found is None and L.watch is not None:
+            why = L.watch.check(k.t, k.pos if k.pr.fresh else None, k.moving)
+            if why is not None:
+                found = Fault("move", why)
+            elif k.pr.fresh and L.watch.arrived(k.pos, k.moving):
+                L.watch = None
+        tare_done = found is None and L.taring and k.t >= cfg.loop.tare_s
+        if tare_done:
+            L.taring = False
+            if L.zero_N is None:
+                self.zero = Zero(L.tare_N, assumed=True, source=f"the tare of trial "
+                                 f"'{self.proto.name}' ({self.log_path.name}), assumed out of contact")
+                L.zero_N = L.tare_N
+            L.preload_N = self.preload_N = L.tare_N - L.zero_N
+            max_pre = lim.max_preload_share * lim.max_force_N
+            if abs(L.preload_N) > max_pre:
+                found = Fault("preload", (
+                    f"preload {L.preload_N:.3f} N at the start (tare {L.tare_N:.3f} N, free-air zero "
+                    f"{L.zero_N:.3f} N from {self.zero.source}) is beyond {lim.max_preload_share:g} of "
+                    f"the force limit {lim.max_force_N:g} N (limits.max_preload_share): refused "
+                    "before anything moved; retract the probe (or `rig tare` out of contact if "
+                    "the zero is wrong)"))
+        if found is not None:
+            self._fault(rec, L, found, k)
+        if tare_done:
+            self._tare_logged(rec, k.t, L.tare_N, L.tare_n, L.zero_N, L.preload_N)
 
-            # ---- safety first: stop, then explain
-            if ending.fault is None:
-                found = check(TickState(checked, pos, speed, age, status.alarm_code if status.alarm else 0,
-                                        bool(reading and reading.over_range), raw,
-                                        "measured" if cell is not None else "estimated", preload_N), lim)
-                if found is None and rec.failure:
-                    found = Fault("recording", rec.failure)
-                if found is None and seq.fault:
-                    found = Fault("protocol", seq.fault)
-                if found is None and watch is not None:
-                    why = watch.check(t, pos if pr.fresh else None, moving)
-                    if why is not None:
-                        found = Fault("move", why)
-                    elif pr.fresh and watch.arrived(pos, moving):
-                        watch = None
-                tare_done = found is None and taring and t >= cfg.loop.tare_s
-                if tare_done:  # before the sequencer's first move: a refused preload moves nothing
-                    taring = False
-                    if zero_N is None:
-                        self.zero = Zero(tare_N, assumed=True, source=f"the tare of trial "
-                                         f"'{self.proto.name}' ({self.log_path.name}), assumed out of contact")
-                        zero_N = tare_N
-                    preload_N = self.preload_N = tare_N - zero_N
-                    max_pre = lim.max_preload_share * lim.max_force_N
-                    if abs(preload_N) > max_pre:
-                        found = Fault("preload", (
-                            f"preload {preload_N:.3f} N at the start (tare {tare_N:.3f} N, free-air zero "
-                            f"{zero_N:.3f} N from {self.zero.source}) is beyond {lim.max_preload_share:g} of "
-                            f"the force limit {lim.max_force_N:g} N (limits.max_preload_share): refused "
-                            "before anything moved; retract the probe (or `rig tare` out of contact if "
-                            "the zero is wrong)"))
-                if found is not None:
-                    raise_fault(found, t, force, pos)
-                if tare_done:
-                    self._tare_logged(rec, t, tare_N, tare_n, zero_N, preload_N)
+    def _operator(self, rec: Recorder, L: _Loop, k: _Tick) -> None:
+        """The operator's stop requests (an estop may follow an abort that is returning)."""
+        sig = self.signal_stop  # Ctrl-C: the handler only set this
+        if sig is not None and sig is not self.signal_handled:
+            self.signal_handled = sig
+            self.request_stop(sig, user="console")
+        req = self._take_stop_request()
+        if req is None:
+            return
+        mode, user, received, ticket = req
+        t = k.t
+        refused = L.ending.on_request(mode, t)
+        if refused and mode is StopMode.ESTOP:  # whatever else is going on, STOP again
+            ok = self._send_stop(L, t)
+            ticket.settle(ok, f"{refused}; STOP sent again" + ("" if ok else ", not acknowledged"))
+        elif refused:
+            ticket.settle(False, f"refused: {refused}")
+        else:
+            ok = self._send_stop(L, t)
+            sent = time.monotonic()
+            latency_ms = round((sent - received) * 1000.0, 3)
+            ticket.settle(ok, f"STOP sent in {latency_ms:g} ms" if ok else
+                          "STOP not acknowledged by the drive; still trying (the drive's "
+                          "communication timeout is the backstop)")
+            self._settle_tickets(ok, ticket.message)
+            L.watch = None
+            self._event(rec, t, "stop_requested", f"{mode.value} requested by {user or '?'}",
+                        {"mode": mode.value, "user": user, "seq": self._seq,
+                         "latency_ms": latency_ms, "acknowledged": ok})
+            if mode == StopMode.ABORT:
+                L.seq.abort_to_start(t, L.return_speed)
+            else:
+                L.seq.done = True
 
-            # ---- operator stop requests (an estop may follow an abort that is returning)
-            sig = self.signal_stop  # Ctrl-C: the handler only set this
-            if sig is not None and sig is not self.signal_handled:
-                self.signal_handled = sig
-                self.request_stop(sig, user="console")
-            req = self._take_stop_request()
-            if req is not None:
-                mode, user, received, ticket = req
-                refused = ending.on_request(mode, t)
-                if refused and mode is StopMode.ESTOP:  # whatever else is going on, STOP again
-                    ok = send_stop(t)
-                    ticket.settle(ok, f"{refused}; STOP sent again" + ("" if ok else ", not acknowledged"))
-                elif refused:
-                    ticket.settle(False, f"refused: {refused}")
-                else:
-                    ok = send_stop(t)
-                    sent = time.monotonic()
-                    latency_ms = round((sent - received) * 1000.0, 3)
-                    ticket.settle(ok, f"STOP sent in {latency_ms:g} ms" if ok else
-                                  "STOP not acknowledged by the drive; still trying (the drive's "
-                                  "communication timeout is the backstop)")
-                    self._settle_tickets(ok, ticket.message)
-                    watch = None
-                    self._event(rec, t, "stop_requested", f"{mode.value} requested by {user or '?'}",
-                                {"mode": mode.value, "user": user, "seq": self._seq,
-                                 "latency_ms": latency_ms, "acknowledged": ok})
-                    if mode == StopMode.ABORT:
-                        seq.abort_to_start(t, return_speed)
-                    else:
-                        seq.done = True
+    def _confirm(self, rec: Recorder, L: _Loop, k: _Tick) -> None:
+        """A STOP stands until a fresh status says the drive stands still."""
+        stop = L.ending.stop
+        match L.ending.on_status(k.t, k.moving, self.limits.stop_confirm_s, self.resend_stop_s):
+            case ("confirmed", _):
+                self._event(rec, k.t, "stop_confirmed", "the drive reports standing still",
+                            {"after_s": round(k.t - stop.sent_t, 4), "resends": stop.resends})
+            case ("gave_up", why):
+                self._event(rec, k.t, "fault", why, {"kind": "stop_unconfirmed", "seq": self._seq})
+            case ("resend", _):
+                self._send_stop(L, k.t)
 
-            # ---- a STOP stands until a fresh status says the drive stands still
-            stop = ending.stop
-            match ending.on_status(t, moving, lim.stop_confirm_s, self.resend_stop_s):
-                case ("confirmed", _):
-                    self._event(rec, t, "stop_confirmed", "the drive reports standing still",
-                                {"after_s": round(t - stop.sent_t, 4), "resends": stop.resends})
-                case ("gave_up", why):
-                    self._event(rec, t, "fault", why, {"kind": "stop_unconfirmed", "seq": self._seq})
-                case ("resend", _):
-                    send_stop(t)
+    def _command(self, rec: Recorder, L: _Loop, k: _Tick) -> None:
+        """The step's controller: the sequencer's commands, each move checked against the limits
+        before it is sent and watched until it arrives. Step decisions only on a fresh position,
+        and a move counts as under way until its watch saw it arrive on fresh readings: a stale
+        position is no arrival."""
+        if L.ending.fault is not None:
+            return
+        seq, lim, t = L.seq, self.limits, k.t
+        seq_moving = True if L.watch is not None else k.moving
+        for cmd in seq.tick(t, k.pos, k.force, seq_moving) if k.pr.fresh else ():
+            if isinstance(cmd, Move):
+                why = check_move(cmd.to_mm, cmd.speed_mm_s, lim)
+                if why is not None:
+                    self._fault(rec, L, Fault("move_limit", f"move refused: {why}"), k)
+                    break
+                self.slider.move_to(cmd.to_mm, cmd.speed_mm_s, cmd.accel_mm_s2)
+                L.ending.on_move()
+                L.watch = MoveWatch(k.pos, cmd.to_mm, cmd.speed_mm_s, cmd.accel_mm_s2, t, lim,
+                                    self.config.slider.position_tolerance_mm)
+            elif isinstance(cmd, Stop):
+                L.watch = None
+                self._send_stop(L, t)
+        if seq.index != L.last_step and seq.index >= 0 and not seq.done:
+            step = seq.step
+            self._event(rec, t, "step_start", f"step {seq.index}: {step.kind}",
+                        {"step": seq.index, "kind": step.kind,
+                         "zero_mm": seq.zero_mm, "target_mm": seq.target_mm - seq.zero_mm})
+        L.last_step = seq.index
 
-            # ---- sequence
-            if ending.fault is None:
-                # Step decisions only on a fresh position, and a move counts as under way until
-                # its watch saw it arrive on fresh readings: a stale position is no arrival.
-                seq_moving = True if watch is not None else moving
-                for cmd in seq.tick(t, pos, force, seq_moving) if pr.fresh else ():
-                    if isinstance(cmd, Move):
-                        why = check_move(cmd.to_mm, cmd.speed_mm_s, lim)
-                        if why is not None:
-                            raise_fault(Fault("move_limit", f"move refused: {why}"), t, force, pos)
-                            break
-                        slider.move_to(cmd.to_mm, cmd.speed_mm_s, cmd.accel_mm_s2)
-                        ending.on_move()
-                        watch = MoveWatch(pos, cmd.to_mm, cmd.speed_mm_s, cmd.accel_mm_s2, t, lim,
-                                          cfg.slider.position_tolerance_mm)
-                    elif isinstance(cmd, Stop):
-                        watch = None
-                        send_stop(t)
-                if seq.index != last_step and seq.index >= 0 and not seq.done:
-                    step = seq.step
-                    self._event(rec, t, "step_start", f"step {seq.index}: {step.kind}",
-                                {"step": seq.index, "kind": step.kind,
-                                 "zero_mm": seq.zero_mm, "target_mm": seq.target_mm - seq.zero_mm})
-                last_step = seq.index
+    def _estimate(self, L: _Loop, k: _Tick):
+        """The online stiffness (RLS) on the previous tick's position and this tick's force."""
+        est = self.rls.update(L.x_prev_m, k.force)
+        L.x_prev_m = (k.pos - L.seq.zero_mm) / 1000.0
+        return est
 
-            # ---- estimate
-            est = rls.update(x_prev_m, force)
-            x_prev_m = (pos - seq.zero_mm) / 1000.0
+    def _record(self, rec: Recorder, L: _Loop, k: _Tick, est) -> None:
+        """One sample queued for the recorder; health now and then; the watchers' snapshot."""
+        seq, t = L.seq, k.t
+        kind = "fault" if L.ending.fault else seq.kind
+        model = {}
+        if k.force_model is not None:
+            model["force_model_N"] = k.force_model
+            if self.loadcell is not None:
+                model["model_error_N"] = k.force - k.force_model
+        sample = SAMPLE.record(
+            seq=self._seq, t_s=k.t_log, position_mm=k.x_rel_mm, slider_mm=k.pos,
+            position_cmd_mm=round(seq.position_cmd_mm(t), 6), force_N=k.force,
+            stiffness_N_per_m=est.stiffness_N_per_m, force_pred_N=est.force_pred_N,
+            error_N=est.error_N, forgetting=est.forgetting, contact=est.updated,
+            step=seq.index, step_kind=kind, late_ms=round(k.lateness * 1000.0, 4), **model)
+        self._emit(rec, SAMPLE.topic, self.clock.wall_ns(k.now), sample)
+        self._seq += 1
+        if t >= L.next_health:
+            self._health(rec, t, k.now, L.health_mark)
+            L.health_mark = len(self._tick_times)
+            L.next_health += self.config.loop.health_every_s
+        self.snapshot = Snapshot(
+            state=self.snapshot.state, t_s=t, step=seq.index, step_kind=kind,
+            steps_total=len(seq.steps), time_left_s=seq.time_left_s(t), force_N=k.force,
+            position_mm=k.x_rel_mm, stiffness_N_per_m=est.stiffness_N_per_m,
+            log_path=str(self.log_path), fault=self.snapshot.fault, force_model_N=k.force_model,
+            preload_N=L.preload_N)
+        if self.on_tick is not None:
+            self.on_tick(self.snapshot)
 
-            kind = "fault" if ending.fault else seq.kind
-            model = {}
-            if force_model is not None:
-                model["force_model_N"] = force_model
-                if cell is not None:
-                    model["model_error_N"] = force - force_model
-            sample = SAMPLE.record(
-                seq=self._seq, t_s=t_log, position_mm=x_rel_mm, slider_mm=pos,
-                position_cmd_mm=round(seq.position_cmd_mm(t), 6), force_N=force,
-                stiffness_N_per_m=est.stiffness_N_per_m, force_pred_N=est.force_pred_N,
-                error_N=est.error_N, forgetting=est.forgetting, contact=est.updated,
-                step=seq.index, step_kind=kind, late_ms=round(lateness * 1000.0, 4), **model)
-            self._emit(rec, SAMPLE.topic, clock.wall_ns(now), sample)
-            self._seq += 1
+    def _send_stop(self, L: _Loop, t: float) -> bool:
+        ok = self._safe_stop()
+        L.ending.on_stop_sent(t)
+        return ok
 
-            if t >= next_health:
-                self._health(rec, t, now, health_mark)
-                health_mark = len(self._tick_times)
-                next_health += cfg.loop.health_every_s
-
-            self.snapshot = Snapshot(
-                state=self.snapshot.state, t_s=t, step=seq.index, step_kind=kind,
-                steps_total=len(seq.steps), time_left_s=seq.time_left_s(t), force_N=force,
-                position_mm=x_rel_mm, stiffness_N_per_m=est.stiffness_N_per_m,
-                log_path=str(self.log_path), fault=self.snapshot.fault, force_model_N=force_model,
-                preload_N=preload_N)
-            if self.on_tick is not None:
-                self.on_tick(self.snapshot)
-
-            # ---- end? Only once the drive has confirmed the STOP (or the wait for it ran out).
-            # a protocol ends once the drive reports standing still at the last target
-            done = ending.result(t, self.post_fault_s, seq.done and watch is None)
-            if done is not None:
-                return done
+    def _fault(self, rec: Recorder, L: _Loop, found: Fault, k: _Tick) -> None:
+        self._send_stop(L, k.t)  # stop first, explain after
+        L.watch = None
+        L.ending.on_fault(found, k.t)
+        self._event(rec, k.t, "fault", found.message,
+                    {"kind": found.kind, "seq": self._seq, "force_N": k.force,
+                     "position_mm": k.pos - L.seq.zero_mm})
+        self.snapshot = replace(self.snapshot, state="stopping", fault=found.message)
 
     def _tare_logged(self, rec: Recorder, t: float, tare_N: float, readings: int, zero_N: float,
                      preload_N: float) -> None:
