@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 from rig.specs.frames import Frames
 from rig.specs.motion import move_time, position_at
-from rig.specs.protocol import Approach, Hold, Protocol, Ramp, Return, Step
+from rig.specs.protocol import FORCE_STEPS, Approach, Hold, HoldForce, Protocol, Ramp, RampForce, Return, Step
 
 
 @dataclass(frozen=True)
@@ -29,7 +29,17 @@ class Stop:
     reason: str
 
 
-Command = Move | Stop
+@dataclass(frozen=True)
+class Track:
+    """Force control this tick: move so that the force follows `setpoint_N`, never deeper than
+    `limit_mm` (absolute; None: the travel window alone)."""
+
+    setpoint_N: float
+    limit_mm: float | None
+    rate_N_s: float = 0.0  # how fast the setpoint moves (a ramp's), fed forward
+
+
+Command = Move | Stop | Track
 
 
 class Sequencer:
@@ -54,6 +64,9 @@ class Sequencer:
         self._approach_stopping = False
         self._arrived = 0
         self._abort_pending = False
+        self._force_from: float | None = None  # the force when a force ramp started
+        self._last_force = 0.0
+        self.setpoint_N: float | None = None  # the force step's setpoint this tick
 
     # -------------------------------------------------------------- state
     @property
@@ -103,15 +116,21 @@ class Sequencer:
         for i, (_, step) in enumerate(self.steps):
             if i < self.index:
                 continue
+            if isinstance(step, RampForce):  # from the setpoint it starts at, as far as known now
+                start = self._force_from if i == self.index and self._force_from is not None else (
+                    self.setpoint_N or 0.0)
+                span = abs(step.to_N - start) / step.rate_N_s
+                left += max(span - (t - self.step_t0 if i == self.index else 0.0), 0.0)
+                continue
             if i == self.index:
                 elapsed = t - self.step_t0
-                if isinstance(step, Hold):
+                if isinstance(step, Hold | HoldForce):
                     left += max(step.longest_s - elapsed, 0.0)
                 else:
                     left += max(move_time(self._from_mm, self._target_mm, self._speed,
                                            self._step_accel) - elapsed, 0.0)
                 continue
-            if isinstance(step, Hold):
+            if isinstance(step, Hold | HoldForce):
                 left += step.longest_s
             else:
                 target = self._resolve_target(step)
@@ -122,6 +141,7 @@ class Sequencer:
     # -------------------------------------------------------------- ticking
     def tick(self, t: float, position_mm: float, force_N: float, moving: bool | None) -> list[Command]:
         """Advance on this tick's measurements; returns commands to carry out now."""
+        self._last_force = force_N
         if self.done:
             return []
         if self._abort_pending:
@@ -132,6 +152,8 @@ class Sequencer:
         if self.index < 0:
             return self._next(t) if t >= self.tare_s else []
         step = self.step
+        if isinstance(step, FORCE_STEPS):
+            return self._tick_force(step, t, force_N)
         if isinstance(step, Hold):
             return self._tick_hold(step, t, force_N)
         if isinstance(step, Approach):
@@ -144,6 +166,29 @@ class Sequencer:
         else:
             self._arrived = 0
         return []
+
+    def _tick_force(self, step: RampForce | HoldForce, t: float, force_N: float) -> list[Command]:
+        elapsed = t - self.step_t0
+        if isinstance(step, HoldForce):
+            if elapsed >= step.duration_s - 0.5 / self.rate:
+                return self._next(t)
+            self.setpoint_N = step.force_N
+        else:
+            if self._force_from is None:
+                self._force_from = force_N
+            span = abs(step.to_N - self._force_from)
+            if elapsed >= span / step.rate_N_s:
+                self.setpoint_N = step.to_N
+                return self._next(t)
+            gone = math.copysign(step.rate_N_s * elapsed, step.to_N - self._force_from)
+            self.setpoint_N = self._force_from + gone
+        limit = None if step.max_mm is None else self.zero_mm + step.max_mm
+        rate = math.copysign(step.rate_N_s, step.to_N - self._force_from) if isinstance(step, RampForce) else 0.0
+        return [Track(self.setpoint_N, limit, rate)]
+
+    def follow(self, target_mm: float) -> None:
+        """Where the force loop sent the slider: the next position step moves on from there."""
+        self._target_mm = target_mm
 
     def _tick_hold(self, step: Hold, t: float, force_N: float) -> list[Command]:
         elapsed = t - self.step_t0
@@ -193,15 +238,18 @@ class Sequencer:
         self._contact_count = 0
         self._approach_stopping = False
         self._arrived = 0
+        self._force_from = None
         if self.index >= len(self.steps):
             self.done = True
             self._speed = 0.0
             return []
         step = self.step
-        if isinstance(step, Hold):
+        if not isinstance(step, FORCE_STEPS):
+            self.setpoint_N = None
+        if isinstance(step, Hold | RampForce | HoldForce):
             self._from_mm = self._target_mm
             self._speed = 0.0
-            return []
+            return self._tick_force(step, t, self._last_force) if isinstance(step, FORCE_STEPS) else []
         self._from_mm = self._target_mm
         self._target_mm = self._resolve_target(step)
         self._speed = step.speed_mm_s

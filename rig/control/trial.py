@@ -35,9 +35,10 @@ import numpy as np
 from rig import __version__
 from rig.clock import Clock, RealClock
 from rig.control.estimator import StiffnessRLS
+from rig.control.force import STIFFNESS_FLOOR_SHARE, ForceLoop
 from rig.control.movewatch import MoveWatch
 from rig.control.safety import Fault, SpeedMeter, TickState, check, check_move
-from rig.control.sequencer import Move, Sequencer, Stop
+from rig.control.sequencer import Move, Sequencer, Stop, Track
 from rig.control.stopping import Ending, StopMode
 from rig.control.zero import Zero, known_zero
 from rig.drivers.base import LinkStats, LoadCell, Slider, SliderStatus
@@ -91,6 +92,7 @@ class _Loop:
     seq: Sequencer
     ending: Ending
     speedometer: SpeedMeter
+    force_loop: ForceLoop
     taring: bool
     zero_N: float | None
     next_health: float
@@ -105,6 +107,8 @@ class _Loop:
     x_prev_m: float = 0.0
     last_step: int = -2
     health_mark: int = 0
+    stiffness_N_per_m: float = 0.0  # the estimator's last reading: the force loop's gain
+    force_error_N: float | None = None  # a force step's setpoint less the force, this tick
 
 
 @dataclass
@@ -470,7 +474,12 @@ class Trial:
         if self.online is not None:
             self.online.reset()
         self.snapshot = replace(self.snapshot, state="running")
+        lim = self.limits
+        span_m = max(lim.travel_mm[1] - lim.travel_mm[0], 1e-3) / 1000.0
+        force_loop = ForceLoop(self.period, lim.max_speed_mm_s,
+                               STIFFNESS_FLOOR_SHARE * lim.max_force_N / span_m)
         return _Loop(t0=t0, seq=seq, ending=Ending(), speedometer=SpeedMeter(2.0 * self.period),
+                     force_loop=force_loop,
                      taring=self.loadcell is not None,  # averaging the tare until tare_s, then judging it once
                      zero_N=self.zero.value_N if self.zero is not None else None,
                      next_health=cfg.loop.health_every_s,
@@ -630,8 +639,14 @@ class Trial:
             return
         seq, lim, t = L.seq, self.limits, k.t
         seq_moving = True if L.watch is not None else k.moving
+        L.force_error_N = None
+        tracking = False
         for cmd in seq.tick(t, k.pos, k.force, seq_moving) if k.pr.fresh else ():
-            if isinstance(cmd, Move):
+            if isinstance(cmd, Track):
+                tracking = True
+                if not self._track(rec, L, k, cmd):
+                    break
+            elif isinstance(cmd, Move):
                 why = check_move(cmd.to_mm, cmd.speed_mm_s, lim)
                 if why is not None:
                     self._fault(rec, L, Fault("move_limit", f"move refused: {why}"), k)
@@ -643,6 +658,8 @@ class Trial:
             elif isinstance(cmd, Stop):
                 L.watch = None
                 self._send_stop(L, t)
+        if not tracking and seq.setpoint_N is None:
+            L.force_loop.release()  # a position step (or the end) took over
         if seq.index != L.last_step and seq.index >= 0 and not seq.done:
             step = seq.step
             self._event(rec, t, "step_start", f"step {seq.index}: {step.kind}",
@@ -650,10 +667,27 @@ class Trial:
                          "zero_mm": seq.zero_mm, "target_mm": seq.target_mm - seq.zero_mm})
         L.last_step = seq.index
 
+    def _track(self, rec: Recorder, L: _Loop, k: _Tick, cmd: Track) -> bool:
+        """A force step's tick: the force loop's next position, limited to the step's deepest,
+        checked against the limits before it is sent (False: refused, and faulted)."""
+        fc = L.force_loop.command(cmd.setpoint_N, k.force, L.stiffness_N_per_m, k.pos, cmd.rate_N_s)
+        target = fc.target_mm if cmd.limit_mm is None else min(fc.target_mm, cmd.limit_mm)
+        L.force_error_N = fc.error_N
+        why = check_move(target, fc.speed_mm_s, self.limits)
+        if why is not None:
+            self._fault(rec, L, Fault("move_limit", f"force loop move refused: {why}"), k)
+            return False
+        self.slider.move_to(target, fc.speed_mm_s, self.config.slider.accel_mm_s2)
+        L.ending.on_move()
+        L.watch = None  # a stream of small moves: the limits are checked every tick instead
+        L.seq.follow(target)
+        return True
+
     def _estimate(self, L: _Loop, k: _Tick):
         """The online stiffness (RLS) on the previous tick's position and this tick's force."""
         est = self.rls.update(L.x_prev_m, k.force)
         L.x_prev_m = (k.pos - L.seq.zero_mm) / 1000.0
+        L.stiffness_N_per_m = est.stiffness_N_per_m
         return est
 
     def _record(self, rec: Recorder, L: _Loop, k: _Tick, est) -> None:
@@ -661,6 +695,9 @@ class Trial:
         seq, t = L.seq, k.t
         kind = "fault" if L.ending.fault else seq.kind
         model = {}
+        if L.force_error_N is not None:
+            model["force_cmd_N"] = seq.setpoint_N
+            model["force_error_N"] = L.force_error_N
         if k.force_model is not None:
             model["force_model_N"] = k.force_model
             if self.loadcell is not None:

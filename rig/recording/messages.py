@@ -101,11 +101,14 @@ SAMPLE = MessageType("/rig/sample", "rig.Sample", "One loop tick.", (
     _num("forgetting", "forgetting factor used this tick (1 = no update)"),
     Field("contact", "boolean", "estimator updated (probe in contact)", required=False),
     _int("step", "step index (-1 tare)"),
-    Field("step_kind", "string", "tare, ramp, hold, return, approach, fault, done", required=False),
+    Field("step_kind", "string", "tare, ramp, hold, return, approach, ramp_force, hold_force, fault, done",
+          required=False),
     _num("late_ms", "tick start after its scheduled time, ms"),
     _num("force_model_N", "the loaded model's force from the measured position (if a model runs), N",
          required=False),
     _num("model_error_N", "force_N - force_model_N, N", required=False),
+    _num("force_cmd_N", "a force-controlled step's setpoint this tick, N", required=False),
+    _num("force_error_N", "force_cmd_N - force_N, N", required=False),
 ))
 
 EVENT = MessageType("/rig/event", "rig.Event", "", (

@@ -65,8 +65,37 @@ class Approach:
     kind: str = "approach"
 
 
-Step = Ramp | Hold | Return | Approach
-STEP_KINDS = ("ramp", "hold", "return", "approach")
+@dataclass(frozen=True)
+class RampForce:
+    """Force control: the force's setpoint ramps from the force at the step's start to `to_N`
+    at `rate_N_s`; the force loop moves the slider (never deeper than `max_mm` from the working
+    zero, when given; the travel window always)."""
+
+    to_N: float
+    rate_N_s: float
+    max_mm: float | None = None
+    line: int = 0
+    kind: str = "ramp_force"
+
+
+@dataclass(frozen=True)
+class HoldForce:
+    """Force control: hold the force at `force_N` for `duration_s` (the indentation creeps)."""
+
+    force_N: float
+    duration_s: float
+    max_mm: float | None = None
+    line: int = 0
+    kind: str = "hold_force"
+
+    @property
+    def longest_s(self) -> float:
+        return self.duration_s
+
+
+Step = Ramp | Hold | Return | Approach | RampForce | HoldForce
+FORCE_STEPS = (RampForce, HoldForce)
+STEP_KINDS = ("ramp", "hold", "return", "approach", "ramp_force", "hold_force")
 
 
 @dataclass(frozen=True)
@@ -117,6 +146,8 @@ _STEP_KEYS = {
     "hold": ("duration_s", "until_rate_N_s", "max_s", "window_s"),
     "return": ("to_mm", "speed_mm_s"),
     "approach": ("speed_mm_s", "contact_N", "max_mm"),
+    "ramp_force": ("to_N", "rate_N_s", "max_mm"),
+    "hold_force": ("force_N", "duration_s", "max_mm"),
 }
 
 
@@ -198,6 +229,14 @@ def _parse_step(node: Marked, path: str, i: int) -> Step:
     if kind == "return":
         return Return(speed_mm_s=v.number("speed_mm_s", required=True, gt=0),
                       to_mm=v.number("to_mm"), line=line)
+    if kind == "ramp_force":
+        return RampForce(to_N=v.number("to_N", required=True),
+                         rate_N_s=v.number("rate_N_s", required=True, gt=0), max_mm=v.number("max_mm"),
+                         line=line)
+    if kind == "hold_force":
+        return HoldForce(force_N=v.number("force_N", required=True),
+                         duration_s=v.number("duration_s", required=True, gt=0), max_mm=v.number("max_mm"),
+                         line=line)
     return Approach(speed_mm_s=v.number("speed_mm_s", required=True, gt=0),
                     contact_N=v.number("contact_N", required=True, gt=0),
                     max_mm=v.number("max_mm", required=True), line=line)
@@ -248,6 +287,14 @@ def check_limits(proto: Protocol, config: RigConfig, start_mm: float | None = No
             zero_lo, zero_hi = min(zero_lo, *targets), max(zero_hi, *targets)
         elif isinstance(step, Ramp | Return) and step.to_mm is not None:
             targets = [zero_lo + step.to_mm, zero_hi + step.to_mm]
+        elif isinstance(step, FORCE_STEPS):
+            target_N = step.to_N if isinstance(step, RampForce) else step.force_N
+            if abs(target_N) >= eff.max_force_N:
+                raise refuse(step.line, f"{step.kind} to {target_N:g} N is not below the force limit "
+                                        f"{eff.max_force_N:g} N")
+            if step.max_mm is None:
+                continue
+            targets = [zero_lo + step.max_mm, zero_hi + step.max_mm]
         else:
             continue
         for t in targets:
@@ -284,10 +331,20 @@ def plan(proto: Protocol, config: RigConfig) -> Plan:
     depths: list[float] = []
     speeds: list[float] = []
     upper = False
+    force = 0.0
     for _, step in proto.run_steps():
         if isinstance(step, Hold):
             upper |= step.until_rate_N_s is not None
             segments.append(np.full(max(round(step.longest_s * rate), 1), pos))
+            continue
+        if isinstance(step, FORCE_STEPS):
+            # the motion follows the specimen: planned as standing, for as long as the step lasts
+            # (a ramp from the force the plan last knew)
+            to = step.to_N if isinstance(step, RampForce) else step.force_N
+            span = abs(to - force) / step.rate_N_s if isinstance(step, RampForce) else step.duration_s
+            force = to
+            upper = True
+            segments.append(np.full(max(round(span * rate), 1), pos))
             continue
         if isinstance(step, Approach):
             target = zero + step.max_mm / 2.0

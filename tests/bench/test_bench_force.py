@@ -1,0 +1,32 @@
+"""The force loop over Modbus RTU at 100 Hz on the real clock, five seeds on each of three
+tissues 100x apart in stiffness (tests/test_force_control.py runs one seed each):
+
+    python -m pytest -p no:cacheprovider tests/bench/test_bench_force.py -s -q
+
+Prints overshoot, settling time, RMS error over the sensor noise and the creep of every run."""
+
+from __future__ import annotations
+
+import pytest
+
+from rig.recording.logs import read_log
+from rig.service.run import RunOptions, run_trial
+from rig.specs.protocol import parse_protocol
+from tests.test_force_control import TISSUES, _check, _config, _measure, _protocol
+
+
+@pytest.mark.parametrize("tissue", TISSUES)
+def test_force_holds_over_rtu_five_seeds(tissue, tmp_path):
+    target = TISSUES[tissue][2]
+    for seed in range(1, 6):
+        cfg = _config(tissue, seed)
+        cfg.sim.wire = "rtu"
+        result = run_trial(parse_protocol(_protocol(target), "<bench>"), cfg,
+                           RunOptions(speed=1.0, progress=False, log_path=tmp_path / f"{seed}.mcap"))
+        assert result.outcome == "completed", result.fault
+        log = read_log(result.log_path)
+        m = _measure(log, target)
+        print(f"\n{tissue} seed {seed}: overshoot {100 * m['overshoot']:.1f} %, settled in {m['settle_s']:.2f} s, "
+              f"RMS error {m['rms_over_noise']:.2f}x the noise, creep {m['creep_mm']:.2f} mm, "
+              f"late ticks {result.late_ticks}")
+        _check(m)
