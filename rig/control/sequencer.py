@@ -183,7 +183,9 @@ class Sequencer:
             gone = math.copysign(step.rate_N_s * elapsed, step.to_N - self._force_from)
             self.setpoint_N = self._force_from + gone
         limit = None if step.max_mm is None else self.zero_mm + step.max_mm
-        rate = math.copysign(step.rate_N_s, step.to_N - self._force_from) if isinstance(step, RampForce) else 0.0
+        rate = 0.0
+        if isinstance(step, RampForce):
+            rate = math.copysign(step.rate_N_s, step.to_N - self._force_from)
         return [Track(self.setpoint_N, limit, rate)]
 
     def follow(self, target_mm: float) -> None:
