@@ -27,6 +27,6 @@ def test_force_holds_over_rtu_five_seeds(tissue, tmp_path):
         log = read_log(result.log_path)
         m = _measure(log, target)
         print(f"\n{tissue} seed {seed}: overshoot {100 * m['overshoot']:.1f} %, "
-              f"settled in {m['settle_s']:.2f} s, RMS error {m['rms_over_noise']:.2f}x the noise, creep {m['creep_mm']:.2f} mm, "
-              f"late ticks {result.late_ticks}")
+              f"settled in {m['settle_s']:.2f} s, RMS error {m['rms_over_noise']:.2f}x the noise, "
+              f"creep {m['creep_mm']:.2f} mm, late ticks {result.late_ticks}")
         _check(m)
