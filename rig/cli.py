@@ -532,6 +532,8 @@ def _rig_config(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from rig.sim.afm_map import add_map_parser
+
     p = argparse.ArgumentParser(
         prog="rig", description="Soft-tissue indentation rig: run and control trials, replay logs, fit and "
                                     "diagnose force models.",
@@ -666,6 +668,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--json", action="store_true", help="print the endpoints as one JSON line")
     r.add_argument("--exit-with-parent", action="store_true", help="exit when stdin closes")
     r.set_defaults(func=cmd_sim)
+    add_map_parser(sub)  # rig sim-map: a simulated AFM force map with its truth
 
     r = sub.add_parser("models", help="list the effects catalogue and the named models",
                        description="The effects a force model is built from, with equations, parameters "
