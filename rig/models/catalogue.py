@@ -6,6 +6,8 @@ import numpy as np
 
 from rig.models.core import Effect, Model, Motion, Param, first_order_lag
 from rig.models.fractional import fractional_maxwell
+from rig.models.viscoelastic import MODELS as VISCOELASTIC_EFFECTS
+from rig.models.viscoelastic import viscoelastic_effect
 
 INF = np.inf
 FRICTION_ROUNDING = 0.02
@@ -182,6 +184,12 @@ NAMED_MODELS: dict[str, list[str]] = {
     "proposed": ["poly_elastic", "nonlinear_damping", "relaxation"],
 }
 
+# Viscoelastic contact for the record's indenter (rig.models.viscoelastic: Lee-Radok and Ting under
+# a relaxation modulus), the contact point fitted as hertz's. Built when a model names it, from the
+# indenter the elastic contact holds; not among the models --compare ranks.
+VISCOELASTIC_MODELS: dict[str, list[str]] = {
+    model: [effect, "contact_point", "offset"] for model, effect in VISCOELASTIC_EFFECTS.items()}
+
 
 CONTACT = "elastic_contact"  # the effect an indenter brings (rig.models.contact)
 NEEDS_INDENTER = ("needs the indenter's geometry, which the record does not name: give --indenter (e.g. "
@@ -196,6 +204,9 @@ def contact_effect(indenter, poisson: float = 0.5) -> Effect:
 
     def _elastic_contact(x, v, E_Pa):
         return E_Pa * geometry_factor(indenter, x, poisson)
+
+    # what a viscoelastic contact on the same record is built from (build_model)
+    _elastic_contact.indenter, _elastic_contact.poisson = indenter, poisson
 
     law = {"paraboloid": "Hertz", "sphere": "Sneddon's exact sphere", "cone": "Sneddon's cone",
            "pyramid": "Bilodeau's pyramid", "cylinder": "Boussinesq's flat punch"}[indenter.kind]
@@ -234,16 +245,22 @@ def build_model(name: str, extra: list[str] | None = None,
     from rig.errors import RigError, did_you_mean
 
     reg = registry or CATALOGUE
-    if name not in NAMED_MODELS and name not in reg:
-        if name == CONTACT:
+    models = {**NAMED_MODELS, **VISCOELASTIC_MODELS}
+    indenter_effects = (CONTACT, *VISCOELASTIC_EFFECTS.values())
+    if name not in models and name not in reg:
+        if name in indenter_effects:
             raise RigError(f"'{name}' {NEEDS_INDENTER}")
-        raise RigError(f"unknown model '{name}'{did_you_mean(name, [*NAMED_MODELS, *reg])}; "
+        raise RigError(f"unknown model '{name}'{did_you_mean(name, [*models, *reg])}; "
                        "`rig models` lists them")
-    names = NAMED_MODELS.get(name, [name])
-    if CONTACT in names and CONTACT not in reg:
+    names = models.get(name, [name])
+    wanted = [n for n in [*names, *(extra or [])] if n in VISCOELASTIC_EFFECTS.values() and n not in reg]
+    law = reg[CONTACT].fn if CONTACT in reg else None
+    if wanted and hasattr(law, "indenter"):
+        reg = {**reg, **{n: viscoelastic_effect(n, law.indenter, law.poisson) for n in wanted}}
+    if any(n in indenter_effects and n not in reg for n in names):
         raise RigError(f"the {name} model {NEEDS_INDENTER}")
     for n in extra or []:
-        if n == CONTACT and n not in reg:
+        if n in indenter_effects and n not in reg:
             raise RigError(f"'{n}' {NEEDS_INDENTER}")
         if n not in reg:
             raise RigError(f"unknown effect '{n}'{did_you_mean(n, reg)}; `rig models` lists the catalogue")
@@ -278,4 +295,6 @@ def format_catalogue(effects: dict[str, Effect]) -> str:
     lines += [f"  {n:<14} {' + '.join(parts)}" for n, parts in NAMED_MODELS.items()]
     if CONTACT not in effects:
         lines.append(f"  (hertz: E in Pa for the indenter; it {NEEDS_INDENTER})")
+    lines.append("\nviscoelastic contact for the indenter (Lee-Radok and Ting; rig.models.viscoelastic)")
+    lines += [f"  {n:<14} {' + '.join(parts)}" for n, parts in VISCOELASTIC_MODELS.items()]
     return "\n".join(lines)
