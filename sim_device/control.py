@@ -14,7 +14,7 @@ import threading
 from dataclasses import fields
 
 from rig.sim.params import SimParams
-from rig.sim.server import WireSim
+from rig.sim.server import WireSim, wire_note
 
 from rig.realtime import Realtime
 
@@ -44,7 +44,7 @@ def serve_sim(params: SimParams, *, loop_priority: int = 0, json_out: bool = Fal
     else:
         host, port = ep.modbus_tcp.rsplit(":", 1)
         print(f"simulated drive   Modbus TCP {ep.modbus_tcp}  |  Modbus RTU {ep.modbus_rtu} "
-              f"(115200 8N1, unit {params.drive.device_id})\n"
+              f"({wire_note(params)}, unit {params.drive.device_id})\n"
               f"simulated load cell  {ep.loadcell}  ({params.loadcell.mode}, "
               f"{params.loadcell.rate_Hz:g} lines/s)\n\n"
               "For a rig config (RTU):\n"

@@ -46,8 +46,13 @@ class LoadCellParams:
     mode: str = field(default="stream", metadata={"choices": ["stream", "poll"]})
     rate_Hz: float = field(default=200.0, **_pos(gt=0, le=2000))
     line_format: str = "{force_N:+.4f} N"
-    # poll mode: the reply leaves this long after the request (conversion and transmit time)
+    # poll mode: the reply leaves this long after the request (conversion time; the bytes'
+    # own time on the line comes on top when the wire is paced)
     reply_ms: float = field(default=0.0, **_pos(ge=0, le=1000))
+    # Its serial line (RS-232, full duplex): each direction paced at this rate and frame.
+    baudrate: int = field(default=115200, **_pos(gt=0))
+    parity: str = field(default="N", metadata={"choices": ["N", "E", "O"]})
+    stopbits: int = field(default=1, **_pos(ge=1, le=2))
 
 
 @dataclass
@@ -57,6 +62,12 @@ class DriveParams:
     comm_timeout_s: float = field(default=0.5, **_pos(ge=0))  # 0 = off; alarm 0x85 when exceeded
     home_speed_mm_s: float = field(default=5.0, **_pos(gt=0))
     device_id: int = field(default=1, **_pos(ge=1, le=247))
+    # Its RS-485 line (half duplex: a request and its reply take turns): the BAUD switch and
+    # the frame, which set how long each byte takes (11 bits in 8E1, 10 in 8N1). The pseudo-
+    # terminal itself is opened 8N1 whatever these say: ptys do not emulate parity.
+    baudrate: int = field(default=115200, **_pos(gt=0))
+    parity: str = field(default="N", metadata={"choices": ["N", "E", "O"]})
+    stopbits: int = field(default=1, **_pos(ge=1, le=2))
 
 
 @dataclass
@@ -179,6 +190,14 @@ class SimParams:
     # `rig sim` stands in for hardware with CPUs of its own: it asks for real-time scheduling
     # (below the loop's priority) so a busy machine does not make the simulated drive late.
     realtime: str = field(default="auto", metadata={"choices": ["auto", "off"]})
+    # The wire as slow as a lab's: the drive's and the load cell's serial bytes take their time
+    # on the line (baud rate and frame, `drive.baudrate`, `loadcell.baudrate`), and every byte
+    # from a device waits `usb_latency_ms` in the USB-serial adapter (an FTDI's latency timer:
+    # 16 ms out of the box, 1 ms tuned). false: a pseudo-terminal's instant bytes.
+    pace_wire: bool = True
+    usb_latency_ms: float = field(default=1.0, **_pos(ge=0, le=100))
+    # Modbus TCP is not paced by baud; a reply can be made this late (a gateway, a network).
+    tcp_latency_ms: float = field(default=0.0, **_pos(ge=0, le=1000))
     tissue: TissueParams = field(default_factory=TissueParams)
     slider: SliderParams = field(default_factory=SliderParams)
     loadcell: LoadCellParams = field(default_factory=LoadCellParams)

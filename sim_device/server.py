@@ -11,7 +11,10 @@ configured timeout the drive stops and raises alarm 0x85, like the real one.
 RTU runs through a byte bridge between two pseudo-terminals (server side, client
 side), TCP through a loopback proxy; the bridges are where line faults are injected:
 lost replies, corrupted CRCs (RTU), late replies. Faults are fields of `FaultParams`
-and can be changed while the devices run.
+and can be changed while the devices run. The bridges and the load cell are also where
+the wire gets its speed (`rig.sim.line`): with `sim.pace_wire` every byte takes its time on
+the line at the configured baud rate and frame, and the USB adapter's latency on the way
+back, so a loop rate proven here is one the lab's wire allows.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from pymodbus import FramerType
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 from rig.drivers.registers import PROFILES, RegisterMap, from_words, to_words
+from rig.sim.line import Framing, Line, PacedWriter
 from rig.sim.params import SimParams
 from rig.sim.physics import SimRig
 
@@ -175,6 +179,33 @@ class SimDrive:
                 self.rig.slider.stop()
 
 
+def drive_line(params: SimParams, baudrate: int | None = None) -> Line | None:
+    """The drive's RS-485 line as configured (None: not paced, bytes as fast as the pty)."""
+    if not params.pace_wire:
+        return None
+    d = params.drive
+    return Line(Framing(baudrate or d.baudrate, d.parity, d.stopbits), params.usb_latency_ms / 1000.0)
+
+
+def loadcell_lines(params: SimParams) -> tuple[Line, Line] | None:
+    """The load cell's two directions (RS-232 is full duplex): to the host (with the USB
+    adapter's latency) and from it."""
+    if not params.pace_wire:
+        return None
+    lc = params.loadcell
+    framing = Framing(lc.baudrate, lc.parity, lc.stopbits)
+    return Line(framing, params.usb_latency_ms / 1000.0), Line(framing)
+
+
+def wire_note(params: SimParams, baudrate: int | None = None) -> str:
+    """How fast the simulated drive's line is, for people: '115200 8N1, paced, USB latency 1 ms'."""
+    d = params.drive
+    frame = Framing(baudrate or d.baudrate, d.parity, d.stopbits).describe()
+    if not params.pace_wire:
+        return f"{frame}, not paced: bytes as fast as the pty"
+    return f"{frame}, paced, USB latency {params.usb_latency_ms:g} ms"
+
+
 def reply_faults(faults, data: bytes, *, corrupt: bool) -> bytes | None:
     """A reply on its way back to the master: lost (None), corrupted or late, as switched."""
     if faults.drop_replies > 0:
@@ -194,9 +225,12 @@ def reply_faults(faults, data: bytes, *, corrupt: bool) -> bytes | None:
 class TcpBridge:
     """A loopback TCP proxy in front of the Modbus TCP server: where TCP replies get lost or late."""
 
-    def __init__(self, faults, listen_port: int, target_port: int) -> None:
+    def __init__(self, faults, listen_port: int, target_port: int, latency_s: float = 0.0) -> None:
         self.faults = faults
         self.target_port = target_port
+        # TCP has no baud rate; a latency only, when asked for
+        self.line = Line(None, latency_s) if latency_s > 0 else None
+        self._writer = PacedWriter("tcp-paced") if self.line is not None else None
         self._listener = socket.create_server(("127.0.0.1", listen_port))
         self._listener.settimeout(0.05)
         self._stop = threading.Event()
@@ -236,7 +270,11 @@ class TcpBridge:
                         upstream.sendall(data)
                         continue
                     data = reply_faults(self.faults, data, corrupt=False)
-                    if data is not None:
+                    if data is None:
+                        continue
+                    if self._writer is not None:
+                        self._writer.put(_socket_writer(client), self.line.pieces(data, time.monotonic()))
+                    else:
                         client.sendall(data)
 
     def close(self) -> None:
@@ -244,7 +282,16 @@ class TcpBridge:
         self._accept.join(2.0)
         for t in self._threads:
             t.join(2.0)
+        if self._writer is not None:
+            self._writer.close()
         self._listener.close()
+
+
+def _socket_writer(sock: socket.socket):
+    def write(data: bytes) -> None:
+        with contextlib.suppress(OSError):  # the master hung up while its reply was on the way
+            sock.sendall(data)
+    return write
 
 
 def _raw_pty() -> tuple[int, int, str]:
@@ -263,9 +310,12 @@ class RtuBridge:
     same `link_path` when one was given, as udev's by-id names do).
     """
 
-    def __init__(self, faults, link_path: str | None = None) -> None:
+    def __init__(self, faults, link_path: str | None = None, line: Line | None = None) -> None:
         self.faults = faults
         self.link_path = link_path
+        self.line = line if line is not None and line.paced else None
+        self._writer = PacedWriter("rtu-paced") if self.line is not None else None
+        self._generation = 0  # a reply still on the line when the port vanished is not for its successor
         self._lock = threading.Lock()
         self.server_master, self._server_slave, self.server_path = _raw_pty()
         self.client_master, self._client_slave, self.client_path = _raw_pty()
@@ -318,6 +368,7 @@ class RtuBridge:
         with self._lock:
             if self.client_master < 0:
                 self.client_master, self._client_slave, self.client_path = _raw_pty()
+                self._generation += 1
                 self._link()
         return self.path
 
@@ -332,6 +383,9 @@ class RtuBridge:
                 ready, _, _ = select.select(fds, [], [], 0.05)
             except (OSError, ValueError):
                 return
+            # No later than the bytes were written: the pacing counts from here, so a reply is
+            # never early
+            arrived = time.monotonic()
             for fd in ready:
                 try:
                     data = _read_all(fd)
@@ -340,16 +394,40 @@ class RtuBridge:
                 if not data:
                     continue
                 if fd == cm:
-                    _write_all(sm, data)
+                    if self._writer is not None:
+                        # the drive acts on a whole frame: it gets the request once its last byte is in
+                        self._writer.put(self._to_server,
+                                         self.line.pieces(data, arrived, latency=False, trickle=False))
+                    else:
+                        _write_all(sm, data)
                     continue
                 data = reply_faults(self.faults, data, corrupt=True)
+                if data is None:
+                    continue
+                if self._writer is not None:
+                    # a delayed reply (reply_delay_ms) starts on the line when it is sent
+                    ready_s = max(arrived, time.monotonic()) if self.faults.reply_delay_ms > 0 else arrived
+                    self._writer.put(self._to_client(self._generation), self.line.pieces(data, ready_s))
+                    continue
                 with self._lock:
-                    if data is not None and self.client_master >= 0:
+                    if self.client_master >= 0:
                         _write_all(self.client_master, data)
+
+    def _to_server(self, data: bytes) -> None:
+        _write_all(self.server_master, data)
+
+    def _to_client(self, generation: int):
+        def write(data: bytes) -> None:
+            with self._lock:
+                if self.client_master >= 0 and self._generation == generation:
+                    _write_all(self.client_master, data)
+        return write
 
     def close(self) -> None:
         self._stop.set()
         self._thread.join(2.0)
+        if self._writer is not None:
+            self._writer.close()
         for fd in (self.server_master, self._server_slave, self.client_master, self._client_slave):
             if fd >= 0:
                 with contextlib.suppress(OSError):
@@ -398,6 +476,10 @@ class LoadCellPort:
         self.origin_s = origin_s
         self.master, self._slave, self.path = _raw_pty()
         self.lines = 0
+        lines = loadcell_lines(params)
+        self.tx, self.rx = lines if lines is not None else (None, None)
+        self._writer = PacedWriter("loadcell-paced") if self.tx is not None else None
+        self._fd_lock = threading.Lock()  # the paced writer must not write to a descriptor closed under it
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="loadcell-pty", daemon=True)
         self._thread.start()
@@ -412,6 +494,22 @@ class LoadCellPort:
         force = self.rig.read_force_N()
         return (self.params.loadcell.line_format.format(force_N=force) + "\r\n").encode()
 
+    def _send(self, data: bytes) -> None:
+        if self._writer is None:
+            _write_all(self.master, data)
+            return
+        self._writer.put(self._write, self.tx.pieces(data, time.monotonic()))
+
+    def _write(self, data: bytes) -> None:
+        with self._fd_lock:
+            if self.master >= 0:
+                _write_all(self.master, data)
+
+    def _wait_until(self, t: float) -> None:
+        delay = t - time.monotonic()
+        if delay > 0:
+            self._stop.wait(delay)
+
     def _run(self) -> None:
         lc = self.params.loadcell
         period = 1.0 / lc.rate_Hz
@@ -425,15 +523,18 @@ class LoadCellPort:
             if lc.mode == "poll":
                 ready, _, _ = select.select([self.master], [], [], 0.02)
                 if ready:
+                    arrived = time.monotonic()
                     pending += _read_all(self.master)
                     while b"\n" in pending or b"\r" in pending:
                         cut = min(i for i in (pending.find(b"\n"), pending.find(b"\r")) if i >= 0)
                         req = bytes(pending[:cut]).strip()
                         del pending[: cut + 1]
+                        # the request's bytes take their time to arrive before the cell can answer
+                        heard = self.rx.carry(cut + 1, arrived)[1] if self.rx is not None else arrived
                         if req and not f.loadcell_silent:
-                            if lc.reply_ms > 0:  # conversion and transmit time of a real cell
-                                self._stop.wait(lc.reply_ms / 1000.0)
-                            _write_all(self.master, self._line())
+                            # conversion time of a real cell (its reply's transmit time is the line's)
+                            self._wait_until(heard + lc.reply_ms / 1000.0)
+                            self._send(self._line())
                 continue
             next_t += period
             delay = next_t - time.monotonic()
@@ -441,18 +542,27 @@ class LoadCellPort:
                 self._stop.wait(delay)
             else:
                 next_t = time.monotonic()
+            if self.tx is not None and self.tx.free_at() > time.monotonic():
+                # a line too slow for the rate: the cell sends its next reading when the last
+                # one is out, so the rate the host sees is the line's
+                self._wait_until(self.tx.free_at())
+                next_t = time.monotonic()
             if not f.loadcell_silent:
-                _write_all(self.master, self._line())
+                self._send(self._line())
 
     def _disconnect(self) -> None:
-        for fd in (self.master, self._slave):
-            with contextlib.suppress(OSError):
-                os.close(fd)
-        self.master = self._slave = -1
+        with self._fd_lock:
+            for fd in (self.master, self._slave):
+                if fd >= 0:
+                    with contextlib.suppress(OSError):
+                        os.close(fd)
+            self.master = self._slave = -1
 
     def close(self) -> None:
         self._stop.set()
         self._thread.join(2.0)
+        if self._writer is not None:
+            self._writer.close()
         self._disconnect()
 
 
@@ -467,14 +577,14 @@ class WireSim:
 
     def __init__(self, params: SimParams | None = None, *, tcp: bool = True, rtu: bool = True,
                  loadcell: bool = True, tcp_port: int = 0, profile: str = "oriental_az_sim",
-                 baudrate: int = 115200, rtu_link: str | None = None) -> None:
+                 baudrate: int | None = None, rtu_link: str | None = None) -> None:
         self.params = params or SimParams()
         self.rig = SimRig(self.params)
         self.origin_s = time.monotonic()
         self.drive = SimDrive(self.rig, PROFILES[profile], self.params, self.origin_s)
         self.want = {"tcp": tcp, "rtu": rtu, "loadcell": loadcell}
         self.tcp_port = tcp_port or (free_tcp_port() if tcp else 0)
-        self.baudrate = baudrate
+        self.baudrate = baudrate or self.params.drive.baudrate
         self.rtu_link = rtu_link  # a stable path (symlink) to the RTU port, kept across vanish/restore
         self.bridge: RtuBridge | None = None
         self.tcp_bridge: TcpBridge | None = None
@@ -525,10 +635,13 @@ class WireSim:
             server = ModbusTcpServer(device(self.drive.action), address=("127.0.0.1", inner_port))
             await server.serve_forever(background=True)
             servers.append(server)
-            self.tcp_bridge = TcpBridge(self.params.faults, self.tcp_port, inner_port)
+            self.tcp_bridge = TcpBridge(self.params.faults, self.tcp_port, inner_port,
+                                        self.params.tcp_latency_ms / 1000.0)
             tcp = f"127.0.0.1:{self.tcp_port}"
         if self.want["rtu"]:
-            self.bridge = RtuBridge(self.params.faults, self.rtu_link)
+            self.bridge = RtuBridge(self.params.faults, self.rtu_link, drive_line(self.params, self.baudrate))
+            # 8N1 on the pty whatever the drive's frame: ptys do not emulate parity (and refuse
+            # even parity on some kernels); the frame's length is the paced line's business
             server = ModbusSerialServer(device(self.drive.action), framer=FramerType.RTU,
                                         port=self.bridge.server_path,
                                         baudrate=self.baudrate, bytesize=8, parity="N", stopbits=1)
