@@ -1,0 +1,96 @@
+"""Simulated force maps through `rig analyze` curve by curve (`rig sim-map` writes them, in
+afmformats' HDF5, with their truth):
+
+    python -m pytest -p no:cacheprovider tests/bench/test_bench_map.py -s -q
+
+- the hidden region: a 16x16 map whose drifting region the analysis is not told about, Hertz
+  with --explain: at least 90 % of its curves name drift, at most 5 % of the others name any
+  effect;
+- throughput: a 64x64 map (4096 curves), Hertz with the contact point fitted, on every core,
+  against nanite 4.2.3's serial loop over 200 of the same curves in the same run (nanite as its
+  users run it: its preprocessing, hertz_para, weight_cp=0; a GPL benchmark-only peer): the
+  curves per second of each, and the issue's target, 10x nanite's;
+- Dask: the 16x16 map on a local Dask cluster of one worker, then two: the speed-up.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from rig.cli import main
+
+HERTZ = ["--model", "hertz", "--indenter", "paraboloid:R=5um", "--segment", "approach"]
+
+
+def _map(tmp: Path, grid: str, region: str, seed: int = 1) -> Path:
+    path = tmp / f"map-{grid}-{region}.h5"
+    assert main(["sim-map", str(path), "--grid", grid, "--region", region, "--seed", str(seed)]) == 0
+    return path
+
+
+def _rows(path: Path) -> list[dict]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_the_hidden_region_is_found(tmp_path):
+    pytest.importorskip("afmformats", reason="the afm extra (afmformats) writes and reads the map")
+    path = _map(tmp_path, "16x16", "drift")
+    truth = {c["enum"]: c for c in json.loads(path.with_suffix(".truth.json").read_text())["curves"]}
+    table = tmp_path / "t.csv"
+    assert main(["analyze", str(path), *HERTZ, "--explain", "--table", str(table)]) == 0
+    rows = _rows(table)
+    inside = [r for r in rows if truth[int(r["curve"])]["in_region"]]
+    outside = [r for r in rows if not truth[int(r["curve"])]["in_region"]]
+    found = sum(r["effect"] == "drift" for r in inside) / len(inside)
+    false = sum(bool(r["effect"]) for r in outside) / len(outside)
+    print(f"\nregion: {len(inside)} curves, {100 * found:.0f} % name drift; "
+          f"elsewhere: {len(outside)} curves, {100 * false:.1f} % name an effect")
+    assert found >= 0.9 and false <= 0.05
+
+
+def test_throughput_against_nanite(tmp_path):
+    pytest.importorskip("afmformats", reason="the afm extra (afmformats) writes and reads the map")
+    if importlib.util.find_spec("nanite") is None:
+        pytest.skip("nanite is not installed (a benchmark-only peer: pip install nanite==4.2.3)")
+    path = _map(tmp_path, "64x64", "none")
+    loop = Path(__file__).with_name("nanite_map_loop.py")
+    done = subprocess.run([sys.executable, str(loop), str(path), "200"], capture_output=True, text=True,
+                          timeout=3600)
+    assert done.returncode == 0, done.stderr
+    nanite_rate = float(done.stdout.split()[-1])
+    table = tmp_path / "t.csv"
+    t0 = time.perf_counter()
+    assert main(["analyze", str(path), *HERTZ, "--table", str(table)]) == 0
+    wall = time.perf_counter() - t0
+    rig_rate = 4096 / wall
+    print(f"\nrig: 4096 curves in {wall:.1f} s, {rig_rate:.1f} curves/s on every core; nanite: "
+          f"{nanite_rate:.1f} curves/s serially (200 curves); {rig_rate / nanite_rate:.2f}x")
+    assert len(_rows(table)) == 4096
+    assert rig_rate >= 10 * nanite_rate
+
+
+def test_two_dask_workers_against_one(tmp_path):
+    pytest.importorskip("distributed", reason="the cluster extra (Dask distributed) is not installed")
+    pytest.importorskip("afmformats", reason="the afm extra (afmformats) writes and reads the map")
+    from distributed import LocalCluster
+
+    path = _map(tmp_path, "16x16", "none")
+    times = {}
+    for workers in (1, 2):
+        with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as c:
+            t0 = time.perf_counter()
+            assert main(["analyze", str(path), *HERTZ, "--scheduler", c.scheduler_address,
+                         "--table", str(tmp_path / f"d{workers}.csv")]) == 0
+            times[workers] = time.perf_counter() - t0
+    assert (tmp_path / "d1.csv").read_bytes() == (tmp_path / "d2.csv").read_bytes()
+    print(f"\nDask: one worker {times[1]:.1f} s, two {times[2]:.1f} s: {times[1] / times[2]:.2f}x")
+    assert times[1] / times[2] >= 1.7
