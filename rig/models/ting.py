@@ -35,7 +35,7 @@ With more than one maximum of the depth the history before t1 is taken as the de
 ramp-hold-retract, an approximation for repeated cycles.
 
 Measured against adaptive quadrature of the exact history (tests/test_viscoelastic.py): within
-3.5e-5 of the peak force for paraboloid, sphere and flat punch, SLS and power law (beta 0.2, 0.6),
+3.8e-5 of the peak force for paraboloid, sphere, cone and flat punch, SLS and power law (beta 0.2, 0.6),
 ramp-hold, approach-retract and ramp-hold-retract.
 """
 
