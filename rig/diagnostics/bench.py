@@ -2,7 +2,10 @@
 
 - loop: a real-clock trial with in-process simulated devices; period error
   |t_k - t_(k-1) - 1/rate| percentiles, late and missed ticks, bus transactions per tick;
-- RLS update time; the loop-side cost of recording one sample; replay speed.
+- RLS update time; the loop-side cost of recording one sample; replay speed;
+- on the simulated wire: the wire's share of a tick (the loop's reads as bytes on the line at
+  the simulated drive's baud rate and frame, plus the USB adapter's latency), and with
+  `--max-rate` the highest rate without a late tick.
 """
 
 from __future__ import annotations
@@ -88,8 +91,43 @@ def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: s
         "outcome": result.outcome,
         "fault": result.fault,
         "bus_errors": int(health.get("bus_errors", 0)),
+        "wire": wire_share(config, wire, result.bus_transactions / max(result.samples, 1)),
         "replay": replay,
     }
+
+
+def wire_share(config: RigConfig, wire: str, transactions_per_tick: float | None = None) -> dict | None:
+    """What the simulated wire costs a tick, by its model: the loop reads the position every tick
+    and status plus alarm every `status_every`th, each an FC03 (8-byte request, 5 + 2 x registers
+    reply) whose bytes cross the line at the drive's baud rate and frame and whose reply waits the
+    USB adapter's latency (TCP: its latency only). Moves (FC16) are rare and left out. None for
+    in-process devices. The rest of a transaction (the drive's and the driver's own time) is not
+    the wire's and shows in the period error."""
+    if wire == "none":
+        return None
+    from rig.drivers.registers import PROFILES
+    from rig.sim.line import Framing
+
+    sim = config.sim
+    profile = config.slider.profile
+    regs = PROFILES.get("oriental_az_sim" if profile == "oriental_az" else profile, PROFILES["oriental_az_sim"])
+    reads = [(1.0, 2), (1.0 / config.loop.status_every, regs.status_block[1])]  # (per tick, registers)
+    per_tick = sum(n for n, _ in reads)
+    if wire == "tcp":
+        latency_ms = sim.tcp_latency_ms
+        line = f"Modbus TCP, latency {latency_ms:g} ms"
+        wire_ms = per_tick * latency_ms
+    elif not sim.pace_wire:
+        line, wire_ms = "not paced (instant pty)", 0.0
+    else:
+        d = sim.drive
+        framing = Framing(d.baudrate, d.parity, d.stopbits)
+        latency_ms = sim.usb_latency_ms
+        line = f"{framing.describe()} + {latency_ms:g} ms USB latency"
+        wire_ms = sum(n * (framing.bytes_s(8 + 5 + 2 * count) * 1000.0 + latency_ms) for n, count in reads)
+    period_ms = 1000.0 / config.loop.rate_Hz
+    return {"line": line, "reads_per_tick": per_tick, "transactions_per_tick": transactions_per_tick,
+            "wire_ms_per_tick": wire_ms, "period_ms": period_ms, "share": wire_ms / period_ms}
 
 
 def read_log_meta(path: Path) -> tuple[dict, dict]:
@@ -188,16 +226,18 @@ def bench_replay(path: Path, reads: int = 5) -> dict:
             "lateness_p99_ms": float(np.percentile(late, 99)), "lateness_max_ms": float(late.max())}
 
 
-def max_rate(wire: str, rates=(100, 200, 400, 600, 800, 1000), seconds: float = 5.0,
+def max_rate(wire: str, rates=(100, 150, 200, 250, 300, 400, 600, 800, 1000), seconds: float = 5.0,
              progress: bool = True) -> dict:
-    """The highest loop rate with no late or missed tick over a short run, per transport."""
+    """The highest loop rate with no late or missed tick over a short run, per transport (steps
+    of 50 Hz up to 300: a paced serial wire ends there), with the wire's share of each tick."""
     tried = []
     best = None
     for rate in rates:
         r = bench_loop(seconds, float(rate), progress, wire)
         ok = r["late_ticks"] == 0 and r["missed_ticks"] == 0 and r["outcome"] == "completed"
         tried.append({"rate_Hz": rate, "ok": ok, "late_ticks": r["late_ticks"],
-                      "missed_ticks": r["missed_ticks"], "period_err_p99_ms": r["period_err_p99_ms"]})
+                      "missed_ticks": r["missed_ticks"], "period_err_p99_ms": r["period_err_p99_ms"],
+                      "wire_share": r["wire"]["share"] if r["wire"] else None})
         if not ok:
             break
         best = rate
@@ -231,6 +271,13 @@ def format_bench(r: dict) -> str:
         f"bus transactions/tick {lp['bus_transactions_per_tick']:.3f}  bus errors {lp['bus_errors']}",
         f"          scheduling: {lp['scheduling']}; {lp['load_processes']} CPU-bound processes beside it",
         f"          outcome {lp['outcome']}" + (f": {lp['fault']}" if lp.get("fault") else ""),
+    ]
+    if lp.get("wire"):
+        w = lp["wire"]
+        lines.append(f"wire      {w['wire_ms_per_tick']:.2f} ms per tick on the wire ({w['line']}; "
+                     f"{w['reads_per_tick']:.1f} reads per tick): {w['share']:.0%} of the "
+                     f"{w['period_ms']:g} ms period")
+    lines += [
         f"rls       {rls['update_us']:.2f} us per update",
         "model     " + "; ".join(f"{k} {v:.2f} us per tick" for k, v in r["model"]["step_us"].items()),
         f"record    {rec['put_us']:.2f} us per sample on the loop side; writer "
@@ -246,6 +293,10 @@ def format_bench(r: dict) -> str:
         m = r["max_rate"]
         lines.append(f"max rate  {m['max_rate_Hz']} Hz without a late tick over {m['wire']} "
                      f"(tried {', '.join(str(t['rate_Hz']) for t in m['tried'])})")
+        for t in m["tried"]:
+            share = f"  wire {t['wire_share']:.0%} of the tick" if t.get("wire_share") is not None else ""
+            lines.append(f"          {t['rate_Hz']:>5} Hz  late {t['late_ticks']}  missed {t['missed_ticks']}  "
+                         f"period error p99 {t['period_err_p99_ms']:.3f} ms{share}")
     if "fit" in r:
         f = r["fit"]
         lines.append(f"fit       proposed model, {f['trials']} trials jointly ({f['samples']} samples): "
