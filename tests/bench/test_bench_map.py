@@ -96,7 +96,8 @@ def test_two_dask_workers_against_one(tmp_path):
                 time.sleep(0.1)
             address = json.loads(info.read_text())["address"]
             procs.append(subprocess.Popen([str(dask), "worker", address, "--nworkers", str(workers),
-                                           "--nthreads", "1", "--no-dashboard", "--host", "127.0.0.1"], **quiet))
+                                           "--nthreads", "1", "--no-dashboard", "--host", "127.0.0.1"],
+                                          **quiet))
             wait = ("from distributed import Client\n"
                     f"with Client({address!r}) as c: c.wait_for_workers({workers}, timeout=120)")
             subprocess.run([sys.executable, "-c", wait], check=True, timeout=180)
