@@ -18,7 +18,7 @@ from rig.sim.afm_map import COLUMNS, DIMITRIADIS, MapSpec, add_map_parser, truth
 
 from rig.analysis.session import AnalyzeRequest, analyze
 from rig.errors import RigError
-from rig.records import ReadOptions, iter_records, list_curves, read_record
+from rig.records import ReadOptions, each_record, iter_records, list_curves, read_record
 
 afmformats = pytest.importorskip("afmformats", reason="the simulated AFM map is written and read through "
                                                       "afmformats (the afm extra)")
@@ -133,6 +133,14 @@ def test_rig_lists_and_reads_every_curve(plain):
         n_app = truth["curves"][n]["approach_samples"]
         assert list(rec.segment).count("approach") == n_app
         assert set(rec.segment) == {"approach", "retract"}
+    # a batch's chunk reads only its own curves, and reads them as the whole file's reading does
+    some = dict(each_record(path, None, {3, 9, 40}))
+    assert sorted(some) == [3, 9, 40]
+    for n, rec in some.items():
+        whole = records[n]
+        assert rec.meta == whole.meta and rec.notes == whole.notes
+        for f in ("t_s", "position_m", "force_N"):
+            assert np.array_equal(getattr(rec, f), getattr(whole, f))
 
 
 def test_the_same_seed_writes_the_same_map(tmp_path):
