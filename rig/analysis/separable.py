@@ -73,19 +73,29 @@ def solve(resid_at, predict_z, z0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     solver sees it. None when the optimum is not an interior point of the linear form."""
     k_nl, lin = form
     nfev = 0
+    fixed: dict[int, np.ndarray] = {}  # columns the nonlinear variable does not move (a record's zero)
 
-    def columns(z_nl: float | None) -> np.ndarray:
+    def column(j: int, z_nl: float | None) -> np.ndarray:
         nonlocal nfev
         z = np.zeros_like(z0)
         if k_nl is not None:
             z[k_nl] = z_nl
-        cols = []
-        for j in lin:
-            zj = z.copy()
-            zj[j] = 1.0
-            cols.append(predict_z(zj))
-            nfev += 1
-        return np.column_stack(cols)
+        z[j] = 1.0
+        nfev += 1
+        return predict_z(z)
+
+    if k_nl is not None:
+        # a column equal at both ends of the nonlinear variable's range is taken as not moving
+        # with it: computed once, not at every point of the search
+        ends = [float(lo[k_nl]) + 1e-6 * (hi[k_nl] - lo[k_nl]), float(hi[k_nl]) - 1e-6 * (hi[k_nl] - lo[k_nl])]
+        if np.all(np.isfinite(ends)):
+            for j in lin:
+                a, b = column(j, ends[0]), column(j, ends[1])
+                if np.array_equal(a, b) and np.array_equal(a, column(j, 0.5 * (ends[0] + ends[1]))):
+                    fixed[j] = a
+
+    def columns(z_nl: float | None) -> np.ndarray:
+        return np.column_stack([fixed[j] if j in fixed else column(j, z_nl) for j in lin])
 
     def linear_part(z_nl: float | None) -> tuple[np.ndarray, float, np.ndarray]:
         A = columns(z_nl)
