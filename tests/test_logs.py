@@ -20,6 +20,9 @@ from mcap.records import Attachment, Channel, Chunk, Footer, Message, MessageInd
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from rig.errors import RigError
+from rig.models.catalogue import build_model
+from rig.models.saved import SavedModel
+from rig.recording.columns import ATTACHMENT_NAME, MEDIA_TYPE, ColumnBuilder
 from rig.recording.logs import TrialLog, export_csv, read_log
 from rig.recording.mcap_chunks import LogStreamReader, chunk_bytes, split_chunk
 from rig.recording.messages import EVENT_TOPIC, HEALTH_TOPIC, SAMPLE, SAMPLE_TOPIC
@@ -105,7 +108,9 @@ def test_truncated_log_reads_up_to_the_cut(demo_log, tmp_path):
     data = demo_log.read_bytes()
     full = read_log(demo_log).n
     cut = tmp_path / "cut.mcap"
-    cut.write_bytes(data[: len(data) * 2 // 3])
+    with open(demo_log, "rb") as fh:  # two thirds into the messages: the columns come after them
+        (columns,) = [a for a in make_reader(fh).get_summary().attachment_indexes if a.name == ATTACHMENT_NAME]
+    cut.write_bytes(data[: columns.offset * 2 // 3])
     log = read_log(cut)
     assert not log.complete and log.outcome == "interrupted"
     assert 0 < log.n < full
@@ -265,24 +270,41 @@ def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
     return np.array_equal(a, b)
 
 
-def assert_reads_as_per_message(path) -> TrialLog:
-    """`read_log` gives, field for field, what decoding message by message gives."""
-    new, ref = read_log(path, keep_raw=True), _read_log_per_message(path, keep_raw=True)
+def _assert_same_log(new: TrialLog, ref: TrialLog) -> None:
+    """Every field of two readings of a log the same, bit for bit (raw_messages apart)."""
     assert list(new.samples) == list(ref.samples)
     for name in ref.samples:
         assert _same_bits(new.samples[name], ref.samples[name]), name
+        assert new.samples[name].flags.writeable, name  # callers may change them in place
     assert new.step_kind == ref.step_kind
     assert _same_bits(new.contact, ref.contact)
-    assert new.raw_messages == ref.raw_messages  # every message, in order, on every topic
-    assert list(new.raw_messages) == list(ref.raw_messages)
-    assert new.events is new.raw_messages[EVENT_TOPIC] and new.health is new.raw_messages[HEALTH_TOPIC]
     for name in ("events", "health", "metadata", "attachments", "schemas", "complete", "read_error"):
         assert getattr(new, name) == getattr(ref, name), name
-    assert list(new.metadata) == list(ref.metadata)
+    assert list(new.metadata) == list(ref.metadata) and list(new.attachments) == list(ref.attachments)
     for name in ("slider_mm", "working_zero_mm", "surface_mm"):
         assert _same_bits(getattr(new.frames, name), getattr(ref.frames, name)), name
     assert new.frames.start_mm == ref.frames.start_mm
-    assert read_log(path).raw_messages == {}
+
+
+def uses_columns(path) -> bool:
+    """Whether `read_log` takes this log's samples from its attached columns."""
+    return read_log(path).from_columns
+
+
+def assert_reads_as_per_message(path, columns: bool | None = None) -> TrialLog:
+    """`read_log` gives, field for field, what decoding message by message gives: with `keep_raw`
+    (every message decoded) and without (from the attached columns where a log has them; whether
+    it does is checked when `columns` says)."""
+    new, ref = read_log(path, keep_raw=True), _read_log_per_message(path, keep_raw=True)
+    _assert_same_log(new, ref)
+    assert new.raw_messages == ref.raw_messages  # every message, in order, on every topic
+    assert list(new.raw_messages) == list(ref.raw_messages)
+    assert new.events is new.raw_messages[EVENT_TOPIC] and new.health is new.raw_messages[HEALTH_TOPIC]
+    plain = read_log(path)
+    assert plain.raw_messages == {} and not new.from_columns
+    _assert_same_log(plain, ref)
+    if columns is not None:
+        assert uses_columns(path) == columns
     return new
 
 
@@ -305,18 +327,39 @@ def sim_logs(tmp_path_factory, demo_log, paper_075_log) -> dict[str, Path]:
             name=f"demo-{compression}.mcap").log_path
     logs["approach-lz4"] = run_sim(PROTOCOLS / "approach-relax.yaml", _small_chunks("lz4"), tmp_path=tmp,
                                    name="approach.mcap").log_path
+    # a model in the loop: the optional force_model_N and model_error_N in every sample
+    model = tmp / "model.json"
+    model.write_text(SavedModel(build_model("proposed"), {
+        "k1_N_per_m3": 5.6e4, "k2_N_per_m2": 550.0, "k3_N_per_m": 14.0, "tau2_N_s_per_m2": 2.3e5,
+        "tau1_s": 8.0}).text())
+    logs["model-zstd"] = run_sim(PROTOCOLS / "paper-3mm_s.yaml", tmp_path=tmp, name="model.mcap",
+                                 model_path=str(model)).log_path
+    # a fault: a specimen three times as stiff goes over the protocol's force limit
+    stiff = _small_chunks("none")
+    for name in ("k1_N_per_m3", "k2_N_per_m2", "k3_N_per_m", "tau2_N_s_per_m2"):
+        setattr(stiff.sim.tissue, name, getattr(stiff.sim.tissue, name) * 3)
+    logs["fault-none"] = run_sim(PROTOCOLS / "paper-3mm_s.yaml", stiff, tmp_path=tmp,
+                                 name="fault.mcap").log_path
     return logs
 
 
-@pytest.mark.parametrize("name", ["demo-zstd", "paper-zstd", "demo-small-chunks-zstd", "demo-small-chunks-lz4",
-                                  "demo-small-chunks-none", "approach-lz4"])
+SIM_LOGS = ["demo-zstd", "paper-zstd", "demo-small-chunks-zstd", "demo-small-chunks-lz4",
+            "demo-small-chunks-none", "approach-lz4", "model-zstd", "fault-none"]
+
+
+@pytest.mark.parametrize("name", SIM_LOGS)
 def test_reads_as_decoding_message_by_message(sim_logs, name):
-    log = assert_reads_as_per_message(sim_logs[name])
-    assert log.complete and log.n > 1000 and not log.read_error
+    """Every log the rig finishes has its columns attached, and reads through them exactly as
+    by decoding its messages."""
+    log = assert_reads_as_per_message(sim_logs[name], columns=True)
+    assert log.complete and log.n > 700 and not log.read_error
     assert np.array_equal(log.samples["seq"], np.arange(log.n))  # none dropped, none reordered
     if name.startswith("approach"):
         assert "approach" in log.step_kind and not np.array_equal(log.frames.surface_mm,
                                                                    log.frames.working_zero_mm)
+    optional = {"force_model_N", "model_error_N"} & set(log.samples)
+    assert optional == ({"force_model_N", "model_error_N"} if name.startswith("model") else set())
+    assert (log.outcome == "fault") == name.startswith("fault")
 
 
 def test_the_simulators_logs_never_need_the_slow_path(sim_logs, monkeypatch):
@@ -421,9 +464,10 @@ def test_a_log_cut_anywhere_reads_as_decoding_message_by_message(sim_logs, tmp_p
             assert str(info.value) == str(exc)
             errors += 1
             continue
-        log = assert_reads_as_per_message(cut)
+        log = assert_reads_as_per_message(cut, columns=False)  # a log cut short: its messages decoded
         assert log.n == ref.n and np.array_equal(log.samples["seq"], np.arange(log.n))
-        assert log.read_error and (not log.complete or point > len(data) - 8)  # or in the closing magic
+        # or in the closing magic, or just before it (the footer whole)
+        assert log.read_error and (not log.complete or point >= len(data) - 8)
         prefixes += 1
     assert prefixes > 100 and errors >= 1
 
@@ -435,7 +479,9 @@ def test_a_damaged_payload_ends_the_log_where_it_always_did(sim_logs, tmp_path, 
     at = data.index(b'{"seq":500,')
     damaged = tmp_path / "damaged.mcap"
     damaged.write_bytes(data[:at + 7] + b"?" + data[at + 8:])  # {"seq":?00,
-    log = assert_reads_as_per_message(damaged)
+    # the columns are there, and consistent in count and ends, but the chunk's CRC is not right
+    assert ATTACHMENT_NAME.encode() in damaged.read_bytes()
+    log = assert_reads_as_per_message(damaged, columns=False)
     assert log.n == 500 and log.read_error.startswith("JSONDecodeError")
     slow = _count_slow_chunks(monkeypatch)
     read_log(damaged)
@@ -506,3 +552,224 @@ def test_unusual_payloads_read_as_decoding_message_by_message(tmp_path, case, mo
     assert log.n == len(rows) and log.complete
     # payloads that are not one JSON object each, or one topic on two channels: read one by one
     assert (slow[0] > 0) == (case in ("utf8-bom", "two-channels-one-topic"))
+
+
+# ------------------------------------------------------------- the sample columns, attached
+
+def test_the_columns_are_a_plain_attachment(demo_log):
+    """Any MCAP reader opens the log as before: the same channels and messages, and one more
+    attachment, a zstd-compressed npz whose header and arrays match the messages."""
+    import io
+
+    import zstandard
+
+    with open(demo_log, "rb") as fh:
+        reader = make_reader(fh, validate_crcs=True)
+        summary = reader.get_summary()
+        (sample_channel,) = [c.id for c in summary.channels.values() if c.topic == SAMPLE_TOPIC]
+        seqs = [json.loads(m.data)["seq"] for _, c, m in reader.iter_messages() if c.topic == SAMPLE_TOPIC]
+        (index,) = [a for a in summary.attachment_indexes if a.name == ATTACHMENT_NAME]
+        assert index.media_type == MEDIA_TYPE == "application/zstd"
+        (attachment,) = [a for a in reader.iter_attachments() if a.name == ATTACHMENT_NAME]
+    npz = np.load(io.BytesIO(zstandard.ZstdDecompressor().decompress(attachment.data)), allow_pickle=False)
+    header = json.loads(str(npz["header"]))
+    assert header["samples"] == len(seqs) == summary.statistics.channel_message_counts[sample_channel]
+    assert (header["first_seq"], header["last_seq"]) == (seqs[0], seqs[-1])
+    log = _read_log_per_message(demo_log)
+    for name in header["columns"]:
+        assert _same_bits(npz[name], log.samples[name]), name
+    assert np.array_equal(npz["contact"], log.contact)
+    assert [header["step_kinds"][k] for k in npz["step_kind"]] == log.step_kind
+
+
+def _rewrite(src: Path, dst: Path, *, columns: bytes | str | None = "keep", samples=None,
+             crcs: bool = True) -> Path:
+    """`src` written again by the mcap library: the same schemas, channels, metadata and
+    attachments in order, the sample payloads through `samples(list) -> list` if given, and the
+    columns' attachment kept, left out (None) or replaced."""
+    from mcap.writer import Writer
+
+    with open(src, "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        messages = list(reader.iter_messages())
+        metadata = [(m.name, m.metadata) for m in reader.iter_metadata()]
+        attachments = list(reader.iter_attachments())
+    sample_messages = [m for _, c, m in messages if c.topic == SAMPLE_TOPIC]
+    payloads = [m.data for m in sample_messages]
+    if samples is not None:
+        payloads = samples(payloads)
+    with open(dst, "wb") as fh:
+        w = Writer(fh, enable_crcs=crcs)
+        w.start()
+        ids = {sid: w.register_schema(s.name, s.encoding, s.data) for sid, s in summary.schemas.items()}
+        channels = {cid: w.register_channel(c.topic, c.message_encoding, ids[c.schema_id])
+                    for cid, c in summary.channels.items()}
+        for name, data in metadata[:1]:
+            w.add_metadata(name, data)
+        k = 0
+        for _, channel, m in messages:
+            if channel.topic == SAMPLE_TOPIC:
+                if k >= len(payloads):
+                    continue
+                data, k = payloads[k], k + 1
+            else:
+                data = m.data
+            w.add_message(channels[m.channel_id], log_time=m.log_time, data=data, publish_time=m.publish_time,
+                          sequence=m.sequence)
+        for name, data in metadata[1:]:
+            w.add_metadata(name, data)
+        for a in attachments:
+            data = a.data
+            if a.name == ATTACHMENT_NAME:
+                if columns is None:
+                    continue
+                data = data if columns == "keep" else columns
+            w.add_attachment(a.create_time, a.log_time, a.name, a.media_type, data)
+        w.finish()
+    return dst
+
+
+def _columns_of(path) -> bytes:
+    with open(path, "rb") as fh:
+        return next(a.data for a in make_reader(fh).iter_attachments() if a.name == ATTACHMENT_NAME)
+
+
+def _edit_columns(data: bytes, edit) -> bytes:
+    """The attachment with its npz's arrays changed by `edit(dict)`."""
+    import io
+
+    import zstandard
+
+    with np.load(io.BytesIO(zstandard.ZstdDecompressor().decompress(data))) as npz:
+        arrays = {name: npz[name] for name in npz.files}
+    edit(arrays)
+    out = io.BytesIO()
+    np.savez(out, **arrays)
+    return zstandard.ZstdCompressor().compress(out.getvalue())
+
+
+def _with_header(arrays: dict, **changes) -> None:
+    header = json.loads(str(arrays["header"])) | changes
+    arrays["header"] = np.array(json.dumps(header))
+
+
+def _last_seq_changed(payloads: list[bytes]) -> list[bytes]:
+    last = json.loads(payloads[-1])
+    return [*payloads[:-1], json.dumps(last | {"seq": last["seq"] + 1}).encode()]
+
+
+@pytest.mark.parametrize("case", ["kept", "left-out", "another-logs", "samples-dropped", "last-seq-changed",
+                                  "a-value-changed", "header-says-other-ends", "damaged", "not-zstd",
+                                  "no-chunk-crcs"])
+def test_columns_are_used_only_when_consistent_with_the_log(sim_logs, tmp_path, case):
+    """A log rewritten by the mcap library alone, with its columns kept (used), or not matching
+    its messages in some way (not used: the messages are decoded). Either way the same log."""
+    demo, other = sim_logs["demo-zstd"], sim_logs["paper-zstd"]
+    columns, samples = "keep", None
+    if case == "left-out":  # as a log from before the columns
+        columns = None
+    elif case == "another-logs":
+        columns = _columns_of(other)
+    elif case == "samples-dropped":  # as a tool that cut the messages' time range might
+        samples = lambda p: p[:-100]  # noqa: E731
+    elif case == "last-seq-changed":
+        samples = _last_seq_changed
+    elif case == "a-value-changed":  # the last row's force, one bit: the ends are compared bit for bit
+        columns = _edit_columns(_columns_of(demo), lambda a: a["force_N"].view(np.uint64).__setitem__(-1, a[
+            "force_N"].view(np.uint64)[-1] ^ 1))
+    elif case == "header-says-other-ends":
+        columns = _edit_columns(_columns_of(demo), lambda a: _with_header(a, last_seq=10 ** 9))
+    elif case == "damaged":  # a byte of the compressed attachment flipped
+        data = bytearray(_columns_of(demo))
+        data[len(data) // 2] ^= 0x40
+        columns = bytes(data)
+    elif case == "not-zstd":
+        import zstandard
+
+        columns = zstandard.ZstdDecompressor().decompress(_columns_of(demo))
+    path = _rewrite(demo, tmp_path / f"{case}.mcap", columns=columns, samples=samples,
+                    crcs=case != "no-chunk-crcs")  # then nothing says the messages are as written
+    log = assert_reads_as_per_message(path, columns=case == "kept")
+    assert log.complete and not log.read_error
+
+
+def _sample_dict(seq: int, **changes) -> dict:
+    return json.loads(_sample(seq, **changes))
+
+
+def test_odd_values_round_trip_through_the_columns(tmp_path):
+    """Values the rig may log (NaN, infinities, -0.0, integers, 17 digits) come back through the
+    columns bit for bit as through the messages."""
+    from rig.recording.recorder import Recorder
+
+    rec = Recorder(tmp_path / "odd.mcap", compression="none")
+    odd = [float("nan"), float("inf"), -float("inf"), -0.0, 0.1 + 0.2, 1e308, 5e-324, 2 ** 53 + 1, -7]
+    for i in range(300):
+        rec.put(SAMPLE_TOPIC, i, _sample_dict(i, force_N=odd[i % len(odd)], error_N=odd[(i + 3) % len(odd)],
+                                              step=i // 100, step_kind=["tare", "ramp", "hold"][i // 100],
+                                              contact=i % 2 == 0))
+    assert rec.close({"outcome": "completed"})
+    assert not rec.columns_skipped
+    log = assert_reads_as_per_message(rec.path, columns=True)
+    assert np.isnan(log.samples["force_N"][0]) and np.signbit(log.samples["force_N"][3])
+
+
+@pytest.mark.parametrize("case", ["a-string", "a-missing-field", "build-fails"])
+def test_a_log_without_its_columns_is_finished_all_the_same(tmp_path, monkeypatch, case):
+    """Samples the columns cannot hold exactly as the reader would (a number logged as a string, a
+    field missing), or building them failing at the end: the log is finished without them, says
+    why on the recorder, and reads from its messages."""
+    from rig.recording.recorder import Recorder
+
+    if case == "build-fails":
+        def fail(self):
+            raise MemoryError("no memory for the columns")
+
+        monkeypatch.setattr(ColumnBuilder, "build", fail)
+    rec = Recorder(tmp_path / f"{case}.mcap")
+    for i in range(300):
+        changes = {}
+        if i == 150 and case == "a-string":
+            changes = {"force_N": "1.5"}
+        elif i == 150 and case == "a-missing-field":
+            changes = {"late_ms": ...}
+        rec.put(SAMPLE_TOPIC, i, _sample_dict(i, **changes))
+    assert rec.close({"outcome": "completed"}) and rec.failure is None
+    assert rec.columns_skipped == {"a-string": "sample 150: a field is not a plain number",
+                                   "a-missing-field": "sample 150: KeyError: 'late_ms'",
+                                   "build-fails": "MemoryError: no memory for the columns"}[case]
+    log = assert_reads_as_per_message(rec.path, columns=False)
+    assert log.complete and log.n == 300 and log.outcome == "completed"
+    assert ATTACHMENT_NAME not in log.attachments
+
+
+def test_too_many_samples_for_the_columns(tmp_path):
+    from rig.recording.recorder import Recorder
+
+    rec = Recorder(tmp_path / "long.mcap", columns_limit=100)
+    for i in range(300):
+        rec.put(SAMPLE_TOPIC, i, _sample_dict(i))
+    assert rec.close({"outcome": "completed"})
+    assert rec.columns_skipped == "over 100 samples"
+    assert_reads_as_per_message(rec.path, columns=False)
+
+
+def test_an_io_error_writing_the_columns_is_the_recordings_failure(tmp_path, monkeypatch):
+    """Writing the columns fails as any write may (disk full): the recording has failed, and says
+    so, and the log holds every message and the outcome, read as a log cut short."""
+    from mcap.writer import Writer
+
+    from rig.recording.recorder import Recorder
+
+    def full(self, *args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Writer, "add_attachment", full)
+    rec = Recorder(tmp_path / "full.mcap")
+    for i in range(300):
+        rec.put(SAMPLE_TOPIC, i, _sample_dict(i))
+    assert not rec.close({"outcome": "completed"})
+    assert rec.failure == "recording failed: No space left on device (errno 28)"
+    log = assert_reads_as_per_message(rec.path, columns=False)
+    assert log.n == 300 and not log.complete and log.outcome == "completed"

@@ -211,7 +211,8 @@ def bench_record(n: int = 50_000) -> dict:
 def bench_replay(path: Path, reads: int = 5) -> dict:
     """Reading a trial's log into arrays (`read_log`, as `rig replay` and the analysis read it):
     samples per second, the median of `reads` reads (one read of a minute's log takes tens of
-    milliseconds, which one scheduler hiccup can double); the first read is given apart."""
+    milliseconds, which one scheduler hiccup can double); the first read is given apart. `columns`:
+    whether the samples came from the log's attached columns (a finished log) or its messages."""
     from rig.recording.logs import read_log
 
     rates = []
@@ -222,7 +223,7 @@ def bench_replay(path: Path, reads: int = 5) -> dict:
         rates.append(log.n / dt if dt > 0 else float("inf"))
     late = log.samples["late_ms"]
     return {"samples": log.n, "reads": len(rates), "samples_per_s": float(np.median(rates)),
-            "first_read_samples_per_s": rates[0],
+            "first_read_samples_per_s": rates[0], "columns": log.from_columns,
             "lateness_p99_ms": float(np.percentile(late, 99)), "lateness_max_ms": float(late.max())}
 
 
@@ -284,7 +285,8 @@ def format_bench(r: dict) -> str:
         f"{rec['writer_us_per_sample']:.1f} us/sample; {rec['bytes_per_sample']:.1f} bytes/sample on disk",
         f"replay    {lp['replay']['samples_per_s']:,.0f} samples/s reading the log into arrays (median of "
         f"{lp['replay']['reads']} reads of its {lp['replay']['samples']} samples; first read "
-        f"{lp['replay']['first_read_samples_per_s']:,.0f})",
+        f"{lp['replay']['first_read_samples_per_s']:,.0f}; "
+        f"{'from its attached columns' if lp['replay'].get('columns') else 'decoding its messages'})",
         f"machine   a loop that only sleeps, {base['duration_s']:g} s: lateness p99 "
         f"{base['lateness_p99_ms']:.3f} ms, max {base['lateness_max_ms']:.3f} ms, "
         f"{base['over_5ms']} ticks over 5 ms",

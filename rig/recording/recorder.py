@@ -5,6 +5,10 @@ on the writer thread. Every `flush_s` the writer finishes the open chunk, flushe
 fsyncs, so a crash loses at most about one second. Metadata and attachments are
 written at once, outside chunks, so even a log cut short names its trial.
 
+When the log is finished, the sample columns are attached in binary as well (`columns.py`), so
+replay need not decode every message's JSON; a log without them (cut short, older, or one whose
+columns could not be built) reads the same from its messages.
+
 A recording that fails (disk full, an I/O error, a writer that falls `max_queue`
 messages behind) is never silent: `failure` says what happened, the loop reads it every
 tick and ends the trial as a fault, and what was flushed before stays readable.
@@ -26,7 +30,8 @@ from typing import Any, BinaryIO
 from mcap.writer import CompressionType, Writer
 
 from rig import __version__
-from rig.recording.messages import SCHEMAS
+from rig.recording.columns import ATTACHMENT_NAME, MEDIA_TYPE, ColumnBuilder
+from rig.recording.messages import SAMPLE_TOPIC, SCHEMAS
 
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 _STOP = object()
@@ -83,7 +88,7 @@ class Recorder:
     `path` is the name wanted; `self.path` the name used (see `open_new_log`)."""
 
     def __init__(self, path: str | Path, *, flush_s: float = 1.0, compression: str = "zstd",
-                 max_queue: int = 20000) -> None:
+                 max_queue: int = 20000, columns_limit: int = 2_000_000) -> None:
         self.path = Path(path)
         self.flush_s = flush_s
         self.max_queue = max_queue
@@ -104,6 +109,10 @@ class Recorder:
         self._closed = False
         self.unfinished = ""  # why close() returned before the log was finished
         self._busy = False
+        self._columns = ColumnBuilder(columns_limit)
+        # why the log was finished without its sample columns ("" when they are attached): not a
+        # failure of the recording, whose messages are all there; the reader decodes them instead
+        self.columns_skipped = ""
         self.thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
         self.thread.start()
 
@@ -188,6 +197,7 @@ class Recorder:
                     break
                 if item is not _STOP:
                     self._write(item)
+            self._attach_columns()
             self._writer.finish()
             self._file.flush()
             os.fsync(self._file.fileno())
@@ -209,11 +219,34 @@ class Recorder:
             self._writer.add_attachment(log_time_ns, log_time_ns, name, media_type, payload)
             self._sync()
             return False
+        data = json.dumps(payload, separators=(",", ":")).encode()
         self._writer.add_message(self._channels[topic], log_time=stamp, publish_time=stamp,
-                                 data=json.dumps(payload, separators=(",", ":")).encode(),
-                                 sequence=self.messages & 0xFFFFFFFF)
+                                 data=data, sequence=self.messages & 0xFFFFFFFF)
         self.messages += 1
+        if topic == SAMPLE_TOPIC:
+            self._columns.add(data)
         return True
+
+    def _attach_columns(self) -> None:
+        """The sample columns as an attachment, after the last message and before the summary.
+
+        Building them only reads memory: if that fails, nothing has been written and the log is
+        finished without them. Writing them can fail only as any write can (disk full, an I/O
+        error): that is the recording's failure, reported as such, with every message and the
+        outcome already on disk."""
+        try:
+            data = self._columns.build()
+        except Exception as exc:  # noqa: BLE001 - MemoryError included: the log matters, not the shortcut
+            data = None
+            self._columns.broken = f"{type(exc).__name__}: {exc}"
+        if data is None:
+            self.columns_skipped = self._columns.broken
+            return
+        self._columns = ColumnBuilder(0)  # the memory they held is not needed any more
+        # the open chunk first, so the attachment follows every message it holds
+        self._writer.flush()
+        now = time.time_ns()
+        self._writer.add_attachment(now, now, ATTACHMENT_NAME, MEDIA_TYPE, data)
 
     def _sync(self) -> None:
         self._writer.flush()
