@@ -414,13 +414,13 @@ class RtuBridge:
                         _write_all(self.client_master, data)
 
     def _to_server(self, data: bytes) -> None:
-        _write_all(self.server_master, data)
+        _write_now(self.server_master, data)
 
     def _to_client(self, generation: int):
         def write(data: bytes) -> None:
             with self._lock:
                 if self.client_master >= 0 and self._generation == generation:
-                    _write_all(self.client_master, data)
+                    _write_now(self.client_master, data)
         return write
 
     def close(self) -> None:
@@ -452,6 +452,13 @@ def _read_all(fd: int) -> bytes:
             break
         out += chunk
     return bytes(out)
+
+
+def _write_now(fd: int, data: bytes) -> None:
+    """What the pty takes now; the rest is lost, as bytes sent to a port nobody reads are. The
+    paced writer must not wait here: every piece behind this one would be late."""
+    with contextlib.suppress(BlockingIOError, OSError):
+        os.write(fd, data)
 
 
 def _write_all(fd: int, data: bytes) -> None:
@@ -503,7 +510,7 @@ class LoadCellPort:
     def _write(self, data: bytes) -> None:
         with self._fd_lock:
             if self.master >= 0:
-                _write_all(self.master, data)
+                _write_now(self.master, data)
 
     def _wait_until(self, t: float) -> None:
         delay = t - time.monotonic()
