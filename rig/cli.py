@@ -82,6 +82,8 @@ def cmd_run(args: argparse.Namespace) -> int:
           f"({result.late_ticks} late, {result.missed_ticks} missed ticks)")
     if result.fault:
         print(f"fault: {result.fault}")
+    for notice in result.notices:
+        print(f"note: {notice}")
     print(f"log: {result.log_path}")
     if result.outcome == "fault":
         return EXIT_FAULT

@@ -10,6 +10,7 @@ RMS error over the hold past its first second, against the noise the tare measur
 
 from __future__ import annotations
 
+import json
 import math
 import threading
 
@@ -33,8 +34,8 @@ HOLD_S = 3.0
 def _protocol(target_N: float, hold_s: float = HOLD_S) -> str:
     return (f"name: force step to {target_N:g} N\nsteps:\n"
             "  - ramp: {to_mm: 5, speed_mm_s: 5}\n"
-            f"  - ramp_force: {{to_N: {target_N}, rate_N_s: {target_N}}}\n"
-            f"  - hold_force: {{force_N: {target_N}, duration_s: {hold_s}}}\n"
+            f"  - ramp_force: {{to_N: {target_N}, rate_N_s: {target_N}, max_mm: 35}}\n"
+            f"  - hold_force: {{force_N: {target_N}, duration_s: {hold_s}, max_mm: 35}}\n"
             "  - return: {speed_mm_s: 10}\n")
 
 
@@ -45,6 +46,9 @@ def _config(tissue: str, seed: int) -> RigConfig:
     for k in ("k1_N_per_m3", "k2_N_per_m2", "k3_N_per_m", "tau2_N_s_per_m2"):
         setattr(t, k, getattr(t, k) * scale)
     cfg.sim.loadcell.noise_N = noise
+    # the rig set up for its specimen: the estimator's noise and contact threshold follow the load cell
+    cfg.estimator.noise_N = noise
+    cfg.estimator.contact_N = 0.05 * scale
     cfg.sim.seed = seed
     cfg.loop.tare_s = 2.0  # 200 readings: the noise the error is judged against known to 5 %
     return cfg
@@ -154,19 +158,24 @@ def test_estop_during_a_force_hold_stops_the_motor(tmp_path):
 
 def test_a_force_setpoint_past_the_limit_is_refused_before_anything_moves():
     cfg = RigConfig()
-    with pytest.raises(LimitError, match="not below the force limit"):
-        check_limits(parse_protocol(_protocol(25.0), "<test>"), cfg)
+    with pytest.raises(LimitError, match=r"is above 0\.9 of the force limit 20 N"):
+        check_limits(parse_protocol(_protocol(19.0), "<test>"), cfg)
     # a hold asked above the protocol's limit (the ramp below it) is refused before anything moves
-    with pytest.raises(LimitError, match="hold_force to 3 N is not below the force limit 2 N"):
+    with pytest.raises(LimitError, match=r"hold_force to 3 N is above 0\.9 of the force limit 2 N"):
         check_limits(parse_protocol(_protocol(1.5).replace("steps:", "limits: {max_force_N: 2}\nsteps:")
                                     .replace("force_N: 1.5", "force_N: 3"), "<test>"), cfg)
+    with pytest.raises(LimitError, match="outside the travel window"):
+        check_limits(parse_protocol(_protocol(1.5).replace("max_mm: 35", "max_mm: 80"), "<test>"), cfg)
 
 
 def test_bad_force_steps_name_the_field():
-    cases = [("  - ramp_force: {to_N: 1}\n", "rate_N_s"),
-             ("  - ramp_force: {to_N: 1, rate_N_s: -2}\n", "rate_N_s"),
-             ("  - hold_force: {force_N: 1}\n", "duration_s"),
-             ("  - hold_force: {force_N: 1, duration_s: 2, speed_mm_s: 3}\n", "speed_mm_s")]
+    cases = [("  - ramp_force: {to_N: 1, max_mm: 9}\n", "rate_N_s"),
+             ("  - ramp_force: {to_N: 1, rate_N_s: -2, max_mm: 9}\n", "rate_N_s"),
+             ("  - ramp_force: {to_N: 1, rate_N_s: 2}\n", "max_mm"),  # required, as an approach's
+             ("  - ramp_force: {to_N: -0.5, rate_N_s: 2, max_mm: 9}\n", "to_N"),  # compression only
+             ("  - hold_force: {force_N: 1, max_mm: 9}\n", "duration_s"),
+             ("  - hold_force: {force_N: 0, duration_s: 2, max_mm: 9}\n", "force_N"),
+             ("  - hold_force: {force_N: 1, duration_s: 2, max_mm: 9, speed_mm_s: 3}\n", "speed_mm_s")]
     for step, field in cases:
         with pytest.raises(SpecError) as err:
             parse_protocol(f"name: bad\nsteps:\n{step}", "bad.yaml")
@@ -188,3 +197,96 @@ def test_the_log_records_the_setpoint_and_the_error(tmp_path):
     assert tracked and all("force_cmd_N" in r and "force_error_N" in r for r in tracked)
     assert all(math.isclose(r["force_error_N"], r["force_cmd_N"] - r["force_N"], abs_tol=1e-9) for r in tracked)
     assert not any("force_cmd_N" in r for r in rows if r.get("step_kind") in ("ramp", "return", "tare"))
+
+
+def _run(tmp_path, text: str, tissue: str = "tissue", seed: int = 4, **faults):
+    cfg = _config(tissue, seed)
+    for k, v in faults.items():
+        setattr(cfg.sim.faults, k, v)
+    result = run_trial(parse_protocol(text, "<test>"), cfg,
+                       RunOptions(speed=0, progress=False, log_path=tmp_path / "t.mcap"))
+    return result, read_log(result.log_path)
+
+
+def test_out_of_contact_a_force_step_seeks_the_surface_slowly(tmp_path):
+    """Started 3 mm before the surface, the force loop may only seek it at an approach's pace
+    (5 % of the speed limit), not at the speed limit."""
+    text = _protocol(1.5).replace("ramp: {to_mm: 5, speed_mm_s: 5}", "ramp: {to_mm: -3, speed_mm_s: 5}")
+    result, log = _run(tmp_path, text)
+    s = log.samples
+    kind = np.asarray(log.step_kind)
+    t, x = np.asarray(s["t_s"]), np.asarray(s["position_mm"])
+    out = (kind == "ramp_force") & (x < -0.5)  # well before the surface (at 0)
+    assert out.sum() > 10
+    tt, xx = t[out], x[out]
+    speed = (xx[-1] - xx[0]) / (tt[-1] - tt[0])  # over the stretch: the encoder's 0.01 mm steps
+    assert 0.3 <= speed <= 0.05 * 10 + 0.02, speed  # 0.5 mm/s at a 10 mm/s limit
+    assert result.outcome == "completed"
+
+
+def test_a_force_step_stopped_by_its_max_mm_says_so(tmp_path):
+    text = _protocol(1.5).replace("max_mm: 35", "max_mm: 7")
+    result, log = _run(tmp_path, text)
+    assert result.outcome == "completed"
+    assert any("reached the step's max_mm (7 mm)" in n for n in result.notices), result.notices
+    assert any("ended at" in n and "against its setpoint 1.5 N" in n for n in result.notices), result.notices
+    kinds = [e["kind"] for e in log.events]
+    assert "force_limit_depth" in kinds and "setpoint_missed" in kinds
+    x = np.asarray(log.samples["position_mm"])[np.asarray(log.step_kind) == "hold_force"]
+    assert x.max() <= 7.0 + 0.011  # never deeper than max_mm (one encoder step)
+
+
+def test_a_hold_after_a_force_step_holds_where_the_slider_is(tmp_path):
+    text = _protocol(1.5).replace("  - return: {speed_mm_s: 10}\n", "  - hold: {duration_s: 2}\n"
+                                  "  - return: {speed_mm_s: 10}\n")
+    result, log = _run(tmp_path, text)
+    assert result.outcome == "completed" and not result.notices
+    kind = np.asarray(log.step_kind)
+    x = np.asarray(log.samples["position_mm"])
+    hold = np.flatnonzero(kind == "hold")
+    last_force = np.flatnonzero(kind == "hold_force")[-1]
+    assert np.ptp(x[hold[10:]]) <= 0.011  # standing (one encoder step), once the stop took
+    assert abs(x[hold[-1]] - x[last_force]) <= 0.05  # where the force step left it
+
+
+def _poked(tmp_path, poke):
+    """The tissue's force hold, with `poke(dev, snap)` called every tick."""
+    cfg = _config("tissue", 6)
+    proto = parse_protocol(_protocol(1.5), "<test>")
+    clock = VirtualClock(0)
+    dev = open_devices(cfg, clock)
+    trial = Trial(proto, cfg, dev.slider, dev.loadcell, clock, tmp_path / "p.mcap")
+    trial.on_tick = lambda snap: poke(dev, snap)
+    return trial.run()
+
+
+def test_after_a_fault_in_a_force_step_no_setpoint_is_logged(tmp_path):
+    """A drive alarm during the hold: the slider is stopped, and the samples after the fault carry
+    no setpoint or error (the force loop no longer commands anything)."""
+    from mcap.reader import make_reader
+
+    def alarm(dev, snap):
+        if snap.step_kind == "hold_force" and snap.t_s > 5.0:
+            dev.slider.alarm_code = 0x10
+
+    result = _poked(tmp_path, alarm)
+    assert result.outcome == "fault" and "0x10" in result.fault
+    rows = []
+    with open(result.log_path, "rb") as fh:
+        for _s, _c, message in make_reader(fh).iter_messages(topics=["/rig/sample"]):
+            rows.append(json.loads(message.data))
+    after = [r for r in rows if r.get("step_kind") == "fault"]
+    assert len(after) > 10 and not any("force_cmd_N" in r or "force_error_N" in r for r in after)
+
+
+def test_a_drive_that_stops_following_the_force_loop_is_a_fault(tmp_path):
+    """Moves acknowledged but never started (the motor not excited) during a force ramp: the
+    loop's speed stays at its cap and the slider does not move; after a second, a fault."""
+
+    def stuck(dev, snap):
+        if snap.step_kind == "ramp_force":
+            dev.slider.ignore_moves = True
+
+    result = _poked(tmp_path, stuck)
+    assert result.outcome == "fault"
+    assert "the drive did not follow the force loop" in result.fault, result.fault

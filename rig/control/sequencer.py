@@ -32,10 +32,10 @@ class Stop:
 @dataclass(frozen=True)
 class Track:
     """Force control this tick: move so that the force follows `setpoint_N`, never deeper than
-    `limit_mm` (absolute; None: the travel window alone)."""
+    `limit_mm` (absolute)."""
 
     setpoint_N: float
-    limit_mm: float | None
+    limit_mm: float
     rate_N_s: float = 0.0  # how fast the setpoint moves (a ramp's), fed forward
 
 
@@ -66,6 +66,7 @@ class Sequencer:
         self._abort_pending = False
         self._force_from: float | None = None  # the force when a force ramp started
         self._last_force = 0.0
+        self._last_pos = start_mm
         self.setpoint_N: float | None = None  # the force step's setpoint this tick
 
     # -------------------------------------------------------------- state
@@ -142,6 +143,7 @@ class Sequencer:
     def tick(self, t: float, position_mm: float, force_N: float, moving: bool | None) -> list[Command]:
         """Advance on this tick's measurements; returns commands to carry out now."""
         self._last_force = force_N
+        self._last_pos = position_mm
         if self.done:
             return []
         if self._abort_pending:
@@ -182,7 +184,7 @@ class Sequencer:
                 return self._next(t)
             gone = math.copysign(step.rate_N_s * elapsed, step.to_N - self._force_from)
             self.setpoint_N = self._force_from + gone
-        limit = None if step.max_mm is None else self.zero_mm + step.max_mm
+        limit = self.zero_mm + step.max_mm
         rate = 0.0
         if isinstance(step, RampForce):
             rate = math.copysign(step.rate_N_s, step.to_N - self._force_from)
@@ -234,6 +236,11 @@ class Sequencer:
         return self.zero_mm + step.to_mm
 
     def _next(self, t: float) -> list[Command]:
+        after_force = isinstance(self.step, FORCE_STEPS)
+        if after_force:
+            # the force loop streamed its positions a tick or two ahead of the slider: the next
+            # step starts where the slider is, not where the stream had got to
+            self._target_mm = self._last_pos
         self.index += 1
         self.step_t0 = t
         self._window.clear()
@@ -251,7 +258,9 @@ class Sequencer:
         if isinstance(step, Hold | RampForce | HoldForce):
             self._from_mm = self._target_mm
             self._speed = 0.0
-            return self._tick_force(step, t, self._last_force) if isinstance(step, FORCE_STEPS) else []
+            if isinstance(step, FORCE_STEPS):
+                return self._tick_force(step, t, self._last_force)
+            return [Stop("the force step ended: hold where the slider is")] if after_force else []
         self._from_mm = self._target_mm
         self._target_mm = self._resolve_target(step)
         self._speed = step.speed_mm_s

@@ -49,7 +49,17 @@ from rig.realtime import Realtime, RealtimeState
 from rig.recording.messages import EVENT, HEALTH, SAMPLE
 from rig.recording.recorder import Recorder, TrialInfo
 from rig.specs.config import RigConfig
-from rig.specs.protocol import Approach, Protocol, check_limits
+from rig.specs.protocol import FORCE_STEPS, Approach, Protocol, check_limits
+
+SEEK_SPEED_SHARE = 0.05  # of the speed limit: a force step out of contact seeks the surface this fast
+DRIVE_FOLLOW_S = 1.0  # a drive that has not moved this long while the force loop asked its fastest: a fault
+DRIVE_STUCK_MM = 0.05  # "not moved": a few encoder steps
+SETPOINT_MISS = 0.05  # a force step that ends further than this from its setpoint is said
+# A move is an FC16 write of 16 registers: over RTU at 115200 baud with an adapter's 1 ms it takes
+# 6 ms of the bus, and a position read 3.5 ms more: every tick's move would fill the 10 ms tick
+# and time out under load. The force loop sends a new target every FORCE_MOVE_TICKS ticks (its
+# 8 rad/s crossover is far below 50 Hz), and only when it moved by a drive step.
+FORCE_MOVE_TICKS = 2
 
 
 @dataclass
@@ -82,6 +92,7 @@ class TrialResult:
     fault: str | None = None
     period_errors_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     bus_transactions: int = 0
+    notices: list[str] = field(default_factory=list)  # what the operator should know of a completed trial
 
 
 @dataclass
@@ -108,7 +119,14 @@ class _Loop:
     last_step: int = -2
     health_mark: int = 0
     stiffness_N_per_m: float = 0.0  # the estimator's last reading: the force loop's gain
+    in_contact: bool = False  # the estimator's last reading: the probe pushes on the specimen
     force_error_N: float | None = None  # a force step's setpoint less the force, this tick
+    force_step: int = -1  # the force step being followed (its index), -1 none
+    force_recent: list = field(default_factory=list)  # (t, force, setpoint) over the step's last 0.5 s
+    at_depth_limit: bool = False  # the step's max_mm stopped the force loop (said once per step)
+    saturated_since: tuple[float, float] | None = None  # (t, position) when the speed cap began to bind
+    sent_target: float | None = None  # the force loop's last target sent to the drive
+    sent_seq: int = -1000  # the tick it was sent on
 
 
 @dataclass
@@ -209,6 +227,7 @@ class Trial:
                            "load cell")
         self.live = None  # a rig.service.live.LiveView publishing the same messages, if any
         self.warnings: list[str] = []
+        self.notices: list[str] = []  # a completed trial's news for the operator (a force not held)
         if loadcell is not None and self.zero is None:
             self.warnings.append(
                 "no free-air zero known for the load cell: this trial's tare is assumed to be taken "
@@ -378,7 +397,7 @@ class Trial:
         return TrialResult(outcome, self.log_path, self._seq, self._late, self._missed,
                            self.clock.now() - t0, fault_msg,
                            np.abs(periods - self.period) * 1000.0,
-                           self.slider.stats.transactions)
+                           self.slider.stats.transactions, list(self.notices))
 
     def _leave_loop(self) -> None:
         """From now on stops go out at once; one that came after the loop's last tick goes now."""
@@ -477,7 +496,8 @@ class Trial:
         lim = self.limits
         span_m = max(lim.travel_mm[1] - lim.travel_mm[0], 1e-3) / 1000.0
         force_loop = ForceLoop(self.period, lim.max_speed_mm_s,
-                               STIFFNESS_FLOOR_SHARE * lim.max_force_N / span_m)
+                               STIFFNESS_FLOOR_SHARE * lim.max_force_N / span_m,
+                               min_lead_mm=3.0 / self.config.slider.steps_per_mm)
         return _Loop(t0=t0, seq=seq, ending=Ending(), speedometer=SpeedMeter(2.0 * self.period),
                      force_loop=force_loop,
                      taring=self.loadcell is not None,  # averaging the tare until tare_s, then judging it once
@@ -635,11 +655,12 @@ class Trial:
         before it is sent and watched until it arrives. Step decisions only on a fresh position,
         and a move counts as under way until its watch saw it arrive on fresh readings: a stale
         position is no arrival."""
+        L.force_error_N = None  # nothing is tracked on a tick that tracks nothing (a fault's included)
         if L.ending.fault is not None:
             return
         seq, lim, t = L.seq, self.limits, k.t
         seq_moving = True if L.watch is not None else k.moving
-        L.force_error_N = None
+        was = L.force_step
         tracking = False
         for cmd in seq.tick(t, k.pos, k.force, seq_moving) if k.pr.fresh else ():
             if isinstance(cmd, Track):
@@ -658,6 +679,8 @@ class Trial:
             elif isinstance(cmd, Stop):
                 L.watch = None
                 self._send_stop(L, t)
+        if was >= 0 and seq.index != was:
+            self._force_step_ended(rec, L, t, was)
         if not tracking and seq.setpoint_N is None:
             L.force_loop.release()  # a position step (or the end) took over
         if seq.index != L.last_step and seq.index >= 0 and not seq.done:
@@ -669,25 +692,75 @@ class Trial:
 
     def _track(self, rec: Recorder, L: _Loop, k: _Tick, cmd: Track) -> bool:
         """A force step's tick: the force loop's next position, limited to the step's deepest,
-        checked against the limits before it is sent (False: refused, and faulted)."""
-        fc = L.force_loop.command(cmd.setpoint_N, k.force, L.stiffness_N_per_m, k.pos, cmd.rate_N_s)
-        target = fc.target_mm if cmd.limit_mm is None else min(fc.target_mm, cmd.limit_mm)
+        checked against the limits before it is sent (False: refused, and faulted). Out of
+        contact the loop may only seek the surface at SEEK_SPEED_SHARE of the speed limit, as an
+        approach would; a drive that does not follow the loop's stream is a fault."""
+        if L.force_step != L.seq.index:
+            L.force_step, L.force_recent, L.at_depth_limit, L.saturated_since = L.seq.index, [], False, None
+            L.sent_target = None
+        cap = None if L.in_contact else SEEK_SPEED_SHARE * self.limits.max_speed_mm_s
+        fc = L.force_loop.command(cmd.setpoint_N, k.force, L.stiffness_N_per_m, k.pos, cmd.rate_N_s, cap)
+        target = min(fc.target_mm, cmd.limit_mm)
         L.force_error_N = fc.error_N
+        L.force_recent = [r for r in L.force_recent if r[0] > k.t - 0.5] + [(k.t, k.force, cmd.setpoint_N)]
+        if target < fc.target_mm and not L.at_depth_limit:
+            L.at_depth_limit = True
+            msg = (f"step {L.seq.index} ({L.seq.kind}): the force loop reached the step's max_mm "
+                   f"({cmd.limit_mm - L.seq.zero_mm:.4g} mm) at {k.force:.4g} N, short of its setpoint "
+                   f"{cmd.setpoint_N:.4g} N: held there")
+            self._event(rec, k.t, "force_limit_depth", msg, {"step": L.seq.index, "force_N": k.force,
+                                                            "setpoint_N": cmd.setpoint_N})
+            self.notices.append(msg)
+        if fc.saturated and target >= fc.target_mm:
+            if L.saturated_since is None:
+                L.saturated_since = (k.t, k.pos)
+            t0, p0 = L.saturated_since
+            span = k.t - t0
+            # a drive that follows moves, if more slowly than asked (it brakes towards a stream that
+            # leads it by a tick or two); one that has stopped following does not move at all
+            if span >= DRIVE_FOLLOW_S and abs(k.pos - p0) < DRIVE_STUCK_MM:
+                self._fault(rec, L, Fault("move", f"the drive did not follow the force loop: "
+                                                  f"{abs(k.pos - p0):.3g} mm in {span:.2g} s at "
+                                                  f"{fc.speed_mm_s:.3g} mm/s commanded"), k)
+                return False
+        else:
+            L.saturated_since = None
         why = check_move(target, fc.speed_mm_s, self.limits)
         if why is not None:
             self._fault(rec, L, Fault("move_limit", f"force loop move refused: {why}"), k)
             return False
-        self.slider.move_to(target, fc.speed_mm_s, self.config.slider.accel_mm_s2)
-        L.ending.on_move()
+        step_mm = 1.0 / self.config.slider.steps_per_mm
+        due = self._seq - L.sent_seq >= FORCE_MOVE_TICKS
+        if due and (L.sent_target is None or abs(target - L.sent_target) >= step_mm):
+            self.slider.move_to(target, fc.speed_mm_s, self.config.slider.accel_mm_s2)
+            L.sent_target, L.sent_seq = target, self._seq
+            L.ending.on_move()
         L.watch = None  # a stream of small moves: the limits are checked every tick instead
         L.seq.follow(target)
         return True
+
+    def _force_step_ended(self, rec: Recorder, L: _Loop, t: float, index: int) -> None:
+        """A force step that ended away from its setpoint (its last 0.5 s off by more than
+        SETPOINT_MISS) is said: an event in the log and a notice for the operator. A ramp that
+        hands over to another force step is on its way, not ended."""
+        L.force_step = -1
+        if not L.force_recent or isinstance(L.seq.step, FORCE_STEPS):
+            return
+        force = float(np.mean([r[1] for r in L.force_recent]))
+        setpoint = L.force_recent[-1][2]
+        if abs(force - setpoint) > SETPOINT_MISS * abs(setpoint):
+            msg = (f"step {index}: the force step ended at {force:.4g} N (its last 0.5 s) against its "
+                   f"setpoint {setpoint:.4g} N")
+            self._event(rec, t, "setpoint_missed", msg,
+                        {"step": index, "force_N": force, "setpoint_N": setpoint})
+            self.notices.append(msg)
 
     def _estimate(self, L: _Loop, k: _Tick):
         """The online stiffness (RLS) on the previous tick's position and this tick's force."""
         est = self.rls.update(L.x_prev_m, k.force)
         L.x_prev_m = (k.pos - L.seq.zero_mm) / 1000.0
         L.stiffness_N_per_m = est.stiffness_N_per_m
+        L.in_contact = bool(est.updated)
         return est
 
     def _record(self, rec: Recorder, L: _Loop, k: _Tick, est) -> None:
