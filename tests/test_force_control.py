@@ -197,6 +197,14 @@ def test_the_log_records_the_setpoint_and_the_error(tmp_path):
     assert tracked and all("force_cmd_N" in r and "force_error_N" in r for r in tracked)
     assert all(math.isclose(r["force_error_N"], r["force_cmd_N"] - r["force_N"], abs_tol=1e-9) for r in tracked)
     assert not any("force_cmd_N" in r for r in rows if r.get("step_kind") in ("ramp", "return", "tare"))
+    # read back: the setpoint and the error as columns, NaN off the force steps, the same whether
+    # read from the log's attached columns or message by message
+    fast, slow = read_log(result.log_path), read_log(result.log_path, keep_raw=True)
+    kind = np.asarray(fast.step_kind)
+    for name in ("force_cmd_N", "force_error_N"):
+        assert np.array_equal(fast.samples[name], slow.samples[name], equal_nan=True)
+        on = np.isin(kind, ("ramp_force", "hold_force"))
+        assert np.all(np.isfinite(fast.samples[name][on])) and np.all(np.isnan(fast.samples[name][~on]))
 
 
 def _run(tmp_path, text: str, tissue: str = "tissue", seed: int = 4, **faults):

@@ -384,9 +384,10 @@ def _split_holds(t: np.ndarray, hold: np.ndarray, phase: np.ndarray) -> None:
 
 def _phases_from_steps(t: np.ndarray, kinds: np.ndarray) -> np.ndarray:
     phase = np.full(len(t), "", dtype=object)
-    phase[kinds == "ramp"] = "ramp"
+    # a force-controlled ramp loads as a ramp does, a force hold relaxes (creeps) as a hold
+    phase[(kinds == "ramp") | (kinds == "ramp_force")] = "ramp"
     phase[kinds == "return"] = "return"
-    _split_holds(t, kinds == "hold", phase)
+    _split_holds(t, (kinds == "hold") | (kinds == "hold_force"), phase)
     return phase
 
 

@@ -31,6 +31,8 @@ import zstandard
 
 from rig.recording.messages import SAMPLE
 
+_MISSING = object()
+
 ATTACHMENT_NAME = "rig/sample-columns.npz.zst"
 MEDIA_TYPE = "application/zstd"  # of an .npz (application/x-npz): `zstd -d`, then np.load
 FORMAT = "rig.sample-columns"
@@ -58,6 +60,9 @@ class ColumnBuilder:
         self._kinds: list[int] = []
         self._kind_codes: dict[str, int] = {}
         self._get: Any = None
+        # a force step's setpoint and error, on its own ticks only: NaN on the others, as the reader
+        self._sparse: dict[str, list[float]] = {name: [] for name in SAMPLE.sparse_numeric}
+        self._sparse_seen: set[str] = set()
 
     def add(self, data: bytes) -> None:
         if self.broken:
@@ -85,6 +90,16 @@ class ColumnBuilder:
         if type(contact) is not bool or type(kind) is not str:
             self._break(f"sample {self.n}: contact or step_kind of an unexpected type")
             return
+        for name, col in self._sparse.items():
+            v = row.get(name, _MISSING)
+            if v is _MISSING:
+                col.append(np.nan)
+            elif type(v) is float or type(v) is int:
+                col.append(float(v))
+                self._sparse_seen.add(name)
+            else:
+                self._break(f"sample {self.n}: {name} is not a plain number")
+                return
         self._rows.append(values)
         self._contact.append(contact)
         code = self._kind_codes.get(kind)
@@ -106,6 +121,7 @@ class ColumnBuilder:
     def _break(self, why: str) -> None:
         self.broken = why
         self._blocks, self._rows, self._contact, self._kinds = [], [], [], []
+        self._sparse = {name: [] for name in SAMPLE.sparse_numeric}
 
     def build(self) -> bytes | None:
         """The attachment's bytes, or None when there is none to write (see `broken`)."""
@@ -116,6 +132,10 @@ class ColumnBuilder:
         table = np.concatenate(self._blocks)
         names = self.names or []
         arrays = {name: np.ascontiguousarray(table[:, j]) for j, name in enumerate(names)}
+        for name in SAMPLE.sparse_numeric:
+            if name in self._sparse_seen:
+                arrays[name] = np.array(self._sparse[name], dtype=float)
+                names = [*names, name]
         seq = arrays["seq"]
         header = {"format": FORMAT, "version": VERSION, "samples": self.n, "columns": names,
                   "first_seq": _seq_value(seq[0]), "last_seq": _seq_value(seq[-1]),

@@ -387,8 +387,13 @@ def _attached_columns(scan: _Scan) -> Columns | None:
         cols, kinds, contact = sample_columns(ends)
     except Exception:  # noqa: BLE001 - the messages are read one by one, and what is wrong said there
         return None
-    if list(cols) != list(columns.samples) or kinds != [columns.step_kind[0], columns.step_kind[-1]]:
+    dense = [name for name in columns.samples if name not in SAMPLE.sparse_numeric]
+    if [name for name in cols if name not in SAMPLE.sparse_numeric] != dense \
+            or kinds != [columns.step_kind[0], columns.step_kind[-1]]:
         return None
+    for name in SAMPLE.sparse_numeric:  # present in the ends or not, they must agree there
+        if name in columns.samples:
+            cols[name] = np.array([e.get(name, np.nan) for e in ends], dtype=float)
     if not np.array_equal(contact, columns.contact[[0, -1]]):
         return None
     for name, ends_col in cols.items():
@@ -416,10 +421,15 @@ def sample_columns(samples: list[dict]) -> tuple[dict[str, np.ndarray], list[str
     except Exception:  # noqa: BLE001 - a missing field or an odd value: read below, one value at a time
         fast = False
     if fast:
-        return {name: np.array(table[:, j]) for j, name in enumerate(names)}, kinds, contact
-    cols = {name: np.array([s.get(name, np.nan) for s in samples], dtype=float) for name in names}
-    kinds = [s.get("step_kind", "") for s in samples]
-    contact = np.array([bool(s.get("contact", False)) for s in samples])
+        cols = {name: np.array(table[:, j]) for j, name in enumerate(names)}
+    else:
+        cols = {name: np.array([s.get(name, np.nan) for s in samples], dtype=float) for name in names}
+        kinds = [s.get("step_kind", "") for s in samples]
+        contact = np.array([bool(s.get("contact", False)) for s in samples])
+    # a force step's setpoint and error, on its own ticks only
+    for name in SAMPLE.sparse_numeric:
+        if any(name in s for s in samples):
+            cols[name] = np.array([s.get(name, np.nan) for s in samples], dtype=float)
     return cols, kinds, contact
 
 

@@ -19,6 +19,7 @@ class Field:
     description: str = ""
     required: bool = True
     minimum: float | None = None
+    sparse: bool = False  # carried by some messages of a log only (a force step's ticks)
 
     @property
     def numeric(self) -> bool:
@@ -57,8 +58,15 @@ class MessageType:
 
     @cached_property
     def optional_numeric(self) -> tuple[str, ...]:
-        """Numeric fields only some logs carry (read when the first message has them)."""
-        return tuple(f.name for f in self.fields if f.numeric and not f.required)
+        """Numeric fields only some logs carry, in every message of those (read when the first
+        message has them)."""
+        return tuple(f.name for f in self.fields if f.numeric and not f.required and not f.sparse)
+
+    @cached_property
+    def sparse_numeric(self) -> tuple[str, ...]:
+        """Numeric fields only some messages of a log carry (read when any message has them, NaN
+        in the others)."""
+        return tuple(f.name for f in self.fields if f.numeric and f.sparse)
 
     @cached_property
     def _names(self) -> frozenset[str]:
@@ -78,8 +86,8 @@ class MessageType:
         return values
 
 
-def _num(name: str, description: str, required: bool = True) -> Field:
-    return Field(name, "number", description, required)
+def _num(name: str, description: str, required: bool = True, sparse: bool = False) -> Field:
+    return Field(name, "number", description, required, sparse=sparse)
 
 
 def _int(name: str, description: str = "", required: bool = True) -> Field:
@@ -107,8 +115,8 @@ SAMPLE = MessageType("/rig/sample", "rig.Sample", "One loop tick.", (
     _num("force_model_N", "the loaded model's force from the measured position (if a model runs), N",
          required=False),
     _num("model_error_N", "force_N - force_model_N, N", required=False),
-    _num("force_cmd_N", "a force-controlled step's setpoint this tick, N", required=False),
-    _num("force_error_N", "force_cmd_N - force_N, N", required=False),
+    _num("force_cmd_N", "a force-controlled step's setpoint this tick, N", required=False, sparse=True),
+    _num("force_error_N", "force_cmd_N - force_N, N", required=False, sparse=True),
 ))
 
 EVENT = MessageType("/rig/event", "rig.Event", "", (
