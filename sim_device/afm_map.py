@@ -23,7 +23,9 @@ A hidden region of the map carries one effect the rest does not (`MapSpec.region
 - drift: the deflection's baseline drifts linearly in time during the curve;
 - tilt: virtual deflection, a force linear in the piezo's travel, in and out of contact;
 - adhesion: on the retract, the tip stays stuck to the sample past the contact point and the
-  force goes negative, linearly, down to the adhesion force, where it lets go.
+  force goes negative, linearly, down to the adhesion force, where it lets go;
+- drag: hydrodynamic drag on the cantilever, a force proportional to the piezo's velocity, in
+  and out of contact (+b v on the approach, -b v on the retract).
 
 The sample is elastic: no relaxation or creep, so the retract retraces the approach (but for
 adhesion). The truth file (`<map>.truth.json`) gives per curve the modulus, the contact point,
@@ -46,7 +48,7 @@ from rig.errors import RigError
 if TYPE_CHECKING:
     import numpy as np
 
-REGIONS = ("thin_layer", "drift", "tilt", "adhesion")
+REGIONS = ("thin_layer", "drift", "tilt", "adhesion", "drag")
 
 # Dimitriadis et al. 2002, an incompressible layer bonded to the substrate (True) or lying on
 # it (False), under a paraboloid: the bracket's coefficients of chi, chi^2, chi^3, chi^4 as the
@@ -104,6 +106,7 @@ class MapSpec:
     tilt_pN_per_um: float = 150.0  # tilt: virtual deflection per µm of piezo travel
     adhesion_pN: float = 400.0  # adhesion: the force at which the tip lets go
     adhesion_length_nm: float = 300.0  # adhesion: the piezo's travel past contact when it does
+    drag_pN_s_per_um: float = 20.0  # drag: force per µm/s of the piezo's velocity (approach positive)
 
     def problem(self) -> str:
         """What is wrong with the settings, or ''."""
@@ -240,9 +243,14 @@ def _lowpass(x: np.ndarray, cutoff_Hz: float, rate_Hz: float) -> np.ndarray:
     return y * math.sqrt((2 - alpha) / alpha)
 
 
-def _artefact(spec: MapSpec, effect: str | None, t: np.ndarray, travel: np.ndarray) -> np.ndarray:
-    """What the deflection shows that the sample does not push: drift in time, or virtual
-    deflection with the piezo's travel; nil at the curve's start."""
+def _artefact(spec: MapSpec, effect: str | None, t: np.ndarray, travel: np.ndarray,
+              velocity: np.ndarray | None = None) -> np.ndarray:
+    """What the deflection shows that the sample does not push: drift in time, virtual
+    deflection with the piezo's travel (both nil at the curve's start), or drag with its
+    velocity (m/s, towards the sample positive)."""
+    if effect == "drag":
+        v = spec.speed_um_per_s * 1e-6 + 0.0 * t if velocity is None else velocity
+        return spec.drag_pN_s_per_um * 1e-6 * v
     if effect == "drift":
         return spec.drift_pN_per_s * 1e-12 * t
     if effect == "tilt":
@@ -293,7 +301,8 @@ def _curve(spec: MapSpec, E: float, contact_m: float, effect: str | None, rng: n
     t_all = np.concatenate([t[:n_app], t_ret])
     travel_all = np.concatenate([travel[:n_app], travel_ret])
     F_true = np.concatenate([F_contact[:n_app], F_ret])
-    F_art = _artefact(spec, effect, t_all, travel_all)
+    velocity = np.concatenate([np.full(n_app, v), np.full(n_ret, -v)])
+    F_art = _artefact(spec, effect, t_all, travel_all, velocity)
     baseline = (spec.baseline_pN + spec.baseline_spread_pN * rng.standard_normal()) * 1e-12
     noise = rng.standard_normal(len(t_all))
     if spec.noise_cutoff_Hz is not None:
@@ -351,6 +360,10 @@ def force_law(spec: MapSpec, in_region: bool) -> dict:
     elif in_region and spec.region == "tilt":
         law["artefact"] = {"what": "virtual deflection linear in the piezo's travel from the curve's start",
                            "N_per_m": spec.tilt_pN_per_um * 1e-6}
+    elif in_region and spec.region == "drag":
+        law["artefact"] = {"what": "hydrodynamic drag on the cantilever: N_s_per_m times the piezo's velocity "
+                                   "(towards the sample positive: +b v on the approach, -b v on the retract)",
+                           "N_s_per_m": spec.drag_pN_s_per_um * 1e-6}
     elif in_region and spec.region == "adhesion":
         law["adhesion"] = {"what": "on the retract, past the contact point the force falls linearly with the "
                                    "piezo's travel to -force_N at length_m, then the tip lets go",
@@ -516,7 +529,7 @@ def add_map_parser(subparsers: Any) -> argparse.ArgumentParser:
                     "noise and a baseline) as afmformats' HDF5 force map, which rig, nanite and PyJibe read, "
                     "and OUT.truth.json beside it: every curve's modulus, contact point and region. A hidden "
                     "region may carry one effect the rest does not: thin_layer (bottom effect, Dimitriadis "
-                    "2002), drift, tilt (virtual deflection) or adhesion.")
+                    "2002), drift, tilt (virtual deflection), adhesion or drag (on the cantilever).")
     p.add_argument("out", metavar="OUT.h5", help="the map to write (afmformats reads it only as .h5)")
     p.add_argument("--grid", type=_grid, default=d.grid, help="columns x rows (default 8x8)")
     p.add_argument("--region", type=_region, default=None, help=f"{', '.join(REGIONS)} or none (default none)")

@@ -29,6 +29,7 @@ from rig.analysis.data import PHASES, TrialData, decimate
 from rig.analysis.fit import FitResult, evaluate, fit
 from rig.analysis.residual_shape import describe, not_the_answer
 from rig.analysis.uncertainty import delta_bic
+from rig.models.catalogue import instrument_effects
 from rig.models.core import Effect, Model
 
 MIN_DROP = 0.05  # calibrated: see README, `--explain` (tests/bench/calibrate_explain.py)
@@ -102,7 +103,7 @@ def candidates(model: Model, registry: dict[str, Effect],
     # trials at different speeds: on one speed it is a second name for the same fit
     several_speeds = bool(speeds) and speeds[-1] > 1.2 * max(speeds[0], 1e-300)
     out = []
-    for e in registry.values():
+    for e in instrument_effects(model, registry).values():
         if model.has(e.name):
             continue
         if e.stage in ("rate", "lag", "delay") and any(x.stage == e.stage for x in model.effects):

@@ -6,6 +6,7 @@ import numpy as np
 
 from rig.models.core import Effect, Model, Motion, Param, first_order_lag
 from rig.models.fractional import fractional_maxwell
+from rig.models.instrument import BOTTOM_EFFECTS, BOTTOM_SHAPES, SENSOR_EFFECTS, bottom_effect
 from rig.models.viscoelastic import MODELS as VISCOELASTIC_EFFECTS
 from rig.models.viscoelastic import viscoelastic_effect
 
@@ -235,6 +236,23 @@ RECORD_ZERO = E("offset", "sensor", (P("offset_N", "N", 0.0, per_record=True),),
                 source="the record (its force at rest)")
 
 
+def instrument_effects(model: Model, registry: dict[str, Effect]) -> dict[str, Effect]:
+    """`registry` with the AFM's own effects (rig.models.instrument) when `model` holds an
+    indenter's elastic contact: virtual deflection (tilt), the cantilever's drag and the bottom
+    effect (bonded and not; for the shapes its series is for, built for the indenter's radius,
+    which only the contact effect in the registry knows). Kept out of CATALOGUE: a cantilever's
+    artefacts have no place among the tissue rig's candidates, and the catalogue's names are a
+    contract."""
+    law = registry[CONTACT].fn if CONTACT in registry else None
+    if not (model.has(CONTACT) and hasattr(law, "indenter")):
+        return registry
+    extra = {n: e for n, e in SENSOR_EFFECTS.items() if n not in registry}
+    if law.indenter.kind in BOTTOM_SHAPES:
+        extra.update({n: bottom_effect(law.indenter, law.poisson, bonded)
+                      for n, bonded in BOTTOM_EFFECTS.items() if n not in registry})
+    return {**registry, **extra}
+
+
 def named_models(registry: dict[str, Effect]) -> list[str]:
     """The named models every part of which `registry` holds (hertz only with an indenter)."""
     return [n for n, parts in NAMED_MODELS.items() if all(p in registry for p in parts)]
@@ -247,6 +265,7 @@ def build_model(name: str, extra: list[str] | None = None,
     reg = registry or CATALOGUE
     models = {**NAMED_MODELS, **VISCOELASTIC_MODELS}
     indenter_effects = (CONTACT, *VISCOELASTIC_EFFECTS.values())
+    reg = {**{n: e for n, e in SENSOR_EFFECTS.items() if n not in reg}, **reg}  # --add tilt, drag anywhere
     if name not in models and name not in reg:
         if name in indenter_effects:
             raise RigError(f"'{name}' {NEEDS_INDENTER}")
@@ -257,6 +276,14 @@ def build_model(name: str, extra: list[str] | None = None,
     law = reg[CONTACT].fn if CONTACT in reg else None
     if wanted and hasattr(law, "indenter"):
         reg = {**reg, **{n: viscoelastic_effect(n, law.indenter, law.poisson) for n in wanted}}
+    bottom = [n for n in [*names, *(extra or [])] if n in BOTTOM_EFFECTS and n not in reg]
+    if bottom:
+        if not hasattr(law, "indenter"):
+            raise RigError(f"'{bottom[0]}' {NEEDS_INDENTER}")
+        try:
+            reg = {**reg, **{n: bottom_effect(law.indenter, law.poisson, BOTTOM_EFFECTS[n]) for n in bottom}}
+        except ValueError as exc:
+            raise RigError(f"'{bottom[0]}': {exc}") from None
     if any(n in indenter_effects and n not in reg for n in names):
         raise RigError(f"the {name} model {NEEDS_INDENTER}")
     for n in extra or []:
@@ -295,6 +322,11 @@ def format_catalogue(effects: dict[str, Effect]) -> str:
     lines += [f"  {n:<14} {' + '.join(parts)}" for n, parts in NAMED_MODELS.items()]
     if CONTACT not in effects:
         lines.append(f"  (hertz: E in Pa for the indenter; it {NEEDS_INDENTER})")
+    lines.append("\nthe AFM's own (rig.models.instrument; candidates of --explain with an indenter's contact)")
+    for e in SENSOR_EFFECTS.values():
+        lines.append(f"  {e.name:<18} {e.stage:<8} {e.equation}")
+    lines.append(f"  {'bottom_effect':<18} {'drive':<8} the contact force x Dimitriadis et al. 2002's series "
+                 "in sqrt(R d)/h (paraboloid, sphere; bottom_effect_free: not bonded)")
     lines.append("\nviscoelastic contact for the indenter (Lee-Radok and Ting; rig.models.viscoelastic)")
     lines += [f"  {n:<14} {' + '.join(parts)}" for n, parts in VISCOELASTIC_MODELS.items()]
     return "\n".join(lines)
