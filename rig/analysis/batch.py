@@ -49,7 +49,8 @@ class Curve:
 
     @property
     def key(self) -> tuple[str, str]:
-        return self.file, "" if self.curve is None else str(self.curve)
+        """The file as a resolved path (the same file however it was named) and the curve."""
+        return str(Path(self.file).resolve()), "" if self.curve is None else str(self.curve)
 
 
 @dataclass(frozen=True)
@@ -68,10 +69,14 @@ class BatchRequest:
     block: int | None = None
 
 
-def expand_inputs(inputs: list[str]) -> list[str]:
+def expand_inputs(inputs: list[str], skipped: list[str] | None = None) -> list[str]:
     """Files named, found by a glob, or held in a folder (its files, recursively, in name order;
-    hidden ones and the table being written are left out by the caller). One clear error for
-    a name that is none of them."""
+    hidden ones left out). A file named is taken as it is (its row says if it cannot be read);
+    one found in a folder or by a glob only if it is a record this tool reads (a folder also
+    holds pictures, notes, truth files and tables): the others are listed in `skipped`. One clear
+    error for a name that is none of them."""
+    from rig.records import recognised
+
     out: list[str] = []
     for name in inputs:
         p = Path(name)
@@ -80,16 +85,20 @@ def expand_inputs(inputs: list[str]) -> list[str]:
                 part.startswith(".") for part in f.relative_to(p).parts))
             if not found:
                 raise RigError(f"{name}: an empty folder")
-            out += found
         elif p.is_file():
             out.append(name)
+            continue
         elif glob.has_magic(name):
             found = sorted(f for f in glob.glob(name, recursive=True) if Path(f).is_file())
             if not found:
                 raise RigError(f"{name}: no file matches")
-            out += found
         else:
             raise RigError(f"{name}: no such file or folder")
+        for f in found:
+            if recognised(f):
+                out.append(f)
+            elif skipped is not None:
+                skipped.append(f)
     seen: set[str] = set()
     return [f for f in out if not (f in seen or seen.add(f))]
 
@@ -239,7 +248,7 @@ def row_order(curves: Iterable[Curve]) -> dict[tuple[str, str], int]:
 
 def key_of(row: dict) -> tuple[str, str]:
     curve = row.get("curve")
-    return str(row["file"]), "" if curve in (None, "") else str(int(float(curve)))
+    return str(Path(str(row["file"])).resolve()), "" if curve in (None, "") else str(int(float(curve)))
 
 
 def run(curves: list[Curve], req: BatchRequest, *, workers: int | None = None, scheduler: str | None = None,

@@ -17,12 +17,12 @@ import statistics
 import sys
 import time
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 from rig.analysis.batch import BatchRequest, Curve, expand_inputs, key_of, plan, row_order, run
-from rig.analysis.table import Journal, columns, read_rows, table_format, write_table
+from rig.analysis.table import Journal, columns, journal_of, read_rows, table_format, write_table
 from rig.errors import RigError
 
 __all__ = ["EachResult", "analyze_curves", "format_summary", "on_grid", "run_each"]
@@ -35,6 +35,13 @@ class EachResult:
     resumed: int = 0  # rows kept from an earlier run (--resume)
     seconds: float = 0.0
     table: str | None = None
+    skipped: list[str] = field(default_factory=list)  # files in the folders given that are not records
+    others: int = 0  # rows of the table for curves not given this time, kept
+
+    @property
+    def analysed(self) -> list[dict]:
+        """The rows of this batch's curves (not the table's others)."""
+        return self.rows[:len(self.rows) - self.others] if self.others else self.rows
 
     @property
     def failed(self) -> list[dict]:
@@ -84,29 +91,30 @@ def run_each(inputs: list[str], req: BatchRequest, *, table: str | None = None, 
              workers: int | None = None, scheduler: str | None = None, progress: bool = True) -> EachResult:
     """Plan, skip what an earlier run of `table` did (`resume`), analyse the rest, write the table."""
     t0 = time.monotonic()
+    table = str(table) if table is not None else None
     if table:
         table_format(table)
-        if not resume and (Path(table).exists() or Path(table + ".partial.jsonl").exists()):
+        if not resume and (Path(table).exists() or journal_of(table).exists()):
             raise RigError(f"--table {table}: the file (or an interrupted batch's rows beside it) already "
-                           "exists: "
-                           "--resume to finish it, or remove it")
-    files = expand_inputs(inputs)
-    if table:
-        files = [f for f in files
-                 if Path(f).resolve() != Path(table).resolve() and not f.endswith(".partial.jsonl")]
-    curves = plan(files, req)  # a file that cannot be opened is one row that says why
+                           "exists: --resume to finish it, or remove it")
+        _same_request(table, req, resume)
+    skipped: list[str] = []
+    files = expand_inputs(inputs, skipped)
+    curves = plan(files, req)  # a file named that cannot be opened is one row that says why
     order = row_order(curves)
     done: dict[tuple[str, str], dict] = {}
+    others: list[dict] = []  # rows of the table for curves not given this time: kept
     if table and resume:
         for r in read_rows(table):
             k = key_of(r)
             if k in order:
                 done[k] = r
+            elif all(key_of(o) != k for o in others):
+                others.append(r)
     todo = [c for c in curves if c.key not in done]
-    # from here the journal alone holds every row done so far (an earlier table's rows moved in)
-    journal = Journal(table, list(done.values())) if table else None
-    if table and Path(table).exists():
-        Path(table).unlink()
+    # the table stays until the new one replaces it; the journal, started at the first new rows,
+    # holds every row done so far (the earlier ones copied in), so a kill loses nothing
+    journal = Journal(table, [*done.values(), *others]) if table else None
     shown = Progress(len(todo)) if progress and todo else None
     finished = False
     try:
@@ -121,11 +129,32 @@ def run_each(inputs: list[str], req: BatchRequest, *, table: str | None = None, 
     finally:
         if journal:
             journal.close()
-    rows = sorted(done.values(), key=lambda r: order[key_of(r)])
+    rows = sorted(done.values(), key=lambda r: order[key_of(r)]) + others
     if table and finished:
         write_table(rows, table)
         journal.path.unlink(missing_ok=True)  # the table holds them all now
-    return EachResult(rows, len(curves), len(curves) - len(todo), time.monotonic() - t0, table)
+    return EachResult(rows, len(curves), len(curves) - len(todo), time.monotonic() - t0, table,
+                      skipped, len(others))
+
+
+def _same_request(table: str, req: BatchRequest, resume: bool) -> None:
+    """What was asked of a table's curves is kept beside it (`OUT.request.json`): a resumed batch
+    that asks something else would mix two analyses in one table, and is refused."""
+    import json
+
+    path = Path(table + ".request.json")
+    asked = json.loads(json.dumps(asdict(req)))
+    if resume and path.exists():
+        try:
+            before = json.loads(path.read_text())
+        except (OSError, ValueError):
+            before = None
+        if isinstance(before, dict) and before != asked:
+            what = ", ".join(f"{k} {before.get(k)!r} then, {v!r} now" for k, v in asked.items()
+                             if before.get(k) != v)
+            raise RigError(f"--resume {table}: its rows were made with other settings ({what}): give the same "
+                           "ones, or a new --table")
+    path.write_text(json.dumps(asked, indent=1) + "\n")
 
 
 def parameters(rows: list[dict]) -> list[str]:
@@ -135,15 +164,27 @@ def parameters(rows: list[dict]) -> list[str]:
     return [c for c in columns(rows) if c not in PLACE and c not in TAIL and not c.endswith("_stderr")]
 
 
+def _n(count: int, what: str) -> str:
+    return f"{count} {what}" if count == 1 else f"{count} {what}s"
+
+
 def format_summary(res: EachResult, req: BatchRequest) -> str:
-    rows = res.rows
+    rows = res.analysed
     ok = [r for r in rows if not r.get("error")]
-    lines = [f"{res.curves} curves from {len({r['file'] for r in rows})} file(s), model {req.model}"
+    files = len({r["file"] for r in rows})
+    new = len(rows) - res.resumed
+    lines = [f"{_n(res.curves, 'curve')} from {_n(files, 'file')}, model {req.model}"
              + (f" (+{', +'.join(req.add)})" if req.add else "")
              + f": {len(ok)} analysed, {len(res.failed)} could not be"
              + (f"; {res.resumed} kept from the earlier run" if res.resumed else "")
-             + f"; {res.seconds:.1f} s ({len(rows) - res.resumed} curves at "
-             + f"{(len(rows) - res.resumed) / max(res.seconds, 1e-9):.3g}/s)"]
+             + (f"; {res.seconds:.1f} s ({_n(new, 'curve')} at {new / max(res.seconds, 1e-9):.3g}/s)" if new
+                else "; nothing left to do")]
+    if res.others:
+        lines.append(f"  the table also keeps {_n(res.others, 'row')} of curves not given this time")
+    if res.skipped:
+        shown = ", ".join(Path(f).name for f in res.skipped[:6]) + (", ..." if len(res.skipped) > 6 else "")
+        lines.append(f"  skipped {_n(len(res.skipped), 'file')} in the folders given that are not records: "
+                     f"{shown}")
     read = sum(r.get("_read_s", 0.0) for r in rows)
     fitted = sum(r.get("_fit_s", 0.0) for r in rows)
     if read + fitted > 0:
@@ -154,7 +195,7 @@ def format_summary(res: EachResult, req: BatchRequest) -> str:
         if len(vals) >= 1:
             q = statistics.quantiles(vals, n=4) if len(vals) >= 2 else [vals[0]] * 3
             lines.append(f"  {p:<28} median {statistics.median(vals):.4g}, quartiles {q[0]:.4g} to {q[2]:.4g} "
-                         f"({len(vals)} curves)")
+                         f"({_n(len(vals), 'curve')})")
     if ok:
         adequate = sum(1 for r in ok if r.get("adequate") in (True, "True"))
         lines.append(f"  adequate (residual at the noise): {adequate} of {len(ok)}")
@@ -162,13 +203,13 @@ def format_summary(res: EachResult, req: BatchRequest) -> str:
         named = Counter(r["effect"] for r in ok if r.get("effect"))
         if named:
             effect, n = named.most_common(1)[0]
-            where = [_where(r) for r in ok if r.get("effect") == effect]
+            where = [_where(r, files > 1) for r in ok if r.get("effect") == effect]
             lines.append(f"  most often missing: {effect}, on {n} of {len(ok)} curves ("
                          + ", ".join(where[:8]) + (", ..." if len(where) > 8 else "") + ")"
                          + "".join(f"; {e}: {k}" for e, k in named.most_common()[1:4]))
         else:
             lines.append("  no effect named missing on any curve")
-    for r in res.failed[:10]:
+    for r in [r for r in rows if r.get("error")][:10]:
         lines.append(f"  could not analyse {_where(r, True)}: {r['error']}")
     if len(res.failed) > 10:
         lines.append(f"  ... and {len(res.failed) - 10} more (the table's `error` column says why)")
@@ -178,6 +219,8 @@ def format_summary(res: EachResult, req: BatchRequest) -> str:
 
 
 def _where(r: dict, file: bool = False) -> str:
+    """The curve as a person finds it: its number and place on the map, and its file where the
+    batch has several."""
     name = Path(str(r["file"])).name
     place = f"curve {r['curve']}" if r.get("curve") not in (None, "") else name
     if r.get("grid_x") not in (None, "") and r.get("grid_y") not in (None, ""):
@@ -188,17 +231,18 @@ def _where(r: dict, file: bool = False) -> str:
 def format_rows(rows: list[dict], most: int = 100) -> str:
     """A short table a person reads, for a few curves."""
     ps = parameters(rows)
+    several = len({r["file"] for r in rows}) > 1
     head = f"{'curve':<28}" + "".join(f"{p:>14}" for p in ps) + f"{'RMSE/noise':>12}  verdict"
     out = [head]
     for r in rows[:most]:
         if r.get("error"):
-            out.append(f"{_where(r):<28}  could not analyse: {r['error']}")
+            out.append(f"{_where(r, several):<28}  could not analyse: {r['error']}")
             continue
         vals = "".join(f"{_num(r.get(p)):>14}" for p in ps)
         verdict = "adequate" if r.get("adequate") in (True, "True") else "NOT adequate"
         if r.get("effect"):
             verdict += f"; missing: {r['effect']}"
-        out.append(f"{_where(r):<28}{vals}{_num(r.get('rmse_over_noise')):>12}  {verdict}")
+        out.append(f"{_where(r, several):<28}{vals}{_num(r.get('rmse_over_noise')):>12}  {verdict}")
     if len(rows) > most:
         out.append(f"... {len(rows) - most} more (--table OUT.csv writes them all)")
     return "\n".join(out)
@@ -255,14 +299,16 @@ def is_batch(inputs: list[str], curve: int | None, each: bool, options: Any = No
     if any(Path(i).is_dir() or (not Path(i).exists() and _magic(i)) for i in inputs):
         return True
     if len(inputs) == 1 and curve is None:
-        try:
-            from rig.records import list_curves
-            from rig.records.afm import format_of
+        from rig.records import list_curves
+        from rig.records.afm import format_of
 
+        try:
             format_of(inputs[0])
-            return len(list_curves(inputs[0], options)) > 1
         except (RigError, OSError):
-            return False
+            return False  # not an AFM file: one record
+        # an AFM file that cannot be listed with these options says why here (exit 2), not as a
+        # batch's failed row or a refusal of --table
+        return len(list_curves(inputs[0], options)) > 1
     return False
 
 

@@ -125,26 +125,31 @@ def _jsonl(p: Path) -> list[dict]:
 
 
 class Journal:
-    """Appends finished rows beside the table, flushed, so a kill loses only chunks in flight."""
+    """Appends finished rows beside the table, flushed, so a kill loses only chunks in flight.
+    Started at the first new rows (a batch that fails before any work leaves nothing behind),
+    anew with `rows` (those kept from earlier), replacing any journal there."""
 
     def __init__(self, table: str | Path, rows: list[dict]) -> None:
-        """Started anew with `rows` (those kept from an earlier run), replacing any journal there."""
         self.path = journal_of(table)
-        tmp = self.path.with_name(self.path.name + ".tmp")
-        with open(tmp, "w") as fh:
-            for r in rows:
-                fh.write(json.dumps(public(r), default=str) + "\n")
-        os.replace(tmp, self.path)
-        self._fh = open(self.path, "a")  # noqa: SIM115 (held open for the batch: rows go in as chunks finish)
+        self._kept = rows
+        self._fh = None
 
     def add(self, rows: list[dict]) -> None:
+        if self._fh is None:
+            tmp = self.path.with_name(self.path.name + ".tmp")
+            with open(tmp, "w") as fh:
+                for r in self._kept:
+                    fh.write(json.dumps(public(r), default=str) + "\n")
+            os.replace(tmp, self.path)
+            self._fh = open(self.path, "a")  # noqa: SIM115 (held open for the batch: rows go in as chunks finish)
         for r in rows:
             self._fh.write(json.dumps(public(r), default=str) + "\n")
         self._fh.flush()
         os.fsync(self._fh.fileno())
 
     def close(self) -> None:
-        self._fh.close()
+        if self._fh is not None:
+            self._fh.close()
 
 
 def jsonable(row: dict) -> dict:

@@ -29,7 +29,7 @@ LOOKED_FOR = ("an MCAP log, a CSV with t_s,position_mm,force_N (or units in the 
               f"text export, a Mach-1 .txt, an Instron Bluehill CSV, or {AFM_LOOKED_FOR}")
 
 __all__ = ["LOOKED_FOR", "CurveInfo", "ReadOptions", "Record", "each_record", "iter_records", "list_curves",
-           "read_record"]
+           "read_record", "recognised"]
 
 
 def read_record(path: str | Path, options: ReadOptions | int | None = None, *,
@@ -75,6 +75,38 @@ def read_record(path: str | Path, options: ReadOptions | int | None = None, *,
     if path.suffix.lower() == ".mcap":
         return _read_mcap(path)  # says what is wrong with the log
     raise SpecError(f"not a file this tool can read (looked for {LOOKED_FOR})", path=str(path))
+
+
+def recognised(path: str | Path) -> bool:
+    """Whether the file is one of the records `read_record` reads, by the same marks (first
+    bytes, the AFM formats' own marks, a CSV's time, length and force columns), without reading
+    it: a folder walked for a batch also holds pictures, notes and tables."""
+    from rig.records.csvfile import looks_like_csv, pick_columns
+    from rig.records.instron import looks_like_instron
+    from rig.records.jpk import looks_like_jpk_text
+    from rig.records.mach1 import looks_like_mach1
+
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            raw = fh.read(8192)
+    except OSError:
+        return False
+    if raw.startswith(MCAP_MAGIC) or detect_afm(raw, path) is not None:
+        return True
+    if b"\x00" in raw:
+        return False
+    head = raw.decode("utf-8", errors="replace")
+    if looks_like_mach1(head) or looks_like_jpk_text(head) or looks_like_instron(head):
+        return True
+    if not looks_like_csv(head):
+        return False
+    first = next((ln for ln in head.splitlines() if ln.strip()), "")
+    try:
+        pick_columns([h.strip() for h in first.split(",")], str(path))
+    except SpecError:
+        return False
+    return True
 
 
 def _options(options: ReadOptions | int | None, block: int | None) -> ReadOptions:
