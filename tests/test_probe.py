@@ -122,7 +122,9 @@ def test_polled_cell_configured_as_streaming(sim):
     report = probe(config_for(sim), seconds=SECONDS)
     assert report.exit_status() == EXIT_PROBLEMS
     assert "it answers the request '?\\r\\n': it is a polled cell" in report.format()
-    assert fields_of(report) == {"loadcell.mode"}
+    # the mode is the finding; a poll at 115200 on the paced wire also makes ticks run long, which
+    # the probe rightly reports as timing (as in assert_clean)
+    assert {f for p in report.problems if p.device != "timing" for f in p.fields} == {"loadcell.mode"}
 
 
 def test_streaming_cell_configured_as_polled(sim):
