@@ -286,7 +286,7 @@ def _on_dask(parts: list[list[Curve]], req: BatchRequest, scheduler: str) -> Ite
     except ImportError:
         raise RigError("--scheduler needs Dask distributed: pip install 'indentation-rig[cluster]'") from None
     try:
-        client = Client(scheduler, timeout="10s")
+        client = Client(scheduler, timeout="5s")  # a scheduler on the lab's network answers at once
     except (OSError, TimeoutError) as exc:
         raise RigError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc})") from None
     try:
