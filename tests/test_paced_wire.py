@@ -29,19 +29,13 @@ from rig.sim.process import SimProcess
 from rig.sim.server import WireSim, wire_note
 
 from rig.realtime import Realtime
+from tests.wire_helpers import crc16
 
 SLACK_BEST_S = 0.003
 SLACK_MEDIAN_S = 0.010
 POSITION_READ = bytes([0x01, 0x03, 0x00, 0xCC, 0x00, 0x02])  # FC03 feedback position x2: 8 + 9 bytes
 
 
-def crc16(data: bytes) -> bytes:
-    crc = 0xFFFF
-    for b in data:
-        crc ^= b
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return crc.to_bytes(2, "little")
 
 
 def rtu(pdu: bytes) -> bytes:
