@@ -319,14 +319,16 @@ def _walk_rss(P: np.ndarray, lam: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
     return G[:, 0, 0], logdet
 
 
-def _level(r: np.ndarray, Q: np.ndarray) -> tuple[float, float, float]:
+def _level(r: np.ndarray, Q: np.ndarray,
+           basis: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, float, float]:
     """White noise plus a random walk from the trial's start under the residual `r`: restricted
     log-likelihood at its maximum, the white variance and the walk's increment variance (REML).
 
-    Sigma = s^2 (I + q K) is diagonal in `_walk_basis`, so the likelihood at any q is a weighted
-    sum, evaluated on a grid of log q and refined by a parabola through the best three."""
+    Sigma = s^2 (I + q K) is diagonal in `_walk_basis` (`basis`, when already computed), so the
+    likelihood at any q is a weighted sum, evaluated on a grid of log q and refined by a
+    parabola through the best three."""
     m, k = Q.shape
-    P, mu = _walk_basis(r, Q)
+    P, mu = basis if basis is not None else _walk_basis(r, Q)
 
     def values(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         rss, logdet = _walk_rss(P, 1.0 + np.exp(u)[:, None] * mu, k)
@@ -346,24 +348,40 @@ def _level(r: np.ndarray, Q: np.ndarray) -> tuple[float, float, float]:
     return float(ll[0]), float(s2[0]), float(s2[0] * math.exp(u))
 
 
-def _quiet_refutes(r: np.ndarray, J: np.ndarray, s_eta: float) -> bool:
-    """Whether the residual `r` over a stretch where the force was at rest (the approach before
-    contact, `J` its rows of the Jacobian) rules out a random walk of increment variance `s_eta`:
-    a noise walks there too, where a model's smooth misfit in contact, which reads as a walk
-    over the whole record, is absent. The stretch's restricted likelihood with the walk held at
+class _AtRest:
+    """A trial's stretch at rest (the approach before contact: residual `r`, `J` its rows of the
+    Jacobian), with what the checks against it share, each computed once: the fitted directions
+    there, the residual without them, and the walk model's fit."""
+
+    def __init__(self, r: np.ndarray, J: np.ndarray) -> None:
+        self.r = r
+        self.Q = _basis(J)
+        self.m, self.k = self.Q.shape
+        self.u = r - self.Q @ (self.Q.T @ r)
+        self._walk: tuple | None = None
+
+    def walk(self) -> tuple[float, float, float, np.ndarray, np.ndarray]:
+        """`_level`'s log-likelihood, white and walk variances, and the walk basis (P, mu)."""
+        if self._walk is None:
+            basis = _walk_basis(self.r, self.Q)
+            self._walk = (*_level(self.r, self.Q, basis), *basis)
+        return self._walk
+
+
+def _quiet_refutes(rest: _AtRest | None, s_eta: float) -> bool:
+    """Whether the stretch at rest rules out a random walk of increment variance `s_eta`: a
+    noise walks there too, where a model's smooth misfit in contact, which reads as a walk over
+    the whole record, is absent. The stretch's restricted likelihood with the walk held at
     `s_eta` (the white variance at its best) against its maximum, at QUIET_LR; one-sided: a
     stretch that walks more refutes nothing."""
-    Q = _basis(J)
-    m, k = Q.shape
-    if m < MIN_SAMPLES or m <= 2 * k + 2:
+    if rest is None or rest.m < MIN_SAMPLES or rest.m <= 2 * rest.k + 2:
         return False
-    ll, s_eps, s_eta_here = _level(r, Q)
+    ll, s_eps, s_eta_here, P, mu = rest.walk()
     if s_eta <= s_eta_here or s_eps <= 0.0:
         return False
-    best = ll - 0.5 * (m - k)  # the concentrated maximum, its constant put back
+    best = ll - 0.5 * (rest.m - rest.k)  # the concentrated maximum, its constant put back
     white = s_eps * np.exp(np.arange(-12.0, 3.01, 0.25))
-    P, mu = _walk_basis(r, Q)
-    rss, logdet = _walk_rss(P, white[:, None] + s_eta * mu, k)
+    rss, logdet = _walk_rss(P, white[:, None] + s_eta * mu, rest.k)
     return 2.0 * (best - float(np.max(-0.5 * (logdet + rss)))) > QUIET_LR
 
 
@@ -375,9 +393,9 @@ def _spectrum(phi: np.ndarray, s2: float, omega: np.ndarray) -> np.ndarray:
     return s2 / np.maximum(np.abs(a) ** 2, np.finfo(float).tiny)
 
 
-def _quiet_too_slow(r: np.ndarray, J: np.ndarray, phi: np.ndarray, s2: float) -> bool:
-    """Whether the stretch at rest (the approach before contact: residual `r`, `J` its rows) rules
-    out the residual's own noise model, AR(phi) of innovation variance s2, as too slow.
+def _quiet_too_slow(rest: _AtRest, phi: np.ndarray, s2: float) -> bool:
+    """Whether the stretch at rest rules out the residual's own noise model, AR(phi) of
+    innovation variance s2, as too slow.
 
     A model's smooth misfit in contact reads as a strongly correlated noise: prewhitened and
     recoloured it multiplies the standard errors (by up to 100 on real AFM curves whose fit
@@ -390,15 +408,13 @@ def _quiet_too_slow(r: np.ndarray, J: np.ndarray, phi: np.ndarray, s2: float) ->
     model claims), at QUIET_LR. Measured on 100 records each: AR(1) at 0.99 and 0.998, low-pass
     noises at 0.005 and 0.02 of Nyquist, refuted 0-1.6 % of the time; misfits of 1-3x the noise
     under white noise every time."""
-    Q = _basis(J)
-    m, k = Q.shape
+    m, k = rest.m, rest.k
     if m < MIN_SAMPLES or m < 2 * k + 20:
         return False
     j = np.arange(k + 1, m // 2)  # the lowest k went with the fitted directions
     S = _spectrum(phi, s2, 2.0 * np.pi * j / m)
     band = max(int(np.argmax(0.5 * S[0] > S)) or len(S), 8)
-    u = r - Q @ (Q.T @ r)
-    power = np.abs(np.fft.rfft(u)[j[:band]]) ** 2 / m
+    power = np.abs(np.fft.rfft(rest.u)[j[:band]]) ** 2 / m
     c = float(np.mean(power / S[:band]))
     return 0.0 < c < 1.0 and 2.0 * band * (c - 1.0 - math.log(c)) > QUIET_LR
 
@@ -454,8 +470,9 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
         # restricted likelihood (of the residual, the fitted directions out) prefers
         ll_lv, s_eps, s_eta = _level(rk, Qk) if m > 2 * Qk.shape[1] + 2 else (-math.inf, 0.0, 0.0)
         q = quiet[k] if quiet else 0
+        rest = _AtRest(r[sl][:q], J[sl][:q]) if q else None
         if s_eta > 0.0 and ll_lv - _ar_reml(rk, Qk, phi) > 0.5 * (1 - len(phi)) * math.log(m) \
-                and not _quiet_refutes(r[sl][:q], J[sl][:q], s_eta):
+                and not _quiet_refutes(rest, s_eta):
             # Sigma = s_eps I + s_eta K, K = C C^T: the parameters see
             # sum_t J_t W_t = sum_s (sum_{t>=s} J_t) dW_s
             Jk = J[sl]
@@ -463,14 +480,12 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
             level_meat += s_eps * (Jk.T @ Jk) + s_eta * (C.T @ C)
             drifting.append(k)
             continue
-        if q:
+        if rest is not None:
             s2 = float(np.mean(_whiten(rk, phi) ** 2))
-            if _quiet_too_slow(r[sl][:q], J[sl][:q], phi, s2):
+            if _quiet_too_slow(rest, phi, s2):
                 # the residual's slow part is not noise: the errors are those of the noise at rest
-                Qq = _basis(J[sl][:q])
-                uq = r[sl][:q] - Qq @ (Qq.T @ r[sl][:q])
-                at_rest, _ = _prewhitening(uq, Qq, rng)
-                level_meat += _spectral_meat(J[sl], at_rest, float(np.mean(_whiten(uq, at_rest) ** 2)))
+                at_rest, _ = _prewhitening(rest.u, rest.Q, rng)
+                level_meat += _spectral_meat(J[sl], at_rest, float(np.mean(_whiten(rest.u, at_rest) ** 2)))
                 misfit.append(k)
                 continue
         e = _whiten(gk, phi)
@@ -479,7 +494,7 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
         gain = 1.0 / (1.0 - float(phi.sum())) ** 2
         meat += _bartlett_meat(e, M) * gain
         b = _drift(_whiten(rk, phi), Qk.shape[1] + 1) * gain
-        if b > 0.0 and not _quiet_refutes(r[sl][:q], J[sl][:q], b):
+        if b > 0.0 and not _quiet_refutes(rest, b):
             # a walk from the trial's start: the parameters see sum_t J_t W_t = sum_s (sum_{t>=s} J_t) dW_s
             C = np.cumsum(J[sl][::-1], axis=0)[::-1]
             meat += b * (C.T @ C)
