@@ -20,7 +20,7 @@ import math
 import multiprocessing
 import os
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -50,7 +50,7 @@ class Curve:
     @property
     def key(self) -> tuple[str, str]:
         """The file as a resolved path (the same file however it was named) and the curve."""
-        return str(Path(self.file).resolve()), "" if self.curve is None else str(self.curve)
+        return _key(self.file, self.curve)
 
 
 @dataclass(frozen=True)
@@ -103,8 +103,7 @@ def expand_inputs(inputs: list[str], skipped: list[str] | None = None) -> list[s
     return [f for f in out if not (f in seen or seen.add(f))]
 
 
-def plan(files: list[str], req: BatchRequest,
-         skip: Callable[[str, Exception], None] | None = None) -> list[Curve]:
+def plan(files: list[str], req: BatchRequest) -> list[Curve]:
     """Every curve of `files`, in order: an AFM file gives one unit per curve (numbered as the
     instrument numbers it, placed as its metadata says), any other file one unit. A file that
     cannot be opened is one unit, whose row will say why."""
@@ -119,7 +118,7 @@ def plan(files: list[str], req: BatchRequest,
         try:
             format_of(f)
         except (RigError, OSError):
-            if req.block is None and _head(f) and looks_like_mach1(_head(f)):
+            if req.block is None and looks_like_mach1(_head(f)):
                 n = count_blocks(Path(f))  # one block per site or test function
                 out += [Curve(f, b, block=True) for b in range(1, n + 1)] if n > 1 else [Curve(f)]
             else:
@@ -127,9 +126,7 @@ def plan(files: list[str], req: BatchRequest,
             continue
         try:
             infos = list_curves(f, options)
-        except RigError as exc:
-            if skip:
-                skip(f, exc)
+        except RigError:
             out.append(Curve(f))
             continue
         out += [Curve(f, i.enum, i.x_m, i.y_m, i.grid_x, i.grid_y) for i in infos]
@@ -157,7 +154,7 @@ def chunks(curves: list[Curve], workers: int) -> list[list[Curve]]:
 
 
 def analyze_chunk(chunk: list[Curve], req: BatchRequest) -> list[dict]:
-    """The rows of a chunk of curves (of one file, or of files of one record each). Never raises
+    """The rows of a chunk of curves (of one file: `chunks` never mixes files). Never raises
     for a curve: a curve that cannot be read or fitted gets a row that says why."""
     import warnings
 
@@ -247,12 +244,17 @@ def row_order(curves: Iterable[Curve]) -> dict[tuple[str, str], int]:
 
 
 def key_of(row: dict) -> tuple[str, str]:
+    """A row's key, as its curve's (`Curve.key`); a table read back gives its numbers as text."""
     curve = row.get("curve")
-    return str(Path(str(row["file"])).resolve()), "" if curve in (None, "") else str(int(float(curve)))
+    return _key(str(row["file"]), None if curve in (None, "") else int(float(curve)))
 
 
-def run(curves: list[Curve], req: BatchRequest, *, workers: int | None = None, scheduler: str | None = None,
-        on_rows: Callable[[list[dict]], None] | None = None) -> Iterator[list[dict]]:
+def _key(file: str, curve: int | None) -> tuple[str, str]:
+    return str(Path(file).resolve()), "" if curve is None else str(curve)
+
+
+def run(curves: list[Curve], req: BatchRequest, *, workers: int | None = None,
+        scheduler: str | None = None) -> Iterator[list[dict]]:
     """Analyse `curves`, giving each chunk's rows as it is done (in whatever order they finish):
     on local processes (`workers`, default every core), or on the Dask cluster at `scheduler`."""
     if not curves:
