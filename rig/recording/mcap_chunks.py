@@ -144,13 +144,7 @@ def split_chunk(data: bytes, count_only: frozenset[int] = frozenset()) -> SplitC
             out.records.append(rec)
             out.count += 1
         # any other record inside a chunk is skipped, as the library skips it
-    if run:
-        out.records.append(run)
-    if counted:
-        out.counted, out.count = counted, out.count + counted
-        out.first = _payload(data, first_at)
-        out.last = _payload(data, last_at)
-    return out
+    return _closed(out, run, data, counted, first_at, last_at)
 
 
 def _split_counting(data: bytes, channel: int) -> SplitChunk | None:
@@ -193,6 +187,12 @@ def _split_counting(data: bytes, channel: int) -> SplitChunk | None:
             out.count += 1
         elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
             return split_chunk(data)  # see split_chunk: nothing counted under a channel defined here
+    return _closed(out, run, data, counted, first_at, last_at)
+
+
+def _closed(out: SplitChunk, run: dict[int, list[bytes]], data: bytes, counted: int, first_at: int,
+            last_at: int) -> SplitChunk:
+    """`out` with its last run of payloads and what was counted: how many, the first and the last."""
     if run:
         out.records.append(run)
     if counted:
