@@ -27,7 +27,7 @@ from rig.models.catalogue import (
 )
 from rig.models.contact import contact_force, parse_indenter
 from rig.models.core import Motion
-from rig.models.instrument import BOTTOM, BOTTOM_FREE, DRAG, TILT, dimitriadis_coefficients
+from rig.models.instrument import ADHESION, BOTTOM, BOTTOM_FREE, DRAG, TILT, dimitriadis_coefficients
 from rig.records import ReadOptions
 
 R_SIM = MapSpec().radius_um * 1e-6  # the simulator's tip: 5 µm
@@ -142,6 +142,49 @@ def test_tilt_and_drag_are_the_simulators_artefacts_in_and_out_of_contact():
     assert split == pytest.approx(2 * drag_spec.drag_pN_s_per_um * 1e-6 * v, rel=1e-12)
 
 
+def test_adhesion_is_the_simulators_neck_in_the_tips_travel():
+    """The simulator pulls linearly with the piezo's travel past contact (F = -F_ad past / L_p);
+    the tip, behind the cantilever's deflection F/k, has travelled d = -past - F/k: the same line
+    in d, letting go at L = L_p - F_ad/k. The model's neck at those values is the simulator's
+    force on every stuck sample, and nought on the approach and after the let-go."""
+    spec = MapSpec(grid=(1, 1), region="adhesion", noise_pN=0.0, baseline_spread_pN=0.0, quantize=False)
+    E, contact = 2e3, 2e-6
+    cols = afm_map._curve(spec, E, contact, "adhesion", np.random.default_rng(0))["columns"]
+    k, F_ad, L_p = spec.spring_constant_N_per_m, spec.adhesion_pN * 1e-12, spec.adhesion_length_nm * 1e-9
+    F = cols["force"] - spec.baseline_pN * 1e-12
+    travel = spec.piezo_start_um * 1e-6 - cols["height (piezo)"]
+    d = travel - contact - F / k  # the tip's indentation
+    v = np.where(cols["segment"] == 0, 1.0, -1.0) * spec.speed_um_per_s * 1e-6
+    m = Motion(cols["time"], d, v, 1 / spec.rate_Hz)
+    model = build_model("hertz", [ADHESION], _registry(INDENTER))
+    vals = {"E_Pa": E, "x_c_m": 0.0, "offset_N": 0.0, "pull_off_N": F_ad, "pull_off_m": L_p - F_ad / k}
+    got = model.predict(vals, m)
+    L = L_p - F_ad / k
+    stuck = (cols["segment"] == 1) & (d < 0) & (F < 0)
+    assert stuck.sum() > 50
+    # the let-go is spread over one sample's travel either side of L: there the model is between
+    let_go = np.abs(d + L) < 2 * spec.speed_um_per_s * 1e-6 / spec.rate_Hz
+    assert 1 <= (stuck & let_go).sum() <= 2
+    assert np.max(np.abs(got[stuck & ~let_go] - F[stuck & ~let_go])) < 1e-9 * F_ad
+    free = (d < -L) & ~let_go
+    assert np.all(got[free] == 0.0) and np.max(np.abs(F[free])) < 1e-9 * F_ad
+    # the approach passes the same depths without a pull
+    assert np.all(got[(cols["segment"] == 0) & (d < 0)] == 0.0)
+
+
+def test_a_curve_is_analysed_through_its_pull_off_and_a_curve_without_one_is_not(tmp_path):
+    path = write_map(tmp_path / "m.h5", MapSpec(grid=(3, 3), region="adhesion"), seed=3)
+    truth = json.loads(truth_path(path).read_text())
+    n_in = truth["region"]["curves"][0]
+    n_out = next(c["enum"] for c in truth["curves"] if not c["in_region"])
+    inside = load_inputs([str(path)], [], [], ReadOptions(curve=n_in), indenter=INDENTER).trials[0]
+    outside = load_inputs([str(path)], [], [], ReadOptions(curve=n_out), indenter=INDENTER).trials[0]
+    assert any("pulls on the probe" in n for n in inside.notes)
+    assert not any("pulls on the probe" in n for n in outside.notes)
+    law = truth["force_law_in_region"]["adhesion"]
+    assert np.min(inside.force_N - inside.baseline_N.mean()) < -0.8 * law["force_N"]  # the dip is kept
+
+
 def test_the_drag_region_reads_plus_and_minus_b_v_off_the_sample(tmp_path):
     import afmformats
 
@@ -221,6 +264,7 @@ CASES = [  # region, segment, what is named first on its curves, the look-alike 
     ("tilt", "approach", {"drift", TILT}, {"drift", TILT}),
     ("drift", "approach", {"drift", TILT}, {"drift", TILT}),
     ("drift", "all", {"drift"}, None),  # the retract tells them apart: drift keeps its verdict
+    ("adhesion", "all", {ADHESION}, None),
 ]
 
 

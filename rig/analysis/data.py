@@ -150,10 +150,15 @@ def prepare(rec: Record, where: str = "", segment: str = "all") -> TrialData:
         contact_m = float(-x[0])  # x counts from contact: its first value is minus the travel to it
         estimated = level is not None
         end = _end_of_contact(x, f - (level or 0.0))
+        pull = _end_of_pull(f - (level or 0.0), end, baseline)
+        if pull > end:
+            notes.append(f"the specimen pulls on the probe on the way out (down to "
+                         f"{_fmt_force(float(np.min(f[end:pull]) - (level or 0.0)))}): analysed through the "
+                         "pull-off, which the adhesion effect describes")
+            end = pull
         if end < len(x):
             # once the probe is back out, or the force back at the baseline on the way out, the
-            # sensor reads the free probe or the specimen pulling on it (adhesion), not the push
-            # the models describe
+            # sensor reads the free probe, not the push the models describe
             notes.append(f"analysed up to t = {t[end - 1] - t[0]:.4g} s, where the probe leaves the specimen "
                          "on the way out")
             t, x, f = t[:end], x[:end], f[:end]
@@ -277,6 +282,30 @@ def _end_of_contact(x: np.ndarray, f: np.ndarray) -> int:
     k_deep = len(x) - 1 - int(np.argmax(x[::-1] >= 0.99 * np.max(x)))  # the last time at depth
     out = np.flatnonzero((x[k_deep:] <= 0.0) | (f[k_deep:] <= 0.0))
     return k_deep + int(out[0]) if len(out) else len(x)
+
+
+PULL_SIGMA = 5.0  # a dip below the baseline this many noise deviations deep is a pull, not noise
+PULL_RUN = 5  # held for at least this many samples below 3 deviations
+
+
+def _end_of_pull(f: np.ndarray, end: int, baseline) -> int:
+    """Where a pull on the way out ends (`f` from its baseline; `end` where the push ends): if
+    the force dips clearly below its baseline after `end` (the tip stuck to the specimen), the
+    sample after it is back, plus as much free travel again as the pull lasted (the baseline
+    the pull-off is measured from); else `end`."""
+    base = np.asarray(baseline, dtype=float)
+    if end >= len(f) or len(base) < MIN_BASELINE:
+        return end
+    sigma = 1.4826 * float(np.median(np.abs(_detrend(base) - np.median(_detrend(base)))))
+    tail = f[end:]
+    if sigma <= 0 or float(np.min(tail)) > -PULL_SIGMA * sigma or np.sum(tail < -3.0 * sigma) < PULL_RUN:
+        return end
+    k_min = int(np.argmin(tail))
+    back = np.flatnonzero(tail[k_min:] > -3.0 * sigma)
+    if not len(back):
+        return end  # never back at the baseline: not a pull that lets go (drag, a tilted baseline)
+    let_go = end + k_min + int(back[0])
+    return min(let_go + (let_go - end), len(f))
 
 
 def _rest_stretch(pos: np.ndarray, head: int) -> int:

@@ -257,6 +257,14 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) ->
     init, lo, hi = ps.start_and_bounds(initial)
     init = _inside(init, lo, hi)
     resid = _residual_fn(model, ps, trials, scales)
+    guessed = _guessed(model, ps, trials, init)
+    also = None  # the data's start as well as the caller's, when the caller gave those parameters
+    if guessed:
+        start, lo, hi = ps.start_and_bounds({**(initial or {}), **guessed})
+        if set(guessed) <= set(initial or ()):
+            also = _inside(start, lo, hi)
+        else:
+            init = _inside(start, lo, hi)
     form = separable.split(model)
     best = _separable(model, ps, trials, scales, resid, init, lo, hi, form) if form else None
     x_c = CONTACT_POINT.params[0].name
@@ -267,7 +275,7 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) ->
         best.jac = _central_jacobian(resid, best.x, range(len(best.x)))
         return _result(model, ps, trials, scales, best, lo, hi, best.nfev, t0)
     rng = np.random.default_rng(seed)
-    candidates = [init]
+    candidates = [init] if also is None else [init, also]
     # a parameter that starts at zero inside finite bounds (the contact point) is not moved by a
     # factor: its starts are spaced evenly across its range instead. Evenly, not at random: where
     # the cost moves in steps with it (a model whose force follows the velocity only, switched on
@@ -296,6 +304,27 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) ->
         # same parameters
         best = _newton_polish(resid, best, lo, hi, kinked=kinked)
     return _result(model, ps, trials, scales, best, lo, hi, nfev, t0)
+
+
+def _guessed(model, ps: ParamScaling, trials, init: np.ndarray) -> dict[str, float]:
+    """Starting values an effect reads off the data (Effect.guess), from the misfit of the model
+    at its starting point without it."""
+    out: dict[str, float] = {}
+    for e in model.effects:
+        own = [p.name for p in e.params if not p.per_record]
+        if e.guess is None or not own:
+            continue
+        vals = dict(zip(model.param_names, ps.to_si(init), strict=True))
+        without = Model([x for x in model.effects if x is not e], model.name, model.records)
+        for t in trials:
+            known = {k: vals[k] for k in without.param_names}
+            misfit = t.force_N - without.predict(known, t.motion)
+            here = {p.name: vals[model.key(p, t.motion.record)] for p in e.params}
+            got = e.guess(t.motion, misfit, here)
+            if got:
+                out.update({k: v for k, v in got.items() if k in own})
+                break
+    return out
 
 
 def _best_start(model, ps: ParamScaling, trials, scales: Scales, starts, lo, hi, tol, max_nfev):

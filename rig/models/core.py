@@ -97,6 +97,11 @@ class Effect:
     # a drive or sensor term that is its one parameter times a term free of it: the fit then
     # solves for that parameter directly (rig.analysis.separable)
     linear: bool = False
+    # where a fit should start its parameters, from the data: (motion, measured minus predicted
+    # force without the effect, the other parameters' values in SI) -> {name: SI value}. For an
+    # effect whose cost moves in steps with a parameter (a let-go between samples), which no
+    # solver finds from a default start
+    guess: Callable | None = None
 
     @property
     def of_record(self) -> bool:
@@ -128,11 +133,15 @@ class Model:
         if sum(e.needs_force for e in self.effects) > 1:
             raise ValueError("a model holds at most one effect whose geometry depends on the force")
         seen: dict[str, Param] = {}
+        owner: dict[str, int] = {}
         for e in self.effects:
             for p in e.params:
                 if p.name in seen and seen[p.name].unit != p.unit:
                     raise ValueError(f"parameter '{p.name}' has units {seen[p.name].unit} and {p.unit}")
-                seen.setdefault(p.name, p)
+                # a parameter shared by several stages is defined (bounds, init) by the earliest:
+                # a sensor term that reads the contact point takes the contact point's bounds
+                if p.name not in seen or STAGES.index(e.stage) < owner[p.name]:
+                    seen[p.name], owner[p.name] = p, STAGES.index(e.stage)
         self.params: list[Param] = [q for p in seen.values() for q in self._expanded(p)]
         if not self.name:
             self.name = "+".join(e.name for e in self.effects)

@@ -14,6 +14,19 @@ catalogue the tissue rig's records are screened with.
                                                   baselines split apart by 2 b v
     bottom_effect drive     F = F_contact(d) B(chi)   a sample of finite thickness h on a hard
     (_free)                 chi = sqrt(R d) / h       substrate reads stiffer as d grows
+    adhesion      sensor    F += F_off d / L          the tip stuck to the sample on the way out:
+                            (retract, -L < d < 0)     past the contact point a neck pulls on it,
+                                                      linearly to the pull-off force F_off at the
+                                                      pull-off distance L, where it lets go
+
+Adhesion acts past the contact point, so it shares the record's contact point x_c_m with the
+contact (d = x - x_c: the indentation before the geometry clamps it at nought). Its neck is
+linear in the tip's travel, as a stretched tether or a meniscus pulls; the pull-off force is the
+figure DMT and JKR theory relate to the work of adhesion w (F_off = 2 pi R w for DMT, 3/2 pi R w
+for JKR), so the report gives F_off and leaves the choice of theory to the reader. It acts on
+the retract only (moving out: the smoothed velocity below nought): an approach's snap-in is a
+few samples where the tip jumps, not a law. The let-go is spread over the travel to a neighbouring
+sample (linearly), so the force is continuous in L and a fit can move it between samples.
 
 The bottom effect, Dimitriadis et al. 2002 (Biophys. J. 82:2798: their general series), for a paraboloid
 (or a sphere in Hertz's approximation) of radius R on a layer of Poisson's ratio nu:
@@ -56,6 +69,7 @@ from rig.models.core import Effect, Motion, Param
 
 TILT = "tilt"
 DRAG = "drag"
+ADHESION = "adhesion"
 BOTTOM = "bottom_effect"  # the layer bonded to its substrate (cells, gels cast on glass)
 BOTTOM_FREE = "bottom_effect_free"  # the layer lying on it, free to slip
 BOTTOM_EFFECTS = {BOTTOM: True, BOTTOM_FREE: False}
@@ -138,4 +152,51 @@ DRAG_EFFECT = Effect(
     "a step in the force where the motion turns: approach and retract read 2 b v apart, also out of "
     "contact; on an approach alone at one speed it is a constant, an offset", linear=True)
 
-SENSOR_EFFECTS = {TILT: TILT_EFFECT, DRAG: DRAG_EFFECT}
+def _adhesion(m: Motion, force, pull_off_N, pull_off_m, x_c_m):
+    d = m.x_m - x_c_m
+    L = max(abs(pull_off_m), 1e-300)
+    # the travel to the farther neighbour: the let-go windows of successive samples overlap, so
+    # wherever L falls some sample's force moves with it (the tip jumps where it lets go: the
+    # velocity's own step would leave gaps)
+    gap = np.abs(np.diff(m.x_m))
+    step = np.maximum(np.maximum(np.r_[gap, 0.0], np.r_[0.0, gap]), 1e-300)
+    held = np.clip((d + L) / step + 0.5, 0.0, 1.0)
+    return np.where((m.v_m_s < 0) & (d < 0), pull_off_N * (d / L) * held, 0.0)
+
+
+def _adhesion_guess(m: Motion, misfit_N: np.ndarray, values: dict) -> dict[str, float]:
+    """The neck that best fits the misfit on the way out past the contact point: for every sample
+    it might let go after, the slope by least squares over the samples before it (the force
+    through nought at the contact point) and nought after; the let-go that leaves the least."""
+    d = m.x_m - values["x_c_m"]
+    out = np.flatnonzero((m.v_m_s < 0) & (d < 0))
+    if len(out) < 3:
+        return {}
+    r, dd = misfit_N[out], d[out]
+    rd, d2 = np.cumsum(r * dd), np.cumsum(dd * dd)
+    gain = np.where(rd > 0, rd * rd / np.maximum(d2, 1e-300), 0.0)  # what a neck pulling (s > 0) removes
+    j = int(np.argmax(gain[:-1]))
+    if gain[j] <= 0:
+        return {}
+    L = -0.5 * (dd[j] + dd[j + 1])
+    return {"pull_off_N": float(rd[j] / d2[j] * L), "pull_off_m": float(L)}
+
+
+ADHESION_EFFECT = Effect(
+    ADHESION, "sensor",
+    (Param("pull_off_N", "N", 0.0, 0.0, relative=True, warn_negative=True,
+           doc="the pull-off force: the most the neck pulls before the tip lets go"),
+     Param("pull_off_m", "m", 0.3, 1e-3, 10.0, relative=True, warn_negative=True,
+           doc="the tip's travel past the contact point when it lets go"),
+     # the contact point's own parameter (rig.models.catalogue.CONTACT_POINT), shared by name: the
+     # neck starts there; a model holding both takes its bounds from the geometry stage
+     Param("x_c_m", "m", 0.0, -1.0, 0.99, relative=True, per_record=True)),
+    _adhesion,
+    "F += F_off d / L on the retract for -L < d < 0 (d = x - x_c): the tip stuck to the sample, pulled "
+    "linearly to the pull-off force F_off at the pull-off distance L, then let go (DMT: F_off = 2 pi R w, "
+    "JKR: 3/2 pi R w)",
+    "retract dipping below the baseline past the contact point, then a jump back to it: the tip sticks "
+    "on the way out; a model without it pulls the contact point and the baseline towards the dip",
+    guess=_adhesion_guess)
+
+SENSOR_EFFECTS = {TILT: TILT_EFFECT, DRAG: DRAG_EFFECT, ADHESION: ADHESION_EFFECT}
