@@ -23,6 +23,24 @@ class TissueParams:
     tau1_s: float = field(default=8.0, **_pos(gt=0))
     tau2_N_s_per_m2: float = field(default=2.3e5, **_pos(ge=0))
     surface_mm: float = 0.0  # where the tissue surface sits in slider coordinates
+    # a material under an indenter in place of the lumped model above (sim_device.material)
+    material: MaterialParams | None = None
+
+
+@dataclass
+class MaterialParams:
+    """A relaxation modulus under an indenter's geometry (sim_device.material): the standard
+    linear solid E(t) = E_inf + (E0 - E_inf) exp(-t/tau), or with `beta` > 0 the power law
+    E(t) = E0 (t/t0)^-beta. `indenter`: paraboloid:R=..., cone:half_angle=...deg or
+    cylinder:R=... (a flat punch)."""
+
+    indenter: str = "paraboloid:R=5mm"
+    poisson: float = field(default=0.5, **_pos(ge=0, le=0.5))
+    E0_Pa: float = field(default=20e3, **_pos(gt=0))
+    E_inf_Pa: float = field(default=8e3, **_pos(ge=0))
+    tau_s: float = field(default=5.0, **_pos(gt=0))
+    beta: float = field(default=0.0, **_pos(ge=0, le=0.99))
+    t0_s: float = field(default=1.0, **_pos(gt=0))
 
 
 @dataclass

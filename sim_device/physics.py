@@ -1,7 +1,8 @@
 """Physics of the simulated rig: slider motion, tissue, and what the load cell sees.
 
 The tissue is the paper's proposed model, integrated in small fixed sub-steps
-(default 0.5 ms). Hidden effects are mechanisms added to that chain, never calls to
+(default 0.5 ms), or a relaxation modulus under an indenter (`tissue.material`,
+sim_device.material). Hidden effects are mechanisms added to that chain, never calls to
 the analysis code: a second Maxwell branch, a frame spring in series, guide
 friction, a cable preload, load-cell drift and a delay line in the sensor; and tissue
 physics the paper's model lacks: relaxation that speeds up with the loading speed, a
@@ -19,6 +20,7 @@ import threading
 from collections import deque
 
 import numpy as np
+from rig.sim.material import Material
 from rig.sim.params import SimParams
 
 
@@ -114,6 +116,7 @@ class SimRig:
         self._stiffness = 1.0
         self._soften()
         self._frac_modes = fractional_modes(fx.fractional, self.dt) if fx.fractional else None
+        self._material = Material(tp.material, self.dt) if tp.material else None
         self._frac_N = np.zeros(0 if self._frac_modes is None else len(self._frac_modes[0]))
 
     @property
@@ -143,6 +146,8 @@ class SimRig:
         self.probe_velocity_mm_s = (probe_mm - self._probe_mm) / dt
         self._probe_mm = probe_mm
         x, f1, f2, total, state = self._tissue_at(probe_mm)
+        if self._material is not None:
+            self._material.commit(state["material"])
         if x == 0.0 and self.indentation_m > 0.0:  # a loading ends: the probe left the surface
             self._loadings += 1
             self._soften()
@@ -189,7 +194,11 @@ class SimRig:
         tp, dt, fx = self.params.tissue, self.dt, self.params.effects
         x = max(probe_mm - self._surface_mm, 0.0) / 1000.0
         xdot = (x - self.indentation_m) / dt
-        if x > 0.0:
+        material = None
+        if self._material is not None:  # a modulus under the indenter, in place of the lumped drive
+            drive, material = self._material.trial(x)
+            drive *= self._stiffness
+        elif x > 0.0:
             drive = self._stiffness * ((tp.k1_N_per_m3 * x + tp.k2_N_per_m2) * x + tp.k3_N_per_m) * x \
                 + tp.tau2_N_s_per_m2 * x * xdot
         else:
@@ -203,8 +212,9 @@ class SimRig:
             a1 = math.exp(-dt / tau)
         # Exact discretisation of f + tau1 df/dt = drive over one sub-step (drive held).
         # The tissue cannot pull on the probe: when it would, the surface separates and the
-        # branch recovers freely instead of storing tension.
-        f1 = max(drive + (self.f1_N - drive) * a1, 0.0)
+        # branch recovers freely instead of storing tension. The material relaxes in its own
+        # modulus: no lag after it.
+        f1 = max(drive + (self.f1_N - drive) * a1, 0.0) if material is None else max(drive, 0.0)
         f2 = 0.0
         if fx.relaxation2:
             f2 = max(self.f2_N * self._a2 + fx.relaxation2.k_N_per_m * (xdot * dt), 0.0) if x > 0.0 else 0.0
@@ -216,7 +226,7 @@ class SimRig:
             frac_N = self._frac_N * decay + gain * xdot if x > 0.0 else np.zeros_like(decay)
             frac = float(frac_N.sum())
         total = max(f1 + f2 + frac, 0.0) if x > 0.0 else 0.0
-        return x, f1, f2, total, {"peak_rate_m_s": peak, "frac_N": frac_N}
+        return x, f1, f2, total, {"peak_rate_m_s": peak, "frac_N": frac_N, "material": material}
 
     def _probe_through_frame(self, slider_mm: float, k_frame_N_per_m: float) -> float:
         """The probe position p with p = slider - f(p) / k_frame: the tissue force grows with

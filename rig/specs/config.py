@@ -219,6 +219,7 @@ def parse_config(text: str, path: str = "<config>") -> RigConfig:
     node = load_marked(path, text)
     _refuse_keys(node, ("source_text", "source_path"), path)
     cfg = bind(RigConfig, node, path)
+    _check_material(cfg, node, path)
     if cfg.probe:
         from rig.models.contact import parse_indenter
 
@@ -231,6 +232,30 @@ def parse_config(text: str, path: str = "<config>") -> RigConfig:
     cfg.source_text = text
     cfg.source_path = path
     return cfg
+
+
+def _check_material(cfg: RigConfig, node, path: str) -> None:
+    """The simulated material's indenter and moduli, where the file gives them."""
+    mat = cfg.sim.tissue.material
+    if mat is None:
+        return
+    from rig.sim.material import parse_geometry
+
+    where = node
+    for key in ("sim", "tissue", "material"):
+        where = where.value[key] if isinstance(where.value, dict) and key in where.value else where
+    problem = ""
+    try:
+        parse_geometry(mat.indenter)
+    except ValueError as exc:
+        problem, key = str(exc), "indenter"
+    if not problem and mat.beta == 0 and mat.E_inf_Pa > mat.E0_Pa:
+        problem, key = (f"E_inf_Pa ({mat.E_inf_Pa:g}) is above E0_Pa ({mat.E0_Pa:g}): a relaxation modulus "
+                        "falls from E0 to E_inf"), "E_inf_Pa"
+    if problem:
+        child = where.value.get(key, where) if isinstance(where.value, dict) else where
+        raise SpecError(problem, path=path, line=child.line, column=child.column,
+                        field=f"sim.tissue.material.{key}")
 
 
 def _refuse_keys(node, keys: tuple[str, ...], path: str) -> None:
