@@ -1,6 +1,7 @@
 """`--explain` on every curve of the shared AFM files (realdata/afm-fd) with and without the AFM's
-own effects (tilt, drag, the bottom effect: rig.models.instrument), as `rig analyze FILE --model
-hertz --segment approach --explain` runs it (R = 10 µm where the file names no indenter; the
+own effects (tilt, drag, the bottom effect, adhesion: rig.models.instrument), as `rig analyze FILE
+--model hertz --segment approach --explain` runs it, and with `--segment all` (approach and
+retract: where adhesion and drag show) (R = 10 µm where the file names no indenter; the
 Chiaro's header radius where it does). Prints a markdown table: the verdict before and after, and
 the dBIC of each. A measurement, not a pass/fail: it fails only if a curve cannot be analysed
 after that could be before.
@@ -25,11 +26,11 @@ import nanite_table as nt
 pytestmark = pytest.mark.skipif(not nt.afm_dir().is_dir(), reason="the shared AFM files are not here")
 
 
-def _verdict(path: Path, curve: int) -> tuple[str, float | None, str]:
+def _verdict(path: Path, curve: int, segment: str) -> tuple[str, float | None, str]:
     o = nt.read_options(path, curve)
     named = read_record(path, o).meta.get("indenter") if path.name == nt.CHIARO else None
     j = analyze(AnalyzeRequest([str(path)], model="hertz", indenter="paraboloid" if named else nt.INDENTER,
-                               segment="approach", curve=curve, explain=True,
+                               segment=segment, curve=curve, explain=True,
                                spring_constant_N_per_m=o.spring_constant_N_per_m,
                                sensitivity_m_per_V=o.sensitivity_m_per_V)).json
     d = j["diagnosis"]
@@ -45,15 +46,17 @@ def _without_instrument_effects(monkeypatch) -> None:
     monkeypatch.setattr(explain_module, "instrument_effects", lambda model, registry: registry)
 
 
-def test_verdicts_on_the_shared_afm_curves_before_and_after(monkeypatch):
+@pytest.mark.parametrize("segment", ["approach", "all"])
+def test_verdicts_on_the_shared_afm_curves_before_and_after(monkeypatch, segment):
     rows = []
     for path, curve in nt.curves():
         with monkeypatch.context() as m:
             _without_instrument_effects(m)
-            before = _verdict(path, curve)
-        after = _verdict(path, curve)
+            before = _verdict(path, curve, segment)
+        after = _verdict(path, curve, segment)
         rows.append((path.name, curve, before, after))
     fmt = lambda x: "" if x is None else f"{x:.1f}"  # noqa: E731
+    print(f"\nsegment {segment}")
     print("\n| file | curve | best before | dBIC | best after | dBIC | look-alikes after |")
     print("|---|---|---|---|---|---|---|")
     for name, curve, b, a in rows:
