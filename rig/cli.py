@@ -92,6 +92,40 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+CHARACTERIZE_HELP = (
+    "Characterise a specimen on the rig by itself: an exploratory trial (or --protocol), then after "
+    "every trial a joint fit, the diagnosis, and the next trial: the protocol that best separates "
+    "look-alike effects or, once the model is adequate, the one that most narrows the worst-determined "
+    "parameter. Stops when the model is adequate and every parameter is within --target-rse, when no "
+    "protocol within the rig's limits does better, or when the budget is spent. Every decision is "
+    "journaled beside the logs; Ctrl-C stops the trial running (as for rig run) and the campaign with it.")
+
+
+def cmd_characterize(args: argparse.Namespace) -> int:
+    from rig.service.characterize import Request, characterize, format_campaign, plot_campaign
+    from rig.specs.config import load_config
+
+    config = load_config(args.config)
+    if args.protocol:
+        from rig.specs.protocol import load_protocol
+
+        load_protocol(args.protocol, config)  # refused here, before anything moves
+    out = Path(args.out or config.recorder.out_dir) / f"characterize-{args.specimen}"
+    say = (lambda _: None) if args.json else print
+    req = Request(args.specimen, config, out, model=args.model, indenter=args.indenter, first=args.protocol,
+                  max_trials=args.max_trials, budget_min=args.budget_min, target_rse=args.target_rse,
+                  rest_s=args.rest_s, speed=args.speed, say=say)
+    camp = characterize(req)
+    figure = plot_campaign(camp, out / "campaign.png") if any(t.model for t in camp.turns) else None
+    if args.json:
+        print(json.dumps({**camp.summary(), "figure": str(figure) if figure else None}, indent=2))
+    else:
+        print(format_campaign(camp))
+        if figure:
+            print(f"figure     {figure}")
+    return EXIT_INTERRUPTED if camp.status == "stopped" else 0
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     from rig.recording.logs import export_csv, read_log
     from rig.views.replay import format_summary, plot_log, summarize
@@ -565,6 +599,27 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--spy", metavar="FILE", help="write every Modbus frame and load-cell line to FILE "
                                                   "(read it with `rig spy FILE`)")
     r.set_defaults(func=cmd_run)
+
+    r = sub.add_parser("characterize", help="run, fit, diagnose and design trials until the model is right",
+                       description=CHARACTERIZE_HELP)
+    _rig_config(r)
+    r.add_argument("--specimen", required=True, help="specimen ID (the logs and the journal carry it)")
+    r.add_argument("--model", default="proposed", help="the model to start from (default: proposed)")
+    r.add_argument("--indenter", help="the probe's geometry, for a modulus in Pa (e.g. sphere:R=2mm)")
+    r.add_argument("--protocol", help="the first trial (default: an exploratory ramp-hold inside the limits)")
+    r.add_argument("--max-trials", type=int, default=6, help="at most this many trials (default 6)")
+    r.add_argument("--budget-min", type=float, default=30.0,
+                   help="specimen time for trials and rests, minutes (default 30)")
+    r.add_argument("--target-rse", type=float, default=0.05,
+                   help="every parameter's relative standard error at most this (default 0.05)")
+    r.add_argument("--rest-s", type=float, default=60.0,
+                   help="rest between trials for the specimen to recover, s (default 60)")
+    r.add_argument("--out", help="directory for the logs, the journal and the figure (default: the config's "
+                                 "recorder.out_dir / characterize-SPECIMEN)")
+    r.add_argument("--speed", type=_positive_or_zero, default=1.0,
+                   help="simulated rig only: 0 = as fast as possible (default 1: real time)")
+    r.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    r.set_defaults(func=cmd_characterize)
 
     r = sub.add_parser("replay", help="summarise a log; export CSV; plot",
                        description="Summarise a trial log (also one cut short by a crash), re-run "

@@ -20,6 +20,25 @@ ROOT = Path(__file__).resolve().parent.parent
 PROTOCOLS = ROOT / "protocols"
 
 
+# Modules whose tests run on the real clock (trials at speed 1, the daemon, the wire, soaks): they
+# wait more than they compute. Under pytest-xdist (`-n 2 --dist loadgroup`, the project's
+# default) they all go to one worker, one after another, so two of them never share the machine's
+# timing, while the other worker computes; the analysis tests fill both.
+CLOCK_MODULES = {
+    "test_cli", "test_client", "test_control_path", "test_daemon", "test_daemon_workflow",
+    "test_driver_bytes", "test_force_control", "test_install", "test_live", "test_logs",
+    "test_loop_seams", "test_mbpoll", "test_model_loop", "test_ownership", "test_paced_wire",
+    "test_ports", "test_preload", "test_probe", "test_recording_seams", "test_safety", "test_soak",
+    "test_spy", "test_stop_anytime", "test_trial", "test_wire",
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.module.__name__.rpartition(".")[2] in CLOCK_MODULES:
+            item.add_marker(pytest.mark.xdist_group("clock"))
+
+
 @pytest.fixture(autouse=True)
 def no_leaked_threads():
     before = set(threading.enumerate())
@@ -61,7 +80,9 @@ def per_seed(fn: Callable, seeds: Iterable, *args) -> list:
     one thread each, from the environment tests/__init__.py sets). Results in the order of
     `seeds`; a worker's exception is raised here."""
     seeds = list(seeds)
-    workers = min(len(seeds), os.cpu_count() or 1)
+    # under pytest-xdist the other workers have their share of the cores
+    share = (os.cpu_count() or 1) // max(int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")), 1)
+    workers = min(len(seeds), max(share, 1))
     if workers <= 1:
         return [fn(s, *args) for s in seeds]
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:

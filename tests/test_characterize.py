@@ -1,0 +1,84 @@
+"""`rig characterize`: the campaign on the simulated rig, through the command line and the
+journal, and a stop in the middle of it (rig.service.characterize). The campaigns of the issue's
+figures (five hidden effects, five seeds each; against the paper's fixed set) are in
+tests/bench/test_bench_characterize.py."""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+from rig.cli import main
+from rig.recording.logs import read_log
+from rig.service.characterize import Request, characterize
+from rig.specs.config import parse_config
+
+SHORT = ("name: short ramp-hold\nsteps:\n  - ramp: {to_mm: 20, speed_mm_s: 2}\n  - hold: {duration_s: 20}\n"
+         "  - return: {to_mm: 0, speed_mm_s: 5}\n")
+
+
+def _events(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def test_a_campaign_names_the_hidden_drift_and_journals_every_decision(tmp_path, capsys):
+    cfg = tmp_path / "rig.yaml"
+    cfg.write_text("sim:\n  seed: 4\n  effects:\n    drift: {rate_N_per_s: 0.004}\n")
+    first = tmp_path / "first.yaml"
+    first.write_text(SHORT)
+    code = main(["characterize", "--specimen", "liver-3", "--config", str(cfg), "--protocol", str(first),
+                 "--max-trials", "2", "--speed", "0", "--out", str(tmp_path), "--json"])
+    assert code == 0
+    out = json.loads(capsys.readouterr().out)
+    assert "drift" in out["model"]["effects"]
+    assert out["model"]["adequate"] is True
+    drift = out["model"]["parameters"]["drift_N_per_s"]
+    assert abs(drift["value"] - 0.004) < 3 * drift["stderr"]
+    assert len(out["trials"]) == 2 and out["status"] == "budget"
+    assert out["trials"][0]["why"].startswith("given") and out["trials"][1]["why"]
+    assert Path(out["figure"]).is_file()
+    events = _events(Path(out["journal"]))
+    kinds = [e["event"] for e in events]
+    assert kinds[0] == "start" and kinds[-1] == "end"
+    assert kinds.count("trial") == 2 and kinds.count("ran") == 2 and kinds.count("fit") == 2
+    assert any(e["event"] == "model" and e["added"] == "drift" for e in events)
+    decision = next(e for e in events if e["event"] == "decision")
+    assert decision["kind"] in ("inform", "separate") and decision["considered"]
+    for t in out["trials"]:
+        assert read_log(t["log"]).samples["force_N"].size > 100
+
+
+def test_a_stop_in_the_second_trial_ends_the_campaign_cleanly(tmp_path):
+    config = parse_config("sim:\n  seed: 5\n")
+    first = tmp_path / "first.yaml"
+    first.write_text(SHORT)
+    stopper: list[threading.Thread] = []
+
+    def options(n: int) -> dict:
+        if n != 2:
+            return {}
+        held = {}
+
+        def on_start(trial, devices):
+            held["trial"] = trial
+
+        def on_tick(snap):
+            if snap.t_s > 4.0 and not stopper:  # partway down the ramp
+                stopper.append(threading.Thread(target=held["trial"].request_stop))
+                stopper[0].start()
+
+        return {"on_start": on_start, "on_tick": on_tick}
+
+    camp = characterize(Request("kidney-1", config, tmp_path, first=str(first), max_trials=4, speed=0,
+                                say=lambda _: None, trial_options=options))
+    stopper[0].join()
+    assert camp.status == "stopped" and "trial 2 ended aborted" in camp.reason
+    assert [t.outcome for t in camp.turns] == ["completed", "aborted"]
+    events = _events(camp.journal)
+    assert events[-1]["event"] == "end" and events[-1]["status"] == "stopped"
+    assert events[-2]["event"] == "ran" and events[-2]["outcome"] == "aborted"
+    # the aborted trial returned the probe to where it started
+    log = read_log(camp.turns[1].log)
+    assert abs(log.samples["position_mm"][-1] - log.samples["position_mm"][0]) < 0.05
+    assert camp.final is not None and len(camp.final.trials) == 1  # the stopped trial is not fitted
