@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -118,6 +119,7 @@ class Request:
     say: Callable[[str], None] = print
     # more RunOptions for trial n (on_start, on_tick: a watcher, a stop button)
     trial_options: Callable[[int], dict] | None = None
+    warned: set[str] = field(default_factory=set)
 
 
 def _finite(x: float | None) -> float | None:
@@ -250,7 +252,15 @@ def _one_trial(req: Request, proto, n: int):
     log = req.out_dir / f"{req.specimen}-trial{n}.mcap"
     more = req.trial_options(n) if req.trial_options else {}
     return run_trial(proto, config, RunOptions(specimen=req.specimen, speed=req.speed, progress=False,
-                                               log_path=log, notes=f"characterize trial {n}", **more))
+                                               log_path=log, notes=f"characterize trial {n}", **more),
+                     warn=lambda w: _warn_once(req, w))
+
+
+def _warn_once(req: Request, text: str) -> None:
+    """The rig's warnings (the same for every trial of a campaign) said once, on stderr."""
+    if text not in req.warned:
+        req.warned.add(text)
+        print(text, file=sys.stderr)
 
 
 def _fit_all(req: Request, logs: list[str], model_name: str, extra: list[str], last: FitResult | None,
