@@ -1,0 +1,100 @@
+"""`rig characterize` campaigns on the simulated rig, measured (the issue's figures):
+
+    python -m pytest -p no:cacheprovider tests/bench/test_bench_characterize.py -s -q
+    RIG_BENCH_SEEDS=1,2 ... (fewer seeds)
+
+- one hidden effect at a time (relaxation2, compliance, drift, contact_offset, friction), five
+  seeds each: the campaign's final model holds the effect and every true parameter lies within
+  two standard errors, in at least 4 of 5 seeds; trials used and specimen time printed;
+- against the paper's fixed set (0.75, 1.5 and 3 mm/s to 30 mm, 60 s holds) on the same seeds,
+  given the same specimen time: the campaign's largest relative error and its trials;
+- the compliance / cubic stiffening look-alike: the campaign runs a designed trial and its
+  final verdict has no look-alike left.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+from rig.analysis.analyze import load_inputs
+from rig.analysis.explain import auto, explain
+from rig.analysis.fit import fit
+from rig.models.catalogue import build_model
+from rig.records import ReadOptions
+from rig.service.characterize import Request, _rse, _tissue_params, characterize
+from rig.specs.config import parse_config
+from tests.conftest import PROTOCOLS, per_seed, run_sim
+
+SEEDS = [int(s) for s in os.environ.get("RIG_BENCH_SEEDS", "1,2,3,4,5").split(",")]
+TISSUE = {"k1_N_per_m3": 5.6e4, "k2_N_per_m2": 5.5e2, "k3_N_per_m": 14.0, "tau1_s": 8.0,
+          "tau2_N_s_per_m2": 2.3e5}
+HIDDEN = {  # sim setting, the catalogue's parameters and their truth
+    "relaxation2": ("relaxation2: {k_N_per_m: 60.0, tau_s: 40.0}", {"k_m_N_per_m": 60.0, "tau_m_s": 40.0}),
+    "compliance": ("compliance: {k_frame_N_per_m: 2000.0}", {"k_frame_N_per_m": 2000.0}),
+    "drift": ("drift: {rate_N_per_s: 0.004}", {"drift_N_per_s": 0.004}),
+    "contact_offset": ("contact_offset: {x0_mm: 1.5}", {"x0_mm": 1.5}),
+    "friction": ("friction: {force_N: 0.15}", {"friction_N": 0.15}),
+}
+
+
+def _config(effect: str, seed: int):
+    return parse_config(f"sim:\n  seed: {100 * seed}\n  effects:\n    {HIDDEN[effect][0]}\n")
+
+
+def _campaign(seed: int, effect: str, out: str) -> dict:
+    t0 = time.perf_counter()
+    camp = characterize(Request(f"{effect}-{seed}", _config(effect, seed), Path(out) / f"{effect}{seed}",
+                                speed=0, say=lambda _: None))
+    f = camp.final
+    truth = {**TISSUE, **HIDDEN[effect][1]}
+    z = {k: (f.values[k] - v) / f.stderr[k] for k, v in truth.items() if k in f.values and f.stderr.get(k)}
+    return {"seed": seed, "effect": effect, "status": camp.status, "trials": len(camp.turns),
+            "minutes": camp.elapsed_s / 60, "wall_s": time.perf_counter() - t0, "model": f.model.effect_names,
+            "found": effect in f.model.effect_names, "z": z, "missing": [k for k in truth if k not in z],
+            "max_rse": max(_rse(f, k) for k in _tissue_params(f))}
+
+
+@pytest.mark.parametrize("effect", sorted(HIDDEN))
+def test_the_campaign_finds_the_hidden_effect_and_its_parameters(effect, tmp_path):
+    rows = per_seed(_campaign, SEEDS, effect, str(tmp_path))
+    ok = 0
+    for r in rows:
+        good = r["found"] and not r["missing"] and all(abs(v) <= 2 for v in r["z"].values())
+        ok += good
+        worst = max(r["z"].items(), key=lambda kv: abs(kv[1])) if r["z"] else ("-", 0.0)
+        print(f"\n{effect} seed {r['seed']}: {r['status']}, {r['trials']} trials, {r['minutes']:.1f} min "
+              f"specimen time, {r['wall_s']:.0f} s wall; model {'+'.join(r['model'])}; worst |z| {worst[0]} "
+              f"{worst[1]:+.2f}; largest relative error {100 * r['max_rse']:.1f} %; {'OK' if good else 'MISS'}")
+    print(f"{effect}: {ok} of {len(rows)} seeds")
+    assert ok >= len(rows) - 1
+
+
+def _paper_set(seed: int, effect: str, out: str) -> dict:
+    cfg = _config(effect, seed)
+    logs = []
+    for k, name in enumerate(("paper-0.75mm_s.yaml", "paper-1.5mm_s.yaml", "paper-3mm_s.yaml")):
+        from dataclasses import replace
+
+        c = replace(cfg, sim=replace(cfg.sim, seed=cfg.sim.seed + k))
+        logs.append(str(run_sim(PROTOCOLS / name, c, Path(out), name=f"{effect}{seed}-{k}.mcap").log_path))
+    inp = load_inputs(logs, [], [], ReadOptions())
+    steps = auto(fit(build_model("proposed"), inp.trials), inp.registry)
+    f = steps[-1]["fit"]
+    explain(f, inp.registry)
+    minutes = sum(t.motion.t_s[-1] for t in inp.trials) / 60 + 2.0  # two 60 s rests
+    return {"max_rse": max(_rse(f, k) for k in _tissue_params(f)), "minutes": minutes,
+            "found": effect in f.model.effect_names}
+
+
+@pytest.mark.parametrize("effect", ["drift", "compliance"])
+def test_against_the_papers_fixed_set(effect, tmp_path):
+    paper = per_seed(_paper_set, SEEDS, effect, str(tmp_path))
+    camp = per_seed(_campaign, SEEDS, effect, str(tmp_path))
+    for p, c in zip(paper, camp, strict=True):
+        print(f"\n{effect} seed {c['seed']}: paper set 3 trials, {p['minutes']:.1f} min, largest relative "
+              f"error {100 * p['max_rse']:.1f} % (effect found: {p['found']}); campaign {c['trials']} trials, "
+              f"{c['minutes']:.1f} min, {100 * c['max_rse']:.1f} % (found: {c['found']})")
