@@ -330,7 +330,19 @@ def _separable(model, ps: ParamScaling, trials, scales: Scales, resid, init, lo,
         vals = dict(zip(names, ps.to_si(z), strict=True))
         return np.concatenate([model.predict(vals, t.motion) for t in trials]) * inv_F
 
-    return separable.solve(resid, predict_z, init, lo, hi, target, form)
+    def predict_many(zs: np.ndarray) -> np.ndarray | None:
+        # every row at once: a parameter that differs between rows is given as a column
+        si = np.array([ps.to_si(z) for z in zs])
+        vals = {k: (float(col[0]) if np.all(col == col[0]) else col[:, None])
+                for k, col in zip(names, si.T, strict=True)}
+        try:
+            with np.errstate(all="ignore"):
+                return np.concatenate([np.broadcast_to(model.predict(vals, t.motion), (len(zs), t.n))
+                                       for t in trials], axis=1) * inv_F
+        except (TypeError, ValueError, IndexError):
+            return None
+
+    return separable.solve(resid, predict_z, init, lo, hi, target, form, predict_many)
 
 
 def _solve(model, ps: ParamScaling, trials, scales: Scales, z0, lo, hi, tol, max_nfev, jac="2-point"):
