@@ -120,10 +120,14 @@ def _whitened_scales(sims: np.ndarray, spectra: list[np.ndarray]) -> np.ndarray:
     first samples, which a longer filter has no history for, dropped alike from every draw)."""
     p = max((len(ar) for ar in spectra), default=0)
     n = sims.shape[1]
-    out = np.empty((len(spectra), n - p))
+    # every draw through its own filter at once: a shorter filter's missing terms are zeros,
+    # whose products take nothing from the sum (the same numbers as one draw at a time)
+    coef = np.zeros((len(spectra), p))
     for k, ar in enumerate(spectra):
-        e = whiten(sims[k], ar)
-        out[k] = e[len(e) - (n - p):]
+        coef[k, :len(ar)] = ar
+    out = sims[:, p:].copy()
+    for k in range(1, p + 1):
+        out -= coef[:, k - 1:k] * sims[:, p - k:n - k]
     return integral_scales(out)
 
 

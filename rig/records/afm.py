@@ -337,13 +337,23 @@ def _load_hdf5_curves(path: Path, options: ReadOptions, curves: set[int]) -> tup
             # the columns read here, from the file already open, as afmformats' reader reads
             # them: its reader opens the file again for every column it is asked for
             reader = H5DictReader(h5, enum_key=k)
-            data.append(cls(data={c: reader[c] for c in reader}, metadata=md, diskcache=False))
+            data.append(cls(data={c: reader[c] for c in _used(list(reader))}, metadata=md, diskcache=False))
     return data, [str(w.message) for w in caught], len(keys)
 
 
 # what a curve's place is worked out from (afmformats fills the grid index from the rest)
 _PLACE_KEYS = ("position x", "position y", "grid index x", "grid index y", "grid shape x", "grid shape y",
                "grid center x", "grid center y", "grid size x", "grid size y")
+
+
+def _used(columns: list[str]) -> list[str]:
+    """The columns of an afmformats HDF5 curve that `_build` reads: the force, the segment, the
+    time and the first height it looks for (the other heights are never read); all of them when
+    the force is missing, for the message that lists them."""
+    if "force" not in columns:
+        return columns
+    height = next((c for c in ("height (measured)", "height (piezo)", "tip position") if c in columns), None)
+    return [c for c in columns if c in ("force", "segment", "time", height)]
 
 
 def list_curves(path: str | Path, options: ReadOptions | None = None) -> list[CurveInfo]:
