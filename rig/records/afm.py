@@ -17,6 +17,7 @@ constant), which matters for soft cantilevers. The force keeps the file's sign a
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import re
 import warnings
@@ -153,15 +154,24 @@ def savgol_cubic(y: np.ndarray, w: int) -> np.ndarray:
     mode="interp")` gives it (written here: importing scipy.signal costs a one-curve `rig
     analyze` 0.7 s, and each batch worker as much)."""
     h = w // 2
-    j = np.arange(-h, h + 1, dtype=float)
-    V = np.vander(j, 4, increasing=True)
-    centre = np.linalg.pinv(V)[0]  # the fitted value at the window's centre
+    centre = _savgol_centre(w)
     out = np.empty(len(y))
     out[h:len(y) - h] = np.convolve(y, centre[::-1], mode="valid")
     k = np.arange(w, dtype=float)
     for edge, first, at in ((y[:w], 0, k[:h]), (y[-w:], len(y) - h, k[w - h:])):
         out[first:first + h] = np.polyval(np.polyfit(k, edge, 3), at)
     return out
+
+
+@functools.lru_cache(maxsize=4)
+def _savgol_centre(w: int) -> np.ndarray:
+    """The weights of a cubic over `w` samples' fitted value at the window's centre (the same
+    for every curve of a map: computed once)."""
+    h = w // 2
+    j = np.arange(-h, h + 1, dtype=float)
+    centre = np.linalg.pinv(np.vander(j, 4, increasing=True))[0]
+    centre.flags.writeable = False
+    return centre
 
 
 def detect_afm(head: bytes, path: Path) -> AfmFormat | None:
