@@ -59,9 +59,32 @@ def simulate(noise: Noise, n: int, draws: int, rng: Draws | np.random.Generator)
     m = 1 << int(np.ceil(np.log2(n + span)))
     gain = response(noise.ar, m // 2 + 1) if noise.ar else np.ones(m // 2 + 1)
     power = (gain[0] ** 2 + gain[-1] ** 2 + 2.0 * np.sum(gain[1:-1] ** 2)) / m
-    w = rng.standard_normal((draws, m))
-    x = np.fft.irfft(np.fft.rfft(w, axis=1) * gain, m, axis=1)[:, :n]
+    x = np.fft.irfft(_white_spectrum(rng, draws, m) * gain, m, axis=1)[:, :n]
     return x * (noise.gauss_std_N / math.sqrt(power))
+
+
+_SPECTRA: dict[tuple[int, int, int], np.ndarray] = {}
+_SPECTRA_KEPT = 8
+
+
+def _white_spectrum(rng: Draws | np.random.Generator, draws: int, m: int) -> np.ndarray:
+    """The transform of `draws` rows of `m` standard normal draws from `rng`. A Draws stream
+    gives the same draws from the same place, so every curve of a batch (each simulated from
+    the stream's start) shares them: they are drawn and transformed once, and the stream is
+    moved on past them as drawing them would."""
+    if not isinstance(rng, Draws):
+        return np.fft.rfft(rng.standard_normal((draws, m)), axis=1)
+    key = (rng.position, draws, m)
+    got = _SPECTRA.get(key)
+    if got is None:
+        got = np.fft.rfft(rng.standard_normal((draws, m)), axis=1)
+        got.flags.writeable = False
+        if len(_SPECTRA) >= _SPECTRA_KEPT:
+            _SPECTRA.pop(next(iter(_SPECTRA)))
+        _SPECTRA[key] = got
+    else:
+        rng.skip(draws * m)
+    return got
 
 
 def quantise(x: np.ndarray, noise: Noise) -> np.ndarray:
@@ -97,10 +120,14 @@ def _whitened_scales(sims: np.ndarray, spectra: list[np.ndarray]) -> np.ndarray:
     first samples, which a longer filter has no history for, dropped alike from every draw)."""
     p = max((len(ar) for ar in spectra), default=0)
     n = sims.shape[1]
-    out = np.empty((len(spectra), n - p))
+    # every draw through its own filter at once: a shorter filter's missing terms are zeros,
+    # whose products take nothing from the sum (the same numbers as one draw at a time)
+    coef = np.zeros((len(spectra), p))
     for k, ar in enumerate(spectra):
-        e = whiten(sims[k], ar)
-        out[k] = e[len(e) - (n - p):]
+        coef[k, :len(ar)] = ar
+    out = sims[:, p:].copy()
+    for k in range(1, p + 1):
+        out -= coef[:, k - 1:k] * sims[:, p - k:n - k]
     return integral_scales(out)
 
 

@@ -15,6 +15,7 @@ them (rows are put back in the order of the inputs and, within a file, of its cu
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import math
 import multiprocessing
@@ -163,7 +164,7 @@ def analyze_chunk(chunk: list[Curve], req: BatchRequest) -> list[dict]:
     options = ReadOptions(spring_constant_N_per_m=req.spring_constant_N_per_m,
                           sensitivity_m_per_V=req.sensitivity_m_per_V, block=req.block)
     rows: list[dict] = []
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _one_blas_thread():
         warnings.simplefilter("ignore")  # what a curve's fit warns of is in its row
         if chunk[0].curve is not None and not chunk[0].block:
             wanted = {c.curve: c for c in chunk}
@@ -186,6 +187,19 @@ def analyze_chunk(chunk: list[Curve], req: BatchRequest) -> list[dict]:
                     continue
                 rows.append(_analyze(c, rec, req, time.perf_counter() - t0))
     return rows
+
+
+def _one_blas_thread():
+    """The linear algebra on one thread while a chunk is analysed: the batch already keeps every
+    core busy with its own processes, and a curve's products are small, so the library's
+    threads only wait on each other (a tenth of a curve's time in one least-squares call of the
+    adequacy limits, on a loaded machine). The same numbers either way; threadpoolctl, where
+    installed, sets it."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        return contextlib.nullcontext()
+    return threadpool_limits(1, user_api="blas")
 
 
 def _analyze(c: Curve, rec: Any, req: BatchRequest, read_s: float) -> dict:

@@ -32,6 +32,15 @@ class Draws:
         self._next += np.uint64(n)
         return ((z >> np.uint64(11)).astype(np.float64) + 0.5) * (1.0 / (1 << 53))
 
+    @property
+    def position(self) -> int:
+        """Where the stream is: the same position gives the same draws."""
+        return int(self._next)
+
+    def skip(self, n: int) -> None:
+        """Move the stream on past `n` standard normal draws, as `standard_normal` would."""
+        self._next += np.uint64(2 * ((n + 1) // 2))
+
     def standard_normal(self, shape: tuple[int, ...]) -> np.ndarray:
         n = int(np.prod(shape))
         half = (n + 1) // 2

@@ -299,8 +299,7 @@ def is_batch(inputs: list[str], curve: int | None, each: bool, options: Any = No
     if any(Path(i).is_dir() or (not Path(i).exists() and _magic(i)) for i in inputs):
         return True
     if len(inputs) == 1 and curve is None:
-        from rig.records import list_curves
-        from rig.records.afm import format_of
+        from rig.records.afm import count_curves, format_of
 
         try:
             format_of(inputs[0])
@@ -308,7 +307,7 @@ def is_batch(inputs: list[str], curve: int | None, each: bool, options: Any = No
             return False  # not an AFM file: one record
         # an AFM file that cannot be listed with these options says why here (exit 2), not as a
         # batch's failed row or a refusal of --table
-        return len(list_curves(inputs[0], options)) > 1
+        return count_curves(inputs[0], options) > 1
     return False
 
 

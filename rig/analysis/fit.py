@@ -33,6 +33,7 @@ from rig.analysis.adequacy import ADEQUATE_PHASE, ADEQUATE_RMSE, ADEQUATE_WHITE,
 from rig.analysis.adequacy import limits as adequacy_limits
 from rig.analysis.criterion import noise_count
 from rig.analysis.data import PHASES, Scales, TrialData, decimate
+from rig.analysis.lean import predictor
 from rig.analysis.noise import Noise, integral_scale, measure
 from rig.analysis.scaling import ParamScaling
 from rig.analysis.uncertainty import bic as effective_bic
@@ -256,7 +257,10 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) ->
     ps = ParamScaling(model, scales)
     init, lo, hi = ps.start_and_bounds(initial)
     init = _inside(init, lo, hi)
-    resid = _residual_fn(model, ps, trials, scales)
+    # the same forces as model.predict, checked on these records (rig.analysis.lean)
+    predict = predictor(model, [t.motion for t in trials], dict(zip(model.param_names, ps.to_si(init),
+                                                                     strict=True)))
+    resid = _residual_fn(model, ps, trials, scales, predict)
     guessed = _guessed(model, ps, trials, init)
     also = None  # the data's start as well as the caller's, when the caller gave those parameters
     if guessed:
@@ -266,7 +270,7 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) ->
         else:
             init = _inside(start, lo, hi)
     form = separable.split(model)
-    best = _separable(model, ps, trials, scales, resid, init, lo, hi, form) if form else None
+    best = _separable(model, ps, trials, scales, resid, init, lo, hi, form, predict) if form else None
     x_c = CONTACT_POINT.params[0].name
     kinked = [i for i, p in enumerate(model.params) if p.name.partition("@")[0] == x_c]
     if best is not None:
@@ -333,22 +337,23 @@ def _best_start(model, ps: ParamScaling, trials, scales: Scales, starts, lo, hi,
     return min(sols, key=lambda sol: sol.cost), sum(sol.nfev for sol in sols)
 
 
-def _residual_fn(model, ps: ParamScaling, trials, scales: Scales):
+def _residual_fn(model, ps: ParamScaling, trials, scales: Scales, predict=None):
     """Residual in units of the record's force, as a function of the fit variables."""
     f_meas = [t.force_N for t in trials]
     names = model.param_names
     inv_F = 1.0 / scales.force_N
+    predict = predict or model.predict
 
     def resid(z: np.ndarray) -> np.ndarray:
         vals = dict(zip(names, ps.to_si(z), strict=True))
-        r = np.concatenate([model.predict(vals, t.motion) - f for t, f in zip(trials, f_meas, strict=True)])
+        r = np.concatenate([predict(vals, t.motion) - f for t, f in zip(trials, f_meas, strict=True)])
         return np.nan_to_num(r * inv_F, nan=1e6, posinf=1e6, neginf=-1e6)
 
     return resid
 
 
 def _separable(model, ps: ParamScaling, trials, scales: Scales, resid, init, lo, hi,
-               form) -> separable.Solution | None:
+               form, predict) -> separable.Solution | None:
     """The global optimum of a model linear in all but its contact point (rig.analysis.separable),
     or None when the general solver must do it."""
     inv_F = 1.0 / scales.force_N
@@ -357,9 +362,21 @@ def _separable(model, ps: ParamScaling, trials, scales: Scales, resid, init, lo,
 
     def predict_z(z: np.ndarray) -> np.ndarray:
         vals = dict(zip(names, ps.to_si(z), strict=True))
-        return np.concatenate([model.predict(vals, t.motion) for t in trials]) * inv_F
+        return np.concatenate([predict(vals, t.motion) for t in trials]) * inv_F
 
-    return separable.solve(resid, predict_z, init, lo, hi, target, form)
+    def predict_many(zs: np.ndarray) -> np.ndarray | None:
+        # every row at once: a parameter that differs between rows is given as a column
+        si = np.array([ps.to_si(z) for z in zs])
+        vals = {k: (float(col[0]) if np.all(col == col[0]) else col[:, None])
+                for k, col in zip(names, si.T, strict=True)}
+        try:
+            with np.errstate(all="ignore"):
+                return np.concatenate([np.broadcast_to(predict(vals, t.motion), (len(zs), t.n))
+                                       for t in trials], axis=1) * inv_F
+        except (TypeError, ValueError, IndexError):
+            return None
+
+    return separable.solve(resid, predict_z, init, lo, hi, target, form, predict_many)
 
 
 def _solve(model, ps: ParamScaling, trials, scales: Scales, z0, lo, hi, tol, max_nfev, jac="2-point"):

@@ -129,20 +129,21 @@ def ar_fit_rows(gamma: np.ndarray, n: int, max_order: int = MAX_ORDER) -> list[n
     v = np.where(ok, g0, 1.0)
     phi = np.zeros((rows, 0))
     best_crit = n * np.log(v)
-    best = [np.zeros(0)] * rows
+    phis = [phi]  # the coefficients at every order: each row's best is taken once, at the end
+    best_k = np.zeros(rows, dtype=int)
     alive = ok.copy()
     for k in range(1, order + 1):
         acc = gamma[:, k] - np.einsum("ij,ij->i", phi, gamma[:, k - 1:0:-1]) if k > 1 else gamma[:, 1].copy()
         refl = acc / v
         phi = np.column_stack([phi - refl[:, None] * phi[:, ::-1], refl])
+        phis.append(phi)
         v = v * (1.0 - refl ** 2)
         alive &= v > 0
         crit = n * np.log(np.where(alive, v, 1.0)) + k * math.log(n)
         better = alive & (crit < best_crit)
-        for i in np.flatnonzero(better):
-            best[i] = phi[i].copy()
+        best_k = np.where(better, k, best_k)
         best_crit = np.where(better, crit, best_crit)
-    return best
+    return [phis[k][i].copy() for i, k in enumerate(best_k)]
 
 
 def response(ar: tuple[float, ...] | np.ndarray, nfreq: int) -> np.ndarray:

@@ -65,12 +65,14 @@ def split(model: Model) -> tuple[int | None, list[int]] | None:
 
 
 def solve(resid_at, predict_z, z0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-          target: np.ndarray, form: tuple[int | None, list[int]]) -> Solution | None:
+          target: np.ndarray, form: tuple[int | None, list[int]], predict_many=None) -> Solution | None:
     """The least-squares optimum in the fit variables z.
 
     `predict_z(z)` is the model's prediction (in the record's force scale, all trials joined),
     `target` the measurement in the same scale, `resid_at(z)` their difference as the general
-    solver sees it. None when the optimum is not an interior point of the linear form."""
+    solver sees it. `predict_many(zs)`, where given, is `predict_z` of every row of `zs` at
+    once (one row of predictions each, or None where it cannot): the scan's columns are then
+    computed in one pass. None when the optimum is not an interior point of the linear form."""
     k_nl, lin = form
     nfev = 0
     fixed: dict[int, np.ndarray] = {}  # columns the nonlinear variable does not move (a record's zero)
@@ -104,7 +106,64 @@ def solve(resid_at, predict_z, z0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
         r = combined - target
         return coef, 0.5 * float(r @ r), combined
 
-    z_nl = None if k_nl is None else _minimise(lambda c: linear_part(c)[1], float(lo[k_nl]), float(hi[k_nl]))
+    def grid_costs(grid: np.ndarray) -> np.ndarray:
+        """The cost at every point of the scan: its moving columns from one call of
+        `predict_many`, checked against `predict_z` at both ends (a model whose terms do not
+        broadcast over many contact points falls back to one point at a time)."""
+        nonlocal nfev
+        moving = [j for j in lin if j not in fixed]
+        stacks = {}
+        if predict_many is not None and moving:
+            for j in moving:
+                zs = np.zeros((len(grid), len(z0)))
+                zs[:, k_nl] = grid
+                zs[:, j] = 1.0
+                got = predict_many(zs)
+                if got is None or got.shape != (len(grid), len(target)) or not (
+                        np.array_equal(got[0], column(j, float(grid[0])))
+                        and np.array_equal(got[-1], column(j, float(grid[-1])))):
+                    stacks = {}
+                    break
+                nfev += len(grid) - 2  # the two ends were counted as they were checked
+                stacks[j] = got
+        if not stacks:
+            return np.array([linear_part(float(c))[1] for c in grid])
+        # every point's linear least squares at once, by its normal equations on scaled
+        # columns: the scan only picks the valley, and its lowest point's cost, which Brent
+        # starts from, is then taken exactly as the search takes it
+        cols = [fixed[j] if j in fixed else stacks[j] for j in lin]  # (samples,) or (points, samples)
+
+        def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            if a.ndim == 2 and b.ndim == 2:
+                return np.einsum("pn,pn->p", a, b)
+            return a @ b if a.ndim == 2 else (b @ a if b.ndim == 2 else np.full(len(grid), float(a @ b)))
+
+        k = len(cols)
+        G = np.empty((len(grid), k, k))
+        for a in range(k):
+            for b in range(a, k):
+                G[:, a, b] = G[:, b, a] = dot(cols[a], cols[b])
+        rhs = np.stack([dot(c, target) for c in cols], axis=1)
+        norm = np.sqrt(np.einsum("pkk->pk", G))
+        norm[norm == 0.0] = 1.0
+        with np.errstate(all="ignore"):
+            try:
+                coef = np.linalg.solve(G / (norm[:, :, None] * norm[:, None, :]),
+                                       (rhs / norm)[..., None])[..., 0] / norm
+            except np.linalg.LinAlgError:
+                return np.array([linear_part(float(c))[1] for c in grid])
+            r = -target
+            for a in range(k):
+                r = r + (coef[:, a, None] * cols[a] if cols[a].ndim == 2 else np.outer(coef[:, a], cols[a]))
+            out = 0.5 * np.einsum("pn,pn->p", r, r)
+        # a point whose free solution leaves the bounds (or is singular) is solved as the search does
+        bad = ~np.isfinite(out) | np.any((coef < lo[lin]) | (coef > hi[lin]) | ~np.isfinite(coef), axis=1)
+        for i in np.flatnonzero(bad):
+            out[i] = linear_part(float(grid[i]))[1]
+        return out
+
+    z_nl = None if k_nl is None else _minimise(lambda c: linear_part(c)[1], float(lo[k_nl]), float(hi[k_nl]),
+                                               grid_costs)
     coef, _, combined = linear_part(z_nl)
     z = z0.copy()
     z[lin] = coef
@@ -137,14 +196,20 @@ def _bounded_lstsq(A: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray)
     return fixed
 
 
-def _minimise(cost, lo: float, hi: float) -> float:
+def _minimise(cost, lo: float, hi: float, costs=None) -> float:
     """The lowest point of a cost of one variable on [lo, hi]: a grid finds the valley of the
-    global minimum, golden-section search with parabolic steps (Brent) refines it."""
+    global minimum, golden-section search with parabolic steps (Brent) refines it. `costs`, where
+    given, is the cost at every point of the grid at once."""
     lo_in = lo + 1e-6 * (hi - lo)
     hi_in = hi - 1e-6 * (hi - lo)
     grid = np.linspace(lo_in, hi_in, GRID)
-    values = np.array([cost(c) for c in grid])
-    i = int(np.argmin(values))
+    if costs is None:
+        values = np.array([cost(c) for c in grid])
+        i = int(np.argmin(values))
+    else:
+        values = costs(grid)
+        i = int(np.argmin(values))
+        values[i] = cost(grid[i])
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, GRID - 1)]
     return _brent(cost, a, b, grid[i], values[i])
 
