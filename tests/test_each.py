@@ -76,6 +76,9 @@ def test_bad_curves_never_stop_a_batch_and_the_exit_status_counts_them(tmp_path,
     (folder / "a.jpk-force-map").write_bytes(MAP.read_bytes())
     (folder / "b-cut.jpk-force-map").write_bytes(MAP.read_bytes()[:5000])  # cut short in transfer
     (folder / "notes.txt").write_text("specimen 3, second site\n")
+    # a table written into the folder it analyses leaves its request and journal there: not inputs
+    (folder / "t.csv.request.json").write_text("{}")
+    (folder / "t.csv.partial.jsonl").write_text("")
     code = main(["analyze", str(folder), *HERTZ, "--json"])
     captured = capsys.readouterr()
     rows = [json.loads(x) for x in captured.out.splitlines()]

@@ -70,6 +70,9 @@ class BatchRequest:
     block: int | None = None
 
 
+OWN_FILES = (".request.json", ".partial.jsonl")
+
+
 def expand_inputs(inputs: list[str], skipped: list[str] | None = None) -> list[str]:
     """Files named, found by a glob, or held in a folder (its files, recursively, in name order;
     hidden ones left out). A file named is taken as it is (its row says if it cannot be read);
@@ -96,6 +99,8 @@ def expand_inputs(inputs: list[str], skipped: list[str] | None = None) -> list[s
         else:
             raise RigError(f"{name}: no such file or folder")
         for f in found:
+            if f.endswith(OWN_FILES):
+                continue  # a table's own journal and request, written beside it
             if recognised(f):
                 out.append(f)
             elif skipped is not None:
