@@ -197,7 +197,30 @@ class FitResult:
 def evaluate(model: Model, values: dict[str, float], trials: list[TrialData]) -> list[np.ndarray]:
     for i, t in enumerate(trials):
         t.motion.record = i
-    return [model.predict(values, t.motion) for t in trials]
+    return [predict_trial(model, values, t) for t in trials]
+
+
+def predict_trial(model: Model, values: dict[str, float], t: TrialData) -> np.ndarray:
+    """The model's prediction of the record's force. Where a controller held the force (creep
+    form, `rig.models.creep`) the model predicts the position instead, and the prediction
+    given here is the measured force less the position's miss times the record's creep weight
+    (`TrialData.creep_weight_N_per_m`): measured - prediction is then the length residual in
+    force units, weighed by its own noise against the force's."""
+    if not t.creep:
+        return model.predict(values, t.motion)
+    force, x = model.predict_held(values, t.motion, t.held, t.held_force_N)
+    out = np.array(force, dtype=float)
+    h = t.held
+    out[h] = t.force_N[h] - t.creep_weight_N_per_m * (t.motion.x_m[h] - x[h])
+    return out
+
+
+def predict_position(model: Model, values: dict[str, float], t: TrialData) -> np.ndarray | None:
+    """The position the model predicts on the record's held samples (the measured one elsewhere),
+    or None for a record in force form throughout."""
+    if not t.creep:
+        return None
+    return model.predict_held(values, t.motion, t.held, t.held_force_N)[1]
 
 
 def error_table(trials: list[TrialData], residuals: list[np.ndarray]) -> tuple[ErrorStats, dict]:
@@ -257,7 +280,8 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) ->
     init, lo, hi = ps.start_and_bounds(initial)
     init = _inside(init, lo, hi)
     resid = _residual_fn(model, ps, trials, scales)
-    form = separable.split(model)
+    # creep form solves for the position: no longer linear in the force's amplitudes
+    form = separable.split(model) if not any(t.creep for t in trials) else None
     best = _separable(model, ps, trials, scales, resid, init, lo, hi, form) if form else None
     x_c = CONTACT_POINT.params[0].name
     kinked = [i for i, p in enumerate(model.params) if p.name.partition("@")[0] == x_c]
@@ -312,7 +336,7 @@ def _residual_fn(model, ps: ParamScaling, trials, scales: Scales):
 
     def resid(z: np.ndarray) -> np.ndarray:
         vals = dict(zip(names, ps.to_si(z), strict=True))
-        r = np.concatenate([model.predict(vals, t.motion) - f for t, f in zip(trials, f_meas, strict=True)])
+        r = np.concatenate([predict_trial(model, vals, t) - f for t, f in zip(trials, f_meas, strict=True)])
         return np.nan_to_num(r * inv_F, nan=1e6, posinf=1e6, neginf=-1e6)
 
     return resid
