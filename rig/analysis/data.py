@@ -74,6 +74,9 @@ class TrialData:
     # the force the tissue is taken to carry on held samples: the reading smoothed within each
     # held step (`held_force`); the measured force elsewhere
     held_force_N: np.ndarray | None = None
+    # the spectrum of the position's noise on held samples (AR coefficients: the force loop's
+    # jitter is correlated over its response time), what a right model's creep residual shows
+    held_noise_ar: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if self.scales is None:
@@ -229,35 +232,37 @@ def prepare(rec: Record, where: str = "", segment: str = "all", form: str = "aut
             smoothed = held_force(f, held, runs)
             notes.append(f"creep form on {int(held.sum())} samples where the force was held (the indentation "
                          "predicted from the force, smoothed within each step); force form elsewhere")
-    weight = creep_weight(x, f, held, noise) if held is not None else None
+    weight, held_ar = creep_weight(x, f, held, runs, noise) if held is not None else (None, ())
     return TrialData(Path(rec.name).name, m, f, phase, noise, rec.source, len(base), scales,
                      base if len(base) >= MIN_BASELINE else None, fu, lu, notes, dict(rec.meta), contact_m,
-                     estimated, held, weight, smoothed)
+                     estimated, held, weight, smoothed, held_ar)
 
 
-def creep_weight(x: np.ndarray, f: np.ndarray, held: np.ndarray, noise_N: float | None) -> float:
+def creep_weight(x: np.ndarray, f: np.ndarray, held: np.ndarray, runs: np.ndarray,
+                 noise_N: float | None) -> tuple[float, tuple[float, ...]]:
     """How a length residual on held samples counts against a force residual: the force noise over
-    the length noise (N/m), so that either, divided by its own noise, enters one likelihood.
+    the length noise (N/m), so that either, divided by its own noise, enters one likelihood; and
+    the length noise's spectrum (AR coefficients).
 
     Both from the record: the force noise at rest before contact (else the held force's own
     short-lag structure), the length noise the measured position's short-lag structure on the held
-    samples (`rig.analysis.noise.from_residual`: differences over a few dozen samples keep the
-    noise and barely see the smooth creep). That is what a right model leaves there: on a
-    simulated creep trial, the position solved with the true parameters missed the measured one
-    by 0.084 mm RMS, and the position's own short-lag noise (the force loop's jitter and the
-    encoder's steps) read 0.082 mm."""
+    samples, step by step (`rig.analysis.noise.from_residual`: differences over a few dozen
+    samples keep the noise and barely see the smooth creep; a step's corner would read as noise,
+    so the steps too short to show it are left out). That is what a right model leaves there: on
+    a simulated creep trial at two forces, the position solved with the true parameters missed
+    the measured one by 0.066 mm RMS, and the position's own short-lag noise (the force loop's
+    jitter and the encoder's steps) read 0.063 and 0.055 mm in the two holds."""
     from rig.analysis.noise import from_residual
 
-    runs = np.split(np.flatnonzero(held), np.flatnonzero(np.diff(np.flatnonzero(held)) > 1) + 1)
-    runs = [r for r in runs if len(r) >= 16]
-    if not runs:
-        runs = [np.flatnonzero(held)]
-    sigma_x = from_residual([x[r] for r in runs]).std_N
-    sigma_f = noise_N if noise_N else from_residual([f[r] for r in runs]).std_N
+    idx = [np.flatnonzero((runs == r) & held) for r in np.unique(runs[held])]
+    long = [i for i in idx if len(i) >= 128] or [max(idx, key=len)]
+    length = from_residual([x[i] for i in long])
+    sigma_x = length.std_N
+    sigma_f = noise_N if noise_N else from_residual([f[i] for i in long]).std_N
     if not sigma_x > 0 or not sigma_f > 0:
         # a position without noise (a perfect record): the record's own secant stiffness
-        return float(np.max(np.abs(f)) / max(float(np.max(np.abs(x))), 1e-300))
-    return float(sigma_f / sigma_x)
+        return float(np.max(np.abs(f)) / max(float(np.max(np.abs(x))), 1e-300)), ()
+    return float(sigma_f / sigma_x), length.ar
 
 
 HELD_SMOOTHING = 0.02  # the held force's noise after smoothing, at most this share of its level

@@ -110,8 +110,23 @@ class FitResult:
 
     @cached_property
     def whitened_L(self) -> float:
-        """The residual's correlation time (samples) with the noise's own taken out."""
-        return 1.0 if self.noise is None else whitened_scale(self.residuals, self.noise)
+        """The residual's correlation time (samples) with the noise's own taken out: on held
+        samples (creep form) the position's noise's own (`TrialData.held_noise_ar`)."""
+        if self.noise is None:
+            return 1.0
+        if not any(t.creep for t in self.trials):
+            return whitened_scale(self.residuals, self.noise)
+        scales, weights = [], []
+        for t, r in zip(self.trials, self.residuals, strict=True):
+            held = t.held if t.creep else np.zeros(t.n, dtype=bool)
+            edges = np.flatnonzero(np.diff(held.astype(np.int8))) + 1
+            for piece, h in zip(np.split(r, edges), np.split(held, edges), strict=True):
+                if len(piece) < 32:
+                    continue
+                ar = t.held_noise_ar if h[0] else self.noise.ar
+                scales.append(whitened_scale([piece], replace(self.noise, ar=tuple(ar))))
+                weights.append(len(piece))
+        return float(np.average(scales, weights=weights)) if scales else 1.0
 
     def _failed(self) -> list[tuple[str, float, float]]:
         """The tests the residual fails: (what, its value, its limit), in the order they are told."""
@@ -465,8 +480,8 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     lengths = [t.n for t in trials]
     to_si = ps.jacobian(z)
     doubts: list[str] = []
-    quiet = [t.quiet_n for t in trials]
-    cov = _covariance(best, to_si, lengths, doubts, quiet)
+    blocks, quiet, still = noise_blocks(trials)
+    cov = _covariance(best, to_si, blocks, doubts, quiet, still)
     stderr = _stderr(cov, model.param_names)
     bound = ps.at_bound(z, lo, hi, AT_BOUND)
     lag, drive = ps.rate_form
@@ -476,7 +491,7 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     if integrator:
         # the lag's time constant and the amplitudes over it run off together; their ratios
         # are the model at this limit, and what the record determines
-        warnings.append(_integrator_rates(model, ps, best, si, to_si, lengths, quiet))
+        warnings.append(_integrator_rates(model, ps, best, si, to_si, blocks, quiet, still))
         stderr_named = {k: e for i, (k, e) in enumerate(stderr.items()) if i != lag and i not in drive}
         warnings += _undetermined(model, values, stderr_named)
     else:
@@ -515,6 +530,34 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
                      cov, n_eff, noise, counted)
 
 
+def noise_blocks(trials: list[TrialData]) -> tuple[list[int], list[int], list[bool]]:
+    """The residual's blocks of independent noise, in order (samples each), the samples at rest at
+    the start of each, and whether each is in creep form: one block per trial, and within a trial
+    with held samples one per run of creep form and of force form (a length residual's noise is
+    not the force's), the rest before contact with the first.
+
+    A creep-form block's noise is the position's jitter under the force loop (the slider follows
+    the loop's reading, the model the smoothed force): correlated over the loop's response time
+    and bounded by it, never a walk from the trial's start, so its noise model is the AR alone
+    (`rig.analysis.uncertainty.hac_covariance`): white noise plus a walk, which fitted such a
+    residual better at short lags, made the paper's model's standard errors on a simulated
+    creep trial 10-20x the spread of its estimates over seeds."""
+    lengths, quiet, still = [], [], []
+    for t in trials:
+        if not t.creep:
+            lengths.append(t.n)
+            quiet.append(t.quiet_n)
+            still.append(False)
+            continue
+        edges = np.flatnonzero(np.diff(t.held.astype(np.int8))) + 1
+        starts = np.r_[0, edges]
+        runs = np.diff(np.r_[starts, t.n]).tolist()
+        lengths += runs
+        quiet += [min(t.quiet_n, runs[0])] + [0] * (len(runs) - 1)
+        still += [bool(t.held[a]) for a in starts]
+    return lengths, quiet, still
+
+
 def _inside(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """`z` moved strictly inside finite bounds (least_squares refuses a start on a bound)."""
     with np.errstate(invalid="ignore"):
@@ -525,12 +568,12 @@ def _inside(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 def _covariance(sol, to_si: np.ndarray, lengths: list[int], doubts: list[str] | None = None,
-                quiet: list[int] | None = None) -> np.ndarray | None:
+                quiet: list[int] | None = None, still: list[bool] | None = None) -> np.ndarray | None:
     """Covariance of the parameters in SI: the correlated-residual sandwich
     (`rig.analysis.uncertainty`) in the fit variables, carried to SI through `to_si` = d(SI)/dz;
     why it may be doubtful appended to `doubts`."""
     try:
-        cov = hac_covariance(sol.jac, sol.fun, lengths, doubts, quiet)
+        cov = hac_covariance(sol.jac, sol.fun, lengths, doubts, quiet, still)
     except (np.linalg.LinAlgError, ValueError):
         return None
     # a direction the data do not determine (infinite variance) leaves every SI parameter
@@ -558,7 +601,7 @@ def _owner(model: Model, p) -> Effect:
 
 
 def _integrator_rates(model: Model, ps: ParamScaling, sol, si: np.ndarray, to_si: np.ndarray,
-                      lengths: list[int], quiet: list[int]) -> str:
+                      lengths: list[int], quiet: list[int], still: list[bool] | None = None) -> str:
     """The model at the integrator limit, df/dt = sum of (amplitude / tau) x term: those ratios
     with their standard errors (the sandwich covariance in the fit variables, carried through
     `to_si` = d(SI)/dz by the quotient rule, the rate held at its bound)."""
@@ -567,7 +610,7 @@ def _integrator_rates(model: Model, ps: ParamScaling, sol, si: np.ndarray, to_si
     value = si[drive] / si[lag]
     free = [j for j in range(len(si)) if j != lag]
     try:
-        cov_z = hac_covariance(sol.jac[:, free], sol.fun, lengths, quiet=quiet)
+        cov_z = hac_covariance(sol.jac[:, free], sol.fun, lengths, quiet=quiet, stationary=still)
         J = (to_si[drive][:, free] * si[lag] - np.outer(si[drive], to_si[lag, free])) / si[lag] ** 2
         err = np.sqrt(np.clip(np.diag(J @ cov_z @ J.T), 0.0, None))
     except (np.linalg.LinAlgError, ValueError):

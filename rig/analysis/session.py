@@ -46,6 +46,7 @@ class AnalyzeRequest:
     indenter: str | None = None  # spec string; else the record's own header
     poisson: float = 0.5
     segment: str = "all"  # or "approach"
+    form: str = "auto"  # creep form where a controller held the force; "force": force form throughout
     curve: int | None = None  # an AFM map's curve, as the instrument numbers it
     spring_constant_N_per_m: float | None = None
     sensitivity_m_per_V: float | None = None
@@ -65,7 +66,7 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     options = ReadOptions(curve=req.curve, spring_constant_N_per_m=req.spring_constant_N_per_m,
                           sensitivity_m_per_V=req.sensitivity_m_per_V, block=req.block)
     inputs = load_inputs(req.inputs, req.holdout, req.plugins, options, indenter=req.indenter,
-                         poisson=req.poisson, segment=req.segment, records=req.records)
+                         poisson=req.poisson, segment=req.segment, records=req.records, form=req.form)
     model = build_model(req.model, req.add, inputs.registry)
     if req.save:
         from rig.models.saved import savable
