@@ -18,6 +18,7 @@ from rig.analysis.analyze import (
     record_placement,
     result_json,
 )
+from rig.analysis.creep import creep_json, format_creep
 from rig.analysis.data import PHASES
 from rig.analysis.explain import auto, explain, format_auto, format_explain
 from rig.analysis.fit import FitResult, fit
@@ -86,6 +87,9 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         warm = fit(model, inputs.trials, starts=1, initial=before.values)
         res = min(res, warm, key=lambda r: r.overall.rmse_N)
     out = result_json(res, req.inputs)
+    creep_rows = creep_json(res, inputs.indenter, inputs.poisson) if any(t.creep for t in res.trials) else []
+    if creep_rows:
+        out["creep"] = creep_rows
     material = material_json(res, inputs)
     if material:
         out["material"] = material
@@ -144,10 +148,13 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     if req.report:
         out["report"] = str(write_report(res, req.report, compare=results, holdout=held, text=compare_text,
                                          before=before, steps=steps,
-                                         explain_text=format_explain(ex) if ex else ""))
+                                         explain_text=format_explain(ex) if ex else "",
+                                         creep_text=format_creep(creep_rows, res, inputs.indenter)))
 
     parts = [format_before_after(before, res) if before is not None
              else f"{res.report()}\nfitted in {res.seconds:.2f} s"]
+    if creep_rows:
+        parts.append(format_creep(creep_rows, res, inputs.indenter))
     if material:
         parts.append(format_material(material, res))
     elif format_placement(res):
