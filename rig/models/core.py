@@ -306,10 +306,11 @@ class Model:
 
         key = tuple(self.effect_names)
         last = cache.setdefault("_held_x", {})
-        sol = creep.solve_held(tissue, slopes, m.x_m, held, target, dt, lag, branch, last.get(key))
-        last[key] = sol.x_m
         x_full = m.x_m.copy()
-        x_full[held] = sol.x_m
+        if np.any(held):
+            sol = creep.solve_held(tissue, slopes, m.x_m, held, target, dt, lag, branch, last.get(key))
+            last[key] = sol.x_m
+            x_full[held] = sol.x_m
         mm = motion_of(x_full)
         force = tissue(x_full)
         for e in by_stage["sensor"]:
