@@ -219,11 +219,13 @@ class Model:
         return lag, branch
 
     def predict_held(self, values: dict[str, float] | np.ndarray, m: Motion, held: np.ndarray,
-                     force_N: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                     force_N: np.ndarray, solve: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Creep form (`rig.models.creep`): where `held`, the position x (m) that makes the tissue
         carry the measured force `force_N` (its sensor terms and delay taken off); elsewhere
         the position as measured and the predicted load-cell force. Returns (force, position)
-        over the record; the force on held samples is the model's at the predicted position."""
+        over the record; the force on held samples is the model's at the predicted position.
+        `solve` False: the measured position is kept on held samples too (the forward model in
+        creep form's discretisation)."""
         from rig.models import creep
 
         if not isinstance(values, dict):
@@ -258,8 +260,8 @@ class Model:
                 xf, vf = e.fn(xf, vf, **args(e))
             return xf, vf
 
-        lag, branch = self._held_filters(m, by_stage, args)
-        held_lag = lag if by_stage["lag"] else None
+        lag, exact, branch = self._held_filters(m, by_stage, args)
+        held_lag = (*exact, held) if by_stage["lag"] else None
 
         def tissue(xf: np.ndarray) -> np.ndarray:
             mm = motion_of(xf)
@@ -307,7 +309,7 @@ class Model:
         key = tuple(self.effect_names)
         last = cache.setdefault("_held_x", {})
         x_full = m.x_m.copy()
-        if np.any(held):
+        if solve and np.any(held):
             sol = creep.solve_held(tissue, slopes, m.x_m, held, target, dt, lag, branch, last.get(key))
             last[key] = sol.x_m
             x_full[held] = sol.x_m
@@ -320,13 +322,17 @@ class Model:
         return force, x_full
 
     def _held_filters(self, m: Motion, by_stage, args):
-        """`_filters` for creep form: the lag with its drive held over each step, y[i] = a y[i-1]
-        + (1 - a) u[i]. The drive taken linear between samples (the force form's) gives a lag no
-        gain at all at the sampling's Nyquist frequency, so the position solved from a force
-        would be free to ring there without bound; held, the gain there is the lag's own
-        (about dt / 2 tau), and the price is half a step's delay, (dt / 2) df/dt of force."""
+        """`_filters` for creep form: on held samples the lag's drive is held over each step,
+        y[i] = a y[i-1] + (1 - a) u[i]. The drive taken linear between samples (the force form's)
+        gives a lag no gain at all at the sampling's Nyquist frequency, so the position solved
+        from a force would be free to ring there without bound; held, the gain there is the lag's
+        own (about dt / 2 tau), and the price is half a step's delay, (dt / 2) df/dt of force,
+        small where the force is held. Elsewhere the force form's exact step is kept: on a fast
+        return (5 N/s) the half step was 0.6 of the noise, and --explain read it as friction.
+        Returns the held step (b0, b1, a) for the solve, the lag as (b0, b1, a, held samples) for
+        `_tissue`, and the branch."""
         (b0, b1, a), branch = self._filters(m, by_stage, args)
-        return (b0 + b1, 0.0, a), branch
+        return (b0 + b1, 0.0, a), (b0, b1, a), branch
 
     def _through_frame(self, e: Effect, x, v, m: Motion, by_stage, args, held_force=None,
                        held_lag: tuple | None = None) -> np.ndarray:
@@ -336,8 +342,6 @@ class Model:
         dt = m.dt_s
         drives = by_stage["drive"]
         lag, branch = self._filters(m, by_stage, args)
-        if held_lag is not None:
-            lag = held_lag
 
         def drive(xc, vc):
             out = np.zeros_like(xc)
@@ -380,8 +384,13 @@ class Model:
         f = drive
         for e in by_stage["lag"]:
             if held_lag is not None:
-                # creep form: the drive held over each step (`Model.predict_held`)
-                f = linear_recursion(drive, *held_lag)
+                # creep form: the drive held over each step where the force was held, linear
+                # between samples elsewhere (`Model._held_filters`)
+                b0, b1, a, held = held_lag
+                w = b0 * drive
+                w[1:] += b1 * drive[:-1]
+                w[held] = (b0 + b1) * drive[held]
+                f = linear_recursion(w, 1.0, 0.0, a)
             else:
                 f = e.fn(drive, m.dt_s, **self._lag_args(e, m, by_stage, args))
         if by_stage["branch"]:
