@@ -311,7 +311,10 @@ class Model:
         x_full = m.x_m.copy()
         if solve and np.any(held):
             sol = creep.solve_held(tissue, slopes, m.x_m, held, target, dt, lag, branch, last.get(key))
-            last[key] = sol.x_m
+            if np.all(np.isfinite(sol.x_m)):
+                last[key] = sol.x_m
+            else:
+                last.pop(key, None)
             x_full[held] = sol.x_m
         mm = motion_of(x_full)
         force = tissue(x_full)

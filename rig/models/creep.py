@@ -155,4 +155,8 @@ def solve_held(tissue: Callable[[np.ndarray], np.ndarray], drive_slopes: Callabl
     if norm > HELD_RTOL * scale * 1e3:
         warnings.warn(NotConverged(f"creep form: the held force equation holds only to {norm:.3g} N", norm),
                       stacklevel=4)
+        if norm > 1e-3 * scale:
+            # no position found: never the measured one (where the solve starts), which would read
+            # as a perfect prediction and draw a fit to parameters where the solve fails
+            return HeldSolution(np.full_like(z, np.nan), norm)
     return HeldSolution(z, norm)
