@@ -279,8 +279,9 @@ def held_force(f: np.ndarray, held: np.ndarray, runs: np.ndarray) -> np.ndarray:
     simulated creep trial with the true parameters the position solved from the raw reading was
     2.1 mm off (of 14), 0.08 mm after smoothing over 21 samples. What noise is left still pulls
     the time constants down: with the noise taken to 2 % of the force, the paper's model's tau1
-    came out 5 % low over five seeds of a creep trial (at worst 2.3 standard errors), at 1 %
-    (about 36 samples for a 40 mN load cell at 1 N) half as far. The window is the shortest (odd,
+    came out 5 % low over five seeds of a creep trial (at worst 2.3 standard errors); at 1 %
+    (about 36 samples for a 40 mN load cell at 1 N), with the half step matched
+    (`Model.predict_held`), 1.4 % low on average, 1.2 standard errors at worst. The window is the shortest (odd,
     from 5) that takes the noise, read from the run's own second differences, to HELD_SMOOTHING of
     the run's force, and at most a third of the run: a step's corners are kept (each step is
     smoothed on its own)."""
