@@ -425,7 +425,8 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         plugins=args.plugin or [], block=args.block, compare=args.compare, explain=args.explain,
         auto=args.auto, design=args.design, design_config=design_config, save=args.save,
         report=args.report, indenter=args.indenter, poisson=args.poisson, segment=args.segment,
-        curve=args.curve, spring_constant_N_per_m=args.spring_constant, sensitivity_m_per_V=args.sensitivity,
+        form=args.form, curve=args.curve, spring_constant_N_per_m=args.spring_constant,
+        sensitivity_m_per_V=args.sensitivity,
         bootstrap=args.bootstrap, profile=args.profile,
         progress=_progress if args.bootstrap and sys.stderr.isatty() else None))
     print(json.dumps(done.json, indent=2, default=float) if args.json else done.text)
@@ -771,6 +772,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--segment", choices=["all", "approach"], default="all",
                    help="fit the whole record (default) or the approach alone, as AFM tools fit an elastic "
                         "contact")
+    r.add_argument("--form", choices=["auto", "creep", "force"], default="auto",
+                   help="auto (default): where a controller held the force (ramp_force, hold_force, an AFM "
+                        "creep-compliance pause) the model predicts the indentation from the force (creep "
+                        "form), elsewhere the force from the indentation; creep: the same, refused on a "
+                        "record that holds no force; force: force form throughout")
     r.add_argument("--add", action="append", metavar="EFFECT", help="add an effect to the model")
     r.add_argument("--plugin", action="append", metavar="FILE", help="load user effects from a Python file")
     r.add_argument("--holdout", action="append", metavar="FILE",

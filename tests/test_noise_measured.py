@@ -108,7 +108,7 @@ def test_real_creep_records_read_the_noise_of_their_quiet_approach(record, capsy
     """The brain and gel creep records: the approach shows about 5 pN; 18.8 and 25.8 pN came from
     counting the first touch as baseline."""
     pytest.importorskip("afmformats", reason="reading JPK files needs the afm extra (afmformats)")
-    assert main(["analyze", str(REALDATA / record), "--model", "kelvin", "--json"]) == 0
+    assert main(["analyze", str(REALDATA / record), "--model", "kelvin", "--form", "force", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert 3e-12 < out["fit"]["noise_N"] < 7e-12, out["fit"]
     assert out["fit"]["noise_source"] == "the force at rest before contact"

@@ -50,8 +50,9 @@ def hide(t: TrialData, effect: str) -> TrialData:
 
 
 def explain_cleanly(record: str) -> tuple[TrialData, object]:
-    """The record, and the fit of the model `--auto` builds on it."""
-    trial = load_trial(REALDATA / record)
+    """The record (in force form: the effects are hidden in its force), and the fit of the model
+    `--auto` builds on it."""
+    trial = load_trial(REALDATA / record, form="force")
     steps = auto(fit(build_model("proposed"), [trial]), dict(CATALOGUE))
     return trial, steps[-1]["fit"]
 

@@ -56,7 +56,8 @@ def _named_indenter(trials: list[TrialData]) -> tuple[Indenter, str] | None:
 
 def load_inputs(paths: list[str], holdout: list[str], plugins: list[str],
                 options: ReadOptions | int | None = None, *, indenter: str | None = None,
-                poisson: float = 0.5, segment: str = "all", records: list[Record] | None = None) -> Inputs:
+                poisson: float = 0.5, segment: str = "all", records: list[Record] | None = None,
+                form: str = "auto") -> Inputs:
     """The records prepared, and the catalogue with the user's effects and, when the indenter
     is known (`indenter`, else the first record that names its own), its elastic contact.
     `records`, when given, are the inputs already read (one per path: a batch reads a map once)."""
@@ -69,9 +70,9 @@ def load_inputs(paths: list[str], holdout: list[str], plugins: list[str],
             if e.name in CATALOGUE:
                 raise RigError(f"{p}: effect '{e.name}' would replace the catalogue's; rename it")
             registry[e.name] = e
-    trials = ([prepare(r, str(p), segment) for r, p in zip(records, paths, strict=True)] if records is not None
-              else [load_trial(p, options, segment) for p in paths])
-    held = [load_trial(p, options, segment) for p in holdout]
+    trials = ([prepare(r, str(p), segment, form) for r, p in zip(records, paths, strict=True)]
+              if records is not None else [load_trial(p, options, segment, form=form) for p in paths])
+    held = [load_trial(p, options, segment, form="force" if form == "force" else "auto") for p in holdout]
     ind, source = None, ""
     named = _named_indenter(trials)
     shape = (indenter or "").strip().lower()

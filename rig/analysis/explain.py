@@ -150,6 +150,10 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
         else:
             res, before = res_c, base_coarse
             ratio = float(np.sum(np.concatenate(res.residuals) ** 2)) / max(rss0_c, 1e-300)
+        if not np.isfinite(ratio):
+            # the candidate's fit ends where its model cannot be evaluated (creep form: no position
+            # solves the held force): last, never a NaN that would leave the ranking unsorted
+            ratio = np.inf
         dk = len(model.params) - len(base.model.params)
         dbic = delta_bic(ratio, dk, n_eff)
         rmse = base.overall.rmse_N * float(np.sqrt(ratio))

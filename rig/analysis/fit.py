@@ -111,8 +111,23 @@ class FitResult:
 
     @cached_property
     def whitened_L(self) -> float:
-        """The residual's correlation time (samples) with the noise's own taken out."""
-        return 1.0 if self.noise is None else whitened_scale(self.residuals, self.noise)
+        """The residual's correlation time (samples) with the noise's own taken out: on held
+        samples (creep form) the position's noise's own (`TrialData.held_noise_ar`)."""
+        if self.noise is None:
+            return 1.0
+        if not any(t.creep for t in self.trials):
+            return whitened_scale(self.residuals, self.noise)
+        scales, weights = [], []
+        for t, r in zip(self.trials, self.residuals, strict=True):
+            held = t.held if t.creep else np.zeros(t.n, dtype=bool)
+            edges = np.flatnonzero(np.diff(held.astype(np.int8))) + 1
+            for piece, h in zip(np.split(r, edges), np.split(held, edges), strict=True):
+                if len(piece) < 32:
+                    continue
+                ar = t.held_noise_ar if h[0] else self.noise.ar
+                scales.append(whitened_scale([piece], replace(self.noise, ar=tuple(ar))))
+                weights.append(len(piece))
+        return float(np.average(scales, weights=weights)) if scales else 1.0
 
     def _failed(self) -> list[tuple[str, float, float]]:
         """The tests the residual fails: (what, its value, its limit), in the order they are told."""
@@ -198,7 +213,30 @@ class FitResult:
 def evaluate(model: Model, values: dict[str, float], trials: list[TrialData]) -> list[np.ndarray]:
     for i, t in enumerate(trials):
         t.motion.record = i
-    return [model.predict(values, t.motion) for t in trials]
+    return [predict_trial(model, values, t) for t in trials]
+
+
+def predict_trial(model: Model, values: dict[str, float], t: TrialData) -> np.ndarray:
+    """The model's prediction of the record's force. Where a controller held the force (creep
+    form, `rig.models.creep`) the model predicts the position instead, and the prediction
+    given here is the measured force less the position's miss times the record's creep weight
+    (`TrialData.creep_weight_N_per_m`): measured - prediction is then the length residual in
+    force units, weighed by its own noise against the force's."""
+    if not t.creep:
+        return model.predict(values, t.motion)
+    force, x = model.predict_held(values, t.motion, t.held, t.held_force_N)
+    out = np.array(force, dtype=float)
+    h = t.held
+    out[h] = t.force_N[h] - t.creep_weight_N_per_m * (t.motion.x_m[h] - x[h])
+    return out
+
+
+def predict_position(model: Model, values: dict[str, float], t: TrialData) -> np.ndarray | None:
+    """The position the model predicts on the record's held samples (the measured one elsewhere),
+    or None for a record in force form throughout."""
+    if not t.creep:
+        return None
+    return model.predict_held(values, t.motion, t.held, t.held_force_N)[1]
 
 
 def error_table(trials: list[TrialData], residuals: list[np.ndarray]) -> tuple[ErrorStats, dict]:
@@ -257,9 +295,11 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) ->
     ps = ParamScaling(model, scales)
     init, lo, hi = ps.start_and_bounds(initial)
     init = _inside(init, lo, hi)
-    # the same forces as model.predict, checked on these records (rig.analysis.lean)
-    predict = predictor(model, [t.motion for t in trials], dict(zip(model.param_names, ps.to_si(init),
-                                                                     strict=True)))
+    creep = any(t.creep for t in trials)
+    # the same forces as model.predict, checked on these records (rig.analysis.lean); creep form
+    # solves for the position, through the general model
+    predict = model.predict if creep else predictor(
+        model, [t.motion for t in trials], dict(zip(model.param_names, ps.to_si(init), strict=True)))
     resid = _residual_fn(model, ps, trials, scales, predict)
     guessed = _guessed(model, ps, trials, init)
     also = None  # the data's start as well as the caller's, when the caller gave those parameters
@@ -269,7 +309,8 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish) ->
             also = _inside(start, lo, hi)
         else:
             init = _inside(start, lo, hi)
-    form = separable.split(model)
+    # creep form is no longer linear in the force's amplitudes
+    form = separable.split(model) if not creep else None
     best = _separable(model, ps, trials, scales, resid, init, lo, hi, form, predict) if form else None
     x_c = CONTACT_POINT.params[0].name
     kinked = [i for i, p in enumerate(model.params) if p.name.partition("@")[0] == x_c]
@@ -346,7 +387,8 @@ def _residual_fn(model, ps: ParamScaling, trials, scales: Scales, predict=None):
 
     def resid(z: np.ndarray) -> np.ndarray:
         vals = dict(zip(names, ps.to_si(z), strict=True))
-        r = np.concatenate([predict(vals, t.motion) - f for t, f in zip(trials, f_meas, strict=True)])
+        r = np.concatenate([(predict_trial(model, vals, t) if t.creep else predict(vals, t.motion)) - f
+                            for t, f in zip(trials, f_meas, strict=True)])
         return np.nan_to_num(r * inv_F, nan=1e6, posinf=1e6, neginf=-1e6)
 
     return resid
@@ -487,8 +529,8 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     lengths = [t.n for t in trials]
     to_si = ps.jacobian(z)
     doubts: list[str] = []
-    quiet = [t.quiet_n for t in trials]
-    cov = _covariance(best, to_si, lengths, doubts, quiet)
+    blocks, quiet, still = noise_blocks(trials)
+    cov = _covariance(best, to_si, blocks, doubts, quiet, still)
     stderr = _stderr(cov, model.param_names)
     bound = ps.at_bound(z, lo, hi, AT_BOUND)
     lag, drive = ps.rate_form
@@ -498,7 +540,7 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     if integrator:
         # the lag's time constant and the amplitudes over it run off together; their ratios
         # are the model at this limit, and what the record determines
-        warnings.append(_integrator_rates(model, ps, best, si, to_si, lengths, quiet))
+        warnings.append(_integrator_rates(model, ps, best, si, to_si, blocks, quiet, still))
         stderr_named = {k: e for i, (k, e) in enumerate(stderr.items()) if i != lag and i not in drive}
         warnings += _undetermined(model, values, stderr_named)
     else:
@@ -537,6 +579,35 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
                      cov, n_eff, noise, counted)
 
 
+def noise_blocks(trials: list[TrialData]) -> tuple[list[int], list[int], list[bool]]:
+    """The residual's blocks of independent noise, in order (samples each), the samples at rest at
+    the start of each, and whether each is in creep form: one block per trial, and within a trial
+    with held samples one per run of creep form and of force form (a length residual's noise is
+    not the force's), the rest before contact with the first.
+
+    A creep-form block's noise is the position's jitter under the force loop (the slider follows
+    the loop's reading, the model the smoothed force): correlated over the loop's response time
+    and bounded by it, never a walk from the trial's start, so its noise model is the AR alone
+    (`rig.analysis.uncertainty.hac_covariance`): white noise plus a walk, which fitted such a
+    residual better at short lags, made the paper's model's standard errors on a simulated
+    creep trial about 18x the AR's (tau1: 6.9 s against 0.39 s; its spread over five seeds,
+    0.26 s)."""
+    lengths, quiet, still = [], [], []
+    for t in trials:
+        if not t.creep:
+            lengths.append(t.n)
+            quiet.append(t.quiet_n)
+            still.append(False)
+            continue
+        edges = np.flatnonzero(np.diff(t.held.astype(np.int8))) + 1
+        starts = np.r_[0, edges]
+        runs = np.diff(np.r_[starts, t.n]).tolist()
+        lengths += runs
+        quiet += [min(t.quiet_n, runs[0])] + [0] * (len(runs) - 1)
+        still += [bool(t.held[a]) for a in starts]
+    return lengths, quiet, still
+
+
 def _inside(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """`z` moved strictly inside finite bounds (least_squares refuses a start on a bound)."""
     with np.errstate(invalid="ignore"):
@@ -547,12 +618,12 @@ def _inside(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 def _covariance(sol, to_si: np.ndarray, lengths: list[int], doubts: list[str] | None = None,
-                quiet: list[int] | None = None) -> np.ndarray | None:
+                quiet: list[int] | None = None, still: list[bool] | None = None) -> np.ndarray | None:
     """Covariance of the parameters in SI: the correlated-residual sandwich
     (`rig.analysis.uncertainty`) in the fit variables, carried to SI through `to_si` = d(SI)/dz;
     why it may be doubtful appended to `doubts`."""
     try:
-        cov = hac_covariance(sol.jac, sol.fun, lengths, doubts, quiet)
+        cov = hac_covariance(sol.jac, sol.fun, lengths, doubts, quiet, still)
     except (np.linalg.LinAlgError, ValueError):
         return None
     # a direction the data do not determine (infinite variance) leaves every SI parameter
@@ -580,7 +651,7 @@ def _owner(model: Model, p) -> Effect:
 
 
 def _integrator_rates(model: Model, ps: ParamScaling, sol, si: np.ndarray, to_si: np.ndarray,
-                      lengths: list[int], quiet: list[int]) -> str:
+                      lengths: list[int], quiet: list[int], still: list[bool] | None = None) -> str:
     """The model at the integrator limit, df/dt = sum of (amplitude / tau) x term: those ratios
     with their standard errors (the sandwich covariance in the fit variables, carried through
     `to_si` = d(SI)/dz by the quotient rule, the rate held at its bound)."""
@@ -589,7 +660,7 @@ def _integrator_rates(model: Model, ps: ParamScaling, sol, si: np.ndarray, to_si
     value = si[drive] / si[lag]
     free = [j for j in range(len(si)) if j != lag]
     try:
-        cov_z = hac_covariance(sol.jac[:, free], sol.fun, lengths, quiet=quiet)
+        cov_z = hac_covariance(sol.jac[:, free], sol.fun, lengths, quiet=quiet, stationary=still)
         J = (to_si[drive][:, free] * si[lag] - np.outer(si[drive], to_si[lag, free])) / si[lag] ** 2
         err = np.sqrt(np.clip(np.diag(J @ cov_z @ J.T), 0.0, None))
     except (np.linalg.LinAlgError, ValueError):

@@ -9,7 +9,7 @@ import numpy as np
 
 from rig.analysis.analyze import fe_points
 from rig.analysis.data import PHASES
-from rig.analysis.fit import FitResult
+from rig.analysis.fit import FitResult, predict_position
 from rig.views.plots import pyplot, shade_spans
 
 PHASE_COLOURS = {"ramp": "#cfe3f7", "hold_early": "#d8f0d2", "hold_late": "#eaf7e6", "return": "#f7d9d4"}
@@ -43,6 +43,36 @@ def plot_trial_fit(res: FitResult, k: int, out: Path, title_extra: str = "") -> 
     for s in (-2, 2):
         axr.axhline(s * res.noise_N / kf, color="grey", lw=0.6, ls="--")
     axr.set_ylabel(f"residual ({u})\nmeasured - model")
+    axr.set_xlabel("time (s)")
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def plot_creep(res: FitResult, k: int, out: Path) -> Path | None:
+    """Where the force was held (creep form): the measured and the predicted position, and the
+    miss below; None for a record fitted in force form throughout."""
+    tr = res.trials[k]
+    x_pred = predict_position(res.model, res.values, tr)
+    if x_pred is None:
+        return None
+    plt = pyplot()
+    t = tr.motion.t_s
+    kl, u = tr.length_unit
+    held = tr.held
+    fig, (ax, axr) = plt.subplots(2, 1, figsize=(10, 6), sharex=True, height_ratios=[3, 1.3],
+                                  constrained_layout=True)
+    _shade(ax, t, tr.phase)
+    ax.plot(t, tr.motion.x_m / kl, color="k", lw=0.7, label="measured position")
+    ax.plot(t[held], x_pred[held] / kl, ".", ms=1.5, color="tab:red",
+            label=f"model ({res.model.name}) from the force")
+    ax.set_ylabel(f"position ({u})")
+    ax.legend(fontsize=8, loc="upper left")
+    ax.set_title(f"{tr.name}: creep form where the force was held", fontsize=9)
+    _shade(axr, t, tr.phase)
+    axr.plot(t[held], (tr.motion.x_m - x_pred)[held] / kl, ".", ms=1.5, color="tab:blue")
+    axr.axhline(0, color="k", lw=0.6)
+    axr.set_ylabel(f"miss ({u})\nmeasured - model")
     axr.set_xlabel("time (s)")
     fig.savefig(out, dpi=110)
     plt.close(fig)
@@ -128,7 +158,7 @@ def plot_residual_steps(fits: list[tuple[str, FitResult]], out: Path) -> Path:
 
 def write_report(res: FitResult, out_dir: str | Path, *, compare: list[FitResult] | None = None,
                  holdout: list[dict] | None = None, text: str = "", before: FitResult | None = None,
-                 steps: list[dict] | None = None, explain_text: str = "") -> Path:
+                 steps: list[dict] | None = None, explain_text: str = "", creep_text: str = "") -> Path:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     figs = [plot_trial_fit(res, k, out / f"fit_{k + 1}.png") for k in range(len(res.trials))]
@@ -137,6 +167,12 @@ def write_report(res: FitResult, out_dir: str | Path, *, compare: list[FitResult
     md = [f"# Model analysis: {res.model.name}", "",
           f"Trials: {', '.join(t.name for t in res.trials)}", "",
           "```", res.report(), "```", ""]
+    if creep_text:
+        creep_pngs = [p for k in range(len(res.trials))
+                      if (p := plot_creep(res, k, out / f"creep_{k + 1}.png")) is not None]
+        md += ["## Creep form", "", "Where a controller held the force the model predicts the position from "
+               "the force; the miss is a length.", "", "```", creep_text, "```", ""]
+        md += [f"![{p.stem}]({p.name})" for p in creep_pngs] + [""]
     if compare:
         md += ["## All named models", "", "```", text, "```", ""]
     if holdout:

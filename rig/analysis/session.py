@@ -18,6 +18,7 @@ from rig.analysis.analyze import (
     record_placement,
     result_json,
 )
+from rig.analysis.creep import creep_json, format_creep
 from rig.analysis.data import PHASES
 from rig.analysis.explain import auto, explain, format_auto, format_explain
 from rig.analysis.fit import FitResult, fit
@@ -46,6 +47,7 @@ class AnalyzeRequest:
     indenter: str | None = None  # spec string; else the record's own header
     poisson: float = 0.5
     segment: str = "all"  # or "approach"
+    form: str = "auto"  # creep form where a controller held the force; "force": force form throughout
     curve: int | None = None  # an AFM map's curve, as the instrument numbers it
     spring_constant_N_per_m: float | None = None
     sensitivity_m_per_V: float | None = None
@@ -65,7 +67,7 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     options = ReadOptions(curve=req.curve, spring_constant_N_per_m=req.spring_constant_N_per_m,
                           sensitivity_m_per_V=req.sensitivity_m_per_V, block=req.block)
     inputs = load_inputs(req.inputs, req.holdout, req.plugins, options, indenter=req.indenter,
-                         poisson=req.poisson, segment=req.segment, records=req.records)
+                         poisson=req.poisson, segment=req.segment, records=req.records, form=req.form)
     model = build_model(req.model, req.add, inputs.registry)
     if req.save:
         from rig.models.saved import savable
@@ -85,6 +87,9 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         warm = fit(model, inputs.trials, starts=1, initial=before.values)
         res = min(res, warm, key=lambda r: r.overall.rmse_N)
     out = result_json(res, req.inputs)
+    creep_rows = creep_json(res, inputs.indenter, inputs.poisson) if any(t.creep for t in res.trials) else []
+    if creep_rows:
+        out["creep"] = creep_rows
     material = material_json(res, inputs)
     if material:
         out["material"] = material
@@ -143,10 +148,13 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     if req.report:
         out["report"] = str(write_report(res, req.report, compare=results, holdout=held, text=compare_text,
                                          before=before, steps=steps,
-                                         explain_text=format_explain(ex) if ex else ""))
+                                         explain_text=format_explain(ex) if ex else "",
+                                         creep_text=format_creep(creep_rows, res, inputs.indenter)))
 
     parts = [format_before_after(before, res) if before is not None
              else f"{res.report()}\nfitted in {res.seconds:.2f} s"]
+    if creep_rows:
+        parts.append(format_creep(creep_rows, res, inputs.indenter))
     if material:
         parts.append(format_material(material, res))
     elif format_placement(res):

@@ -442,10 +442,13 @@ def _basis(J: np.ndarray) -> np.ndarray:
 
 
 def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
-                   notes: list[str] | None = None, quiet: list[int] | None = None) -> np.ndarray:
+                   notes: list[str] | None = None, quiet: list[int] | None = None,
+                   stationary: list[bool] | None = None) -> np.ndarray:
     """Covariance of least-squares parameters (in the units of J's columns) from the
     Jacobian `J` and the residual `r` of trials of `lengths` samples stacked in that order,
     each starting with `quiet` samples at rest (the approach before contact), if known.
+    `stationary`: blocks whose noise is known not to walk (a creep-form residual: the force
+    loop's own jitter of the position, bounded by the loop), given the AR model alone.
     Reasons to doubt it, if any, are appended to `notes` as sentences."""
     n, p = J.shape
     g = J * r[:, None]
@@ -468,7 +471,8 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
         phi, hit = _prewhitening(rk, Qk, rng)
         # the noise model: the AR(p), or white noise plus a walk, whichever the BIC of the
         # restricted likelihood (of the residual, the fitted directions out) prefers
-        ll_lv, s_eps, s_eta = _level(rk, Qk) if m > 2 * Qk.shape[1] + 2 else (-math.inf, 0.0, 0.0)
+        still = bool(stationary and stationary[k])
+        ll_lv, s_eps, s_eta = _level(rk, Qk) if m > 2 * Qk.shape[1] + 2 and not still else (-math.inf, 0.0, 0.0)
         q = quiet[k] if quiet else 0
         rest = _AtRest(r[sl][:q], J[sl][:q]) if q else None
         if s_eta > 0.0 and ll_lv - _ar_reml(rk, Qk, phi) > 0.5 * (1 - len(phi)) * math.log(m) \
@@ -493,7 +497,7 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
         # recolouring: the prewhitened score's long-run covariance, back through 1 / phi(1)
         gain = 1.0 / (1.0 - float(phi.sum())) ** 2
         meat += _bartlett_meat(e, M) * gain
-        b = _drift(_whiten(rk, phi), Qk.shape[1] + 1) * gain
+        b = _drift(_whiten(rk, phi), Qk.shape[1] + 1) * gain if not still else 0.0
         if b > 0.0 and not _quiet_refutes(rest, b):
             # a walk from the trial's start: the parameters see sum_t J_t W_t = sum_s (sum_{t>=s} J_t) dW_s
             C = np.cumsum(J[sl][::-1], axis=0)[::-1]

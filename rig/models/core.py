@@ -80,6 +80,7 @@ class Motion:
         """Drop the frame solutions kept from earlier predictions on this motion: they are only
         starting points, but a fit must not depend on what was computed before it."""
         self.__dict__.pop("_frame_force", None)
+        self.__dict__.pop("_held_x", None)
 
 
 @dataclass(frozen=True)
@@ -203,17 +204,17 @@ class Model:
             force = e.fn(m, force, **args(e))
         return force
 
-    def _through_frame(self, e: Effect, x, v, m: Motion, by_stage, args) -> np.ndarray:
-        """The tissue force f with f = tissue(indentation given f) (`rig.models.frame`), started
-        from the last solution of this model on this motion."""
+    def _filters(self, m: Motion, by_stage, args):
+        """(b0, b1, a) of the lag (identity without one), and of a parallel branch that filters
+        the rate alone (None when there is none, or it is of another form): read off their
+        responses to an impulse."""
         dt = m.dt_s
-        drives, lags = by_stage["drive"], by_stage["lag"]
+        lags = by_stage["lag"]
         lag = (1.0, 0.0, 0.0)
         if lags:  # y[i] = a y[i-1] + b0 u[i] + b1 u[i-1], read off its response to an impulse
             y = lags[0].fn(np.array([1.0, 0.0, 0.0]), dt, **self._lag_args(lags[0], m, by_stage, args))
             a = float(y[2] / y[1]) if y[1] else 0.0
             lag = (float(y[0]), float(y[1]) - a * float(y[0]), a)
-
         branch = None
         if len(by_stage["branch"]) == 1:  # a branch that filters the rate alone enters the step
             b = by_stage["branch"][0]
@@ -224,6 +225,143 @@ class Model:
                     and not np.any(b.fn(pulse, zero, dt, **args(b)))):
                 a2 = float(y[2] / y[1])
                 branch = (float(y[0]), float(y[1]) - a2 * float(y[0]), a2)
+        return lag, branch
+
+    def predict_held(self, values: dict[str, float] | np.ndarray, m: Motion, held: np.ndarray,
+                     force_N: np.ndarray, solve: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Creep form (`rig.models.creep`): where `held`, the position x (m) that makes the tissue
+        carry the measured force `force_N` (its sensor terms and delay taken off); elsewhere
+        the position as measured and the predicted load-cell force. Returns (force, position)
+        over the record; the force on held samples is the model's at the predicted position.
+        `solve` False: the measured position is kept on held samples too (the forward model in
+        creep form's discretisation)."""
+        from rig.models import creep
+
+        if not isinstance(values, dict):
+            values = dict(zip(self.param_names, values, strict=True))
+        by_stage = {s: [e for e in self.effects if e.stage == s] for s in STAGES}
+
+        def args(e: Effect) -> dict[str, float]:
+            return {p.name: values[self.key(p, m.record)] for p in e.params}
+
+        # the force the tissue carried: the reading moved back by the delay (the delay run on the
+        # record reversed in time moves it forward), less what the sensor adds
+        target = np.asarray(force_N, dtype=float)
+        for e in by_stage["delay"]:
+            back = Motion(-m.t_s[::-1], m.x_m[::-1], -m.v_m_s[::-1], m.dt_s, m.record)
+            target = e.fn(back, target[::-1], **args(e))[::-1]
+        for e in by_stage["sensor"]:
+            target = target - e.fn(m, force_N, **args(e))
+        compliance = [e for e in by_stage["geometry"] if e.needs_force]
+        plain_geometry = [e for e in by_stage["geometry"] if not e.needs_force]
+        dt = m.dt_s
+        cache = m.__dict__
+
+        def motion_of(xf: np.ndarray) -> Motion:
+            v = m.v_m_s.copy()
+            v[held] = creep.backward_velocity(xf, dt)[held]
+            out = Motion(m.t_s, xf, v, dt, m.record)
+            out.__dict__["_frame_force"] = cache.setdefault("_frame_force", {})
+            return out
+
+        def geometry(xf: np.ndarray, vf: np.ndarray):
+            for e in plain_geometry:
+                xf, vf = e.fn(xf, vf, **args(e))
+            return xf, vf
+
+        lag, exact, branch = self._held_filters(m, by_stage, args)
+        held_lag = (*exact, held) if by_stage["lag"] else None
+
+        def tissue(xf: np.ndarray) -> np.ndarray:
+            mm = motion_of(xf)
+            xg, vg = geometry(mm.x_m, mm.v_m_s)
+            if compliance:
+                return self._through_frame(compliance[0], xg, vg, mm, by_stage, args, (held, target), held_lag)
+            return self._tissue(xg, vg, mm, by_stage, args, held_lag)
+
+        def drive_at(xg, vg):
+            out = np.zeros_like(xg)
+            for d in by_stage["drive"]:
+                out = out + d.fn(xg, vg, **args(d))
+            return out
+
+        def held_geometry(xh, vh, known):
+            xg, vg = geometry(xh, vh)
+            for e in compliance:
+                xg, vg = xg - known / values[self.key(e.params[0], m.record)], vg
+            return xg, vg
+
+        grad_target = np.gradient(target, dt) if len(target) > 1 else np.zeros_like(target)
+        x_scale = max(float(np.max(np.abs(m.x_m))), 1e-300)
+        v_scale = max(float(np.max(np.abs(m.v_m_s))), x_scale / max(len(m.x_m) * dt, dt))
+
+        def slopes(xf: np.ndarray):
+            v = creep.backward_velocity(xf, dt)[held]
+            xh = xf[held]
+            known = target[held]
+            xg, vg = held_geometry(xh, v, known)
+            if compliance:
+                vg = vg - grad_target[held] / values[self.key(compliance[0].params[0], m.record)]
+            contact = xg > 0
+            hx, hv = 1e-6 * x_scale, 1e-6 * v_scale
+            xg1, vg1 = held_geometry(xh + hx, v, known)
+            xg2, vg2 = held_geometry(xh, v + hv, known)
+            if compliance:
+                k = values[self.key(compliance[0].params[0], m.record)]
+                vg1, vg2 = vg1 - grad_target[held] / k, vg2 - grad_target[held] / k
+            pos = lambda q: np.maximum(q, 0.0)  # noqa: E731
+            d0 = drive_at(pos(xg), vg)
+            alpha = np.where(contact, (drive_at(pos(xg1), vg1) - d0) / hx, 0.0)
+            beta = np.where(contact, (drive_at(pos(xg2), vg2) - d0) / hv, 0.0)
+            return alpha, beta, contact
+
+        key = tuple(self.effect_names)
+        last = cache.setdefault("_held_x", {})
+        x_full = m.x_m.copy()
+        if solve and np.any(held):
+            # the lag with its drive held over each step answers half a step early (`_held_filters`):
+            # its y[i] is the force of t_i + dt/2, so that is what it is matched to, the held force
+            # half a step on (a position otherwise half a step late: 0.075 mm on a 15 mm/s force
+            # ramp, about the length noise, and the time constants 2 % long on a quiet record)
+            ahead = target.copy()
+            ahead[:-1] = 0.5 * (target[:-1] + target[1:])
+            if len(target) > 1:
+                ahead[-1] = 1.5 * target[-1] - 0.5 * target[-2]
+            sol = creep.solve_held(tissue, slopes, m.x_m, held, ahead, dt, lag, branch, last.get(key))
+            if np.all(np.isfinite(sol.x_m)):
+                last[key] = sol.x_m
+            else:
+                last.pop(key, None)
+            x_full[held] = sol.x_m
+        mm = motion_of(x_full)
+        force = tissue(x_full)
+        for e in by_stage["sensor"]:
+            force = force + e.fn(mm, force, **args(e))
+        for e in by_stage["delay"]:
+            force = e.fn(mm, force, **args(e))
+        return force, x_full
+
+    def _held_filters(self, m: Motion, by_stage, args):
+        """`_filters` for creep form: on held samples the lag's drive is held over each step,
+        y[i] = a y[i-1] + (1 - a) u[i]. The drive taken linear between samples (the force form's)
+        gives a lag no gain at all at the sampling's Nyquist frequency, so the position solved
+        from a force would be free to ring there without bound; held, the gain there is the lag's
+        own (about dt / 2 tau), and the price is half a step's delay, (dt / 2) df/dt of force,
+        small where the force is held. Elsewhere the force form's exact step is kept: on a fast
+        return (5 N/s) the half step was 0.6 of the noise, and --explain read it as friction.
+        Returns the held step (b0, b1, a) for the solve, the lag as (b0, b1, a, held samples) for
+        `_tissue`, and the branch."""
+        (b0, b1, a), branch = self._filters(m, by_stage, args)
+        return (b0 + b1, 0.0, a), (b0, b1, a), branch
+
+    def _through_frame(self, e: Effect, x, v, m: Motion, by_stage, args, held_force=None,
+                       held_lag: tuple | None = None) -> np.ndarray:
+        """The tissue force f with f = tissue(indentation given f) (`rig.models.frame`), started
+        from the last solution of this model on this motion. `held_force`: (mask, force) where
+        the force is known (held samples in creep form): the frame's give there is explicit."""
+        dt = m.dt_s
+        drives = by_stage["drive"]
+        lag, branch = self._filters(m, by_stage, args)
 
         def drive(xc, vc):
             out = np.zeros_like(xc)
@@ -233,8 +371,16 @@ class Model:
 
         last = m.__dict__.setdefault("_frame_force", {})
         key = tuple(self.effect_names)
-        solution = frame.solve(lambda q: e.fn(x, v, q, dt, **args(e)),
-                               lambda xc, vc: self._tissue(xc, vc, m, by_stage, args),
+        if held_force is not None:
+            mask, known = held_force
+
+            def give(q):
+                return e.fn(x, v, np.where(mask, known, q), dt, **args(e))
+        else:
+            def give(q):
+                return e.fn(x, v, q, dt, **args(e))
+        solution = frame.solve(give,
+                               lambda xc, vc: self._tissue(xc, vc, m, by_stage, args, held_lag),
                                drive, lag, x, v, dt, last.get(key), branch)
         last[key] = solution
         return solution.force_N
@@ -247,7 +393,7 @@ class Model:
             a = {p.name: 1.0 / (1.0 / a[p.name] + rate) if p.unit == "s" else a[p.name] for p in e.params}
         return a
 
-    def _tissue(self, x, v, m: Motion, by_stage, args) -> np.ndarray:
+    def _tissue(self, x, v, m: Motion, by_stage, args, held_lag: tuple | None = None) -> np.ndarray:
         contact = x > 0
         xc = np.where(contact, x, 0.0)
         vc = np.where(contact, v, 0.0)
@@ -257,7 +403,16 @@ class Model:
         drive = np.where(contact, drive, 0.0)
         f = drive
         for e in by_stage["lag"]:
-            f = e.fn(drive, m.dt_s, **self._lag_args(e, m, by_stage, args))
+            if held_lag is not None:
+                # creep form: the drive held over each step where the force was held, linear
+                # between samples elsewhere (`Model._held_filters`)
+                b0, b1, a, held = held_lag
+                w = b0 * drive
+                w[1:] += b1 * drive[:-1]
+                w[held] = (b0 + b1) * drive[held]
+                f = linear_recursion(w, 1.0, 0.0, a)
+            else:
+                f = e.fn(drive, m.dt_s, **self._lag_args(e, m, by_stage, args))
         if by_stage["branch"]:
             # each part of the tissue separates on its own: a lag driven below zero (a fast
             # return) holds no tension to cancel a branch's push
