@@ -1,7 +1,8 @@
 """The acquisition loop: one tick every 1/rate_Hz seconds.
 
 A tick is a short sequence of named stages (`Trial._loop`): read (the load cell and the
-slider position, status/alarm every `status_every` ticks), check (the limits), operator
+slider position, status/alarm every `status_every` ticks, a tick later when a force step's
+move is due on it), check (the limits), operator
 (stop requests), confirm (a STOP until the drive stands still), command (the step's
 controller: the sequencer issues at most one command, each move checked against the limits
 first, then watched until it arrives by its deadline), estimate (the RLS estimator), record
