@@ -140,6 +140,10 @@ def _read_position_from(dev: PiecewiseDevice, timeout_s: float = 0.5):
                           steps_per_mm=100.0, max_consecutive_errors=10)
     try:
         reading = slider.position()
+        # what the device wrote after the reply may still be on its way through the pty
+        deadline = time.monotonic() + 1.0
+        while slider.client.socket.in_waiting < len(dev.after) and time.monotonic() < deadline:
+            time.sleep(0.005)
         waiting = slider.client.socket.in_waiting
     finally:
         slider.close()

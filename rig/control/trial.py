@@ -545,7 +545,10 @@ class Trial:
         if confirming or self._status_due(L):
             sr = self.slider.status()
             L.status, status_fresh = sr.value, sr.fresh
-            L.status_seq, status_read = self._seq, True
+            status_read = True
+            # after the first, reads fall half a status period off the ticks where timed steps start
+            # (the tare's end, a hold's: whole tenths of a second): a move on a status tick is 13 ms
+            L.status_seq = self._seq - cfg.loop.status_every // 2 if self._seq == 0 else self._seq
         moving = L.status.moving if status_fresh else None
         speed = L.speedometer.update(pr)
         raw = reading.force_N if reading else 0.0
