@@ -25,10 +25,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from pymodbus import FramerType
-from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.client import ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from rig.drivers.base import LinkStats, Reading, SliderStatus
 from rig.drivers.registers import RegisterMap, from_words, to_words
+from rig.drivers.rtu_client import FramedSerialClient
 
 from rig.errors import DeviceError
 
@@ -57,9 +58,10 @@ class ModbusLink:
         return f"Modbus RTU {self.port} {self.baudrate} 8{self.parity}{self.stopbits} unit {self.device_id}"
 
 
-def open_client(link: ModbusLink, tap=None) -> ModbusSerialClient | ModbusTcpClient:
-    """A connected client; with a `tap` (rig.drivers.spy), every frame each way goes to it too."""
-    serial_cls, tcp_cls = ModbusSerialClient, ModbusTcpClient
+def open_client(link: ModbusLink, tap=None) -> FramedSerialClient | ModbusTcpClient:
+    """A connected client; with a `tap` (rig.drivers.spy), every frame each way goes to it too.
+    RTU replies are read by their length (`rig.drivers.rtu_client`), not by polling the port."""
+    serial_cls, tcp_cls = FramedSerialClient, ModbusTcpClient
     if tap is not None:
         from rig.drivers.spy import SpiedSerialClient, SpiedTcpClient
 

@@ -28,7 +28,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Protocol
 
-from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.client import ModbusTcpClient
+from rig.drivers.rtu_client import FramedSerialClient
 from rig.drivers.serial_loadcell import SerialLoadCell
 from rig.drivers.wireframes import FROM_DEVICE, TO_DEVICE, Assembler, WireRecord
 
@@ -173,7 +174,7 @@ class _SpiedClient:
         return data
 
 
-class SpiedSerialClient(_SpiedClient, ModbusSerialClient):
+class SpiedSerialClient(_SpiedClient, FramedSerialClient):
     channel = "rtu"
 
     def send(self, request: bytes, addr: tuple | None = None) -> int:

@@ -29,4 +29,6 @@ class _SourceCheckout:
 
 
 if not (_HERE / "drivers").is_dir():  # a source checkout, not an installed package
-    sys.meta_path.append(_SourceCheckout)
+    # First, not last: an editable install of another checkout maps the same two names to its
+    # own folders, and this checkout's `rig` must not run with that checkout's drivers.
+    sys.meta_path.insert(0, _SourceCheckout)

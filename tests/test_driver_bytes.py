@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import threading
 import time
 
 import pytest
@@ -10,6 +11,7 @@ from rig.drivers.modbus_slider import ModbusLink, ModbusSlider
 from rig.drivers.registers import PROFILES
 from rig.drivers.serial_loadcell import SerialLoadCell
 
+from rig.errors import DeviceError
 from tests.wire_helpers import ScriptedDevice, crc16, raw_pty, read_exactly, rtu
 
 
@@ -103,3 +105,95 @@ def test_load_cell_poll_request_and_parse():
         cell.close()
         os.close(master)
         os.close(slave)
+
+
+# ------------------------------------------------------------ RTU replies read by their length
+
+class PiecewiseDevice:
+    """Answers one request with its reply in pieces, `gap_s` apart (a USB adapter hands bytes on
+    in pieces; a slow drive may pause mid-frame), then writes `after` (bytes of some later frame)."""
+
+    def __init__(self, request: bytes, pieces: list[bytes], gap_s: float, after: bytes = b"") -> None:
+        self.request, self.pieces, self.gap_s, self.after = request, pieces, gap_s, after
+        self.master, self.slave, self.path = raw_pty()
+        self.received = b""
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        self.received = read_exactly(self.master, len(self.request))
+        for i, piece in enumerate(self.pieces):
+            if i:
+                time.sleep(self.gap_s)
+            os.write(self.master, piece)
+        if self.after:
+            os.write(self.master, self.after)
+
+    def close(self) -> None:
+        self._thread.join(3.0)
+        for fd in (self.master, self.slave):
+            os.close(fd)
+
+
+def _read_position_from(dev: PiecewiseDevice, timeout_s: float = 0.5):
+    slider = ModbusSlider(ModbusLink("rtu", port=dev.path, timeout_s=timeout_s), PROFILES["oriental_az"],
+                          steps_per_mm=100.0, max_consecutive_errors=10)
+    try:
+        reading = slider.position()
+        # what the device wrote after the reply may still be on its way through the pty
+        deadline = time.monotonic() + 1.0
+        while slider.client.socket.in_waiting < len(dev.after) and time.monotonic() < deadline:
+            time.sleep(0.005)
+        waiting = slider.client.socket.in_waiting
+    finally:
+        slider.close()
+        dev.close()
+    return reading, slider, waiting
+
+
+@pytest.mark.parametrize("gap_s", [0.0, 0.001, 0.006])
+def test_a_reply_in_pieces_is_one_frame(gap_s):
+    """Pieces of one reply, up to 6 ms apart (a drive pausing mid-frame, an adapter's USB frames),
+    make one frame: the position comes, no error counted."""
+    reply = rtu("01 03 04 FFFF CFC7")  # -12345 steps
+    dev = PiecewiseDevice(rtu("01 03 00CC 0002"), [reply[:2], reply[2:5], reply[5:]], gap_s)
+    reading, slider, _ = _read_position_from(dev)
+    assert dev.received == rtu("01 03 00CC 0002")
+    assert reading.fresh and reading.value == pytest.approx(-123.45)
+    assert slider.stats.errors == 0
+
+
+def test_the_read_takes_the_reply_and_no_byte_more():
+    """The read stops at the length the reply's header gives: bytes behind it stay in the port
+    (where the next request's send finds them and throws them away, as a late reply)."""
+    late = rtu("01 03 04 0000 0001")
+    dev = PiecewiseDevice(rtu("01 03 00CC 0002"), [rtu("01 03 04 0000 0064")], 0.0, after=late)
+    reading, _, waiting = _read_position_from(dev)
+    assert reading.value == pytest.approx(1.0)
+    assert waiting == len(late)
+
+
+def test_an_exception_reply_is_five_bytes_and_an_error():
+    dev = PiecewiseDevice(rtu("01 03 00CC 0002"), [rtu("01 83 02")], 0.0)
+    slider = ModbusSlider(ModbusLink("rtu", port=dev.path, timeout_s=0.5), PROFILES["oriental_az"],
+                          steps_per_mm=100.0)
+    try:
+        with pytest.raises(DeviceError, match=r"no position read yet.*exception reply 2"):
+            slider.position()
+    finally:
+        slider.close()
+        dev.close()
+
+
+def test_no_reply_is_a_timeout_not_a_hang():
+    dev = PiecewiseDevice(rtu("01 03 00CC 0002"), [], 0.0)
+    slider = ModbusSlider(ModbusLink("rtu", port=dev.path, timeout_s=0.05), PROFILES["oriental_az"],
+                          steps_per_mm=100.0)
+    t0 = time.monotonic()
+    try:
+        with pytest.raises(DeviceError, match="no position read yet"):
+            slider.position()
+    finally:
+        slider.close()
+        dev.close()
+    assert time.monotonic() - t0 < 1.0  # one 50 ms timeout and the drain after it, not a hang

@@ -298,3 +298,58 @@ def test_a_drive_that_stops_following_the_force_loop_is_a_fault(tmp_path):
     result = _poked(tmp_path, stuck)
     assert result.outcome == "fault"
     assert "the drive did not follow the force loop" in result.fault, result.fault
+
+
+class _BusLog:
+    """The slider's bus calls in order: 'p' position (one a tick, first thing), 's' status, 'm' move."""
+
+    def __init__(self, slider) -> None:
+        self._slider = slider
+        self.calls: list[str] = []
+
+    def position(self):
+        self.calls.append("p")
+        return self._slider.position()
+
+    def status(self):
+        self.calls.append("s")
+        return self._slider.status()
+
+    def move_to(self, *args, **kwargs):
+        self.calls.append("m")
+        return self._slider.move_to(*args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self._slider, name)
+
+    def ticks(self) -> list[str]:
+        """One string per tick (the first is the position read before the loop)."""
+        return "".join(self.calls).split("p")[2:]
+
+
+@pytest.mark.parametrize("seed", [1, 4])
+def test_no_tick_carries_a_status_read_and_a_force_move(seed, tmp_path):
+    """Over RTU at 115200 baud a position read, a status read and a move together take 13 ms of a
+    10 ms tick: on a tick the force loop's move is due, status waits one tick (never more), so
+    the alarm is still read at least every status_every + 1 ticks."""
+    cfg = _config("tissue", seed)
+    clock = VirtualClock(0)
+    dev = open_devices(cfg, clock)
+    bus = _BusLog(dev.slider)
+    trial = Trial(parse_protocol(_protocol(1.5), "<test>"), cfg, bus, dev.loadcell, clock,
+                  tmp_path / "bus.mcap")
+    result = trial.run()
+    dev.close()
+    assert result.outcome == "completed", result.fault
+    log = read_log(result.log_path)
+    ticks = bus.ticks()
+    assert len(ticks) == result.samples
+    kinds = np.asarray(log.step_kind)
+    force = np.flatnonzero(np.isin(kinds, ["ramp_force", "hold_force"]))
+    moves = [i for i in force if "m" in ticks[i]]
+    assert len(moves) >= 0.3 * len(force)  # the force loop streams its moves (every 2nd tick at most)
+    assert not any("s" in ticks[i] and "m" in ticks[i] for i in force)
+    reads = [i for i, t in enumerate(ticks) if "s" in t]
+    assert reads[0] == 0 and max(np.diff(reads)) <= cfg.loop.status_every + 1
+    # and a deferral is one tick, not a new rhythm: about one status read every status_every ticks
+    assert len(reads) >= len(ticks) / (cfg.loop.status_every + 1)

@@ -1,7 +1,8 @@
 """The acquisition loop: one tick every 1/rate_Hz seconds.
 
 A tick is a short sequence of named stages (`Trial._loop`): read (the load cell and the
-slider position, status/alarm every `status_every` ticks), check (the limits), operator
+slider position, status/alarm every `status_every` ticks, a tick later when a force step's
+move is due on it), check (the limits), operator
 (stop requests), confirm (a STOP until the drive stands still), command (the step's
 controller: the sequencer issues at most one command, each move checked against the limits
 first, then watched until it arrives by its deadline), estimate (the RLS estimator), record
@@ -127,6 +128,7 @@ class _Loop:
     saturated_since: tuple[float, float] | None = None  # (t, position) when the speed cap began to bind
     sent_target: float | None = None  # the force loop's last target sent to the drive
     sent_seq: int = -1000  # the tick it was sent on
+    status_seq: int = -1000  # the tick status and alarm were last read on
 
 
 @dataclass
@@ -148,6 +150,7 @@ class _Tick:
     age: float | None
     force: float
     checked: float
+    status_read: bool = False  # status and alarm were read on this tick (fresh or not)
 
 
 class StopTicket:
@@ -532,16 +535,20 @@ class Trial:
         x_rel_mm = pos - seq.zero_mm  # from the trial's zero as it stands at the start of the tick
         t_log = round(t, 6)
         force_model = self.online.step(t_log, x_rel_mm / 1000.0) if self.online is not None else None
-        status_fresh = False
+        status_fresh = status_read = False
         # A move's arrival needs a fresh "standing still": near its target, read it every tick.
         watch, ending = L.watch, L.ending
         confirming = ((ending.stop is not None and not ending.stop.confirmed)
                       or (seq.done and watch is not None)
                       or (watch is not None and pr.fresh
                           and abs(pos - watch.to_mm) <= cfg.slider.position_tolerance_mm))
-        if self._seq % cfg.loop.status_every == 0 or confirming:
+        if confirming or self._status_due(L):
             sr = self.slider.status()
             L.status, status_fresh = sr.value, sr.fresh
+            status_read = True
+            # after the first, reads fall half a status period off the ticks where timed steps start
+            # (the tare's end, a hold's: whole tenths of a second): a move on a status tick is 13 ms
+            L.status_seq = self._seq - cfg.loop.status_every // 2 if self._seq == 0 else self._seq
         moving = L.status.moving if status_fresh else None
         speed = L.speedometer.update(pr)
         raw = reading.force_N if reading else 0.0
@@ -561,7 +568,17 @@ class Trial:
         else:  # the force the tissue carries, preload included (never less than the tared one)
             checked = max(raw - L.zero_N, force)
         return _Tick(now, t, t_log, lateness, reading, pr, pos, x_rel_mm, force_model, moving, speed, raw, age,
-                     force, checked)
+                     force, checked, status_read)
+
+    def _status_due(self, L: _Loop) -> bool:
+        """Status and alarm every `status_every` ticks; a tick on which the force loop's move is
+        due reads them one tick later (never more; then the move waits a tick, `_track`), so no
+        tick of a force step carries the position read, the status read and a move together: over
+        RTU at 115200 baud with a 1 ms adapter that is 13 ms of a 10 ms tick."""
+        since = self._seq - L.status_seq
+        every = self.config.loop.status_every
+        move_due = L.force_step >= 0 and self._seq - L.sent_seq >= FORCE_MOVE_TICKS
+        return since > every or (since == every and not move_due)
 
     def _check(self, rec: Recorder, L: _Loop, k: _Tick) -> None:
         """Safety first: on a fault, stop, then explain. The tare's preload is judged here,
@@ -730,7 +747,8 @@ class Trial:
             self._fault(rec, L, Fault("move_limit", f"force loop move refused: {why}"), k)
             return False
         step_mm = 1.0 / self.config.slider.steps_per_mm
-        due = self._seq - L.sent_seq >= FORCE_MOVE_TICKS
+        # a tick that read status (its turn could wait no longer) leaves the move to the next
+        due = self._seq - L.sent_seq >= FORCE_MOVE_TICKS and not k.status_read
         if due and (L.sent_target is None or abs(target - L.sent_target) >= step_mm):
             self.slider.move_to(target, fc.speed_mm_s, self.config.slider.accel_mm_s2)
             L.sent_target, L.sent_seq = target, self._seq

@@ -5,7 +5,8 @@
 - RLS update time; the loop-side cost of recording one sample; replay speed;
 - on the simulated wire: the wire's share of a tick (the loop's reads as bytes on the line at
   the simulated drive's baud rate and frame, plus the USB adapter's latency), and with
-  `--max-rate` the highest rate without a late tick.
+  `--max-rate` the highest rate without a late tick (status read at about 10 Hz at every rate);
+  beside it, the machine's own pseudo-terminal delivery, which the simulated wire rides on.
 """
 
 from __future__ import annotations
@@ -53,12 +54,17 @@ class CpuLoad:
             p.wait(5)
 
 
+STATUS_HZ = 10.0  # DESIGN.md: status and alarm read at about 10 Hz, whatever the loop rate
+
+
 def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: str = "none",
                load: int = 0, realtime: str = "auto") -> dict:
     from rig.service.run import RunOptions, run_trial
 
     config = RigConfig()
     config.loop.rate_Hz = rate_Hz
+    # the alarm read as often in time at every rate (the default 10 ticks is 10 Hz at 100 Hz)
+    config.loop.status_every = max(round(rate_Hz / STATUS_HZ), 1)
     config.loop.realtime = realtime
     config.sim.wire = wire
     proto = parse_protocol(_bench_protocol(duration_s), "<bench>")
@@ -152,6 +158,66 @@ def bench_baseline(duration_s: float, rate_Hz: float) -> dict:
     late_ms = late * 1000.0
     return {"duration_s": duration_s, "ticks": n, "lateness_p99_ms": float(np.percentile(late_ms, 99)),
             "lateness_max_ms": float(late_ms.max()), "over_5ms": int(np.sum(late_ms > 5.0))}
+
+
+def bench_pty(duration_s: float, rate_Hz: float) -> dict:
+    """The kernel's own delivery through a pseudo-terminal, no rig code: 17 bytes (a position
+    read's request and reply) across a pty and back (two crossings), once a tick, at the loop's
+    real-time priority where allowed. Bytes written to a pty reach its other side through a
+    kernel worker thread of normal priority: on a busy machine they can wait for it for many
+    milliseconds, whatever the priority of the threads at either end, and a simulated-wire
+    transaction crosses a pty four times (client to bridge to drive and back). Stalls here make
+    late ticks of the simulated-wire loop that are the machine's, not the loop's."""
+    import os
+    import pty
+    import tty
+
+    from rig.realtime import Realtime
+
+    master, slave = pty.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    rt = Realtime("auto", 50)
+    rt.enter()
+    period = 1.0 / rate_Hz
+    n = max(int(duration_s * rate_Hz), 2)
+    took = np.full(n, np.nan)
+    data = bytes(17)
+    try:
+        t0 = time.monotonic()
+        for k in range(n):
+            time.sleep(max(t0 + k * period - time.monotonic(), 0.0))
+            start = time.monotonic()
+            if _carried(slave, master, data) and _carried(master, slave, data):
+                took[k] = time.monotonic() - start
+    finally:
+        rt.leave()
+        for fd in (master, slave):
+            os.close(fd)
+    took_ms = took * 1000.0
+    lost = int(np.sum(np.isnan(took_ms)))
+    ok = took_ms[~np.isnan(took_ms)]
+    return {"duration_s": duration_s, "round_trips": n, "lost": lost,
+            "p50_ms": float(np.percentile(ok, 50)) if len(ok) else float("nan"),
+            "p99_ms": float(np.percentile(ok, 99)) if len(ok) else float("nan"),
+            "max_ms": float(ok.max()) if len(ok) else float("nan"),
+            "over_5ms": int(np.sum(ok > 5.0)) + lost}
+
+
+def _carried(src: int, dst: int, data: bytes, timeout_s: float = 1.0) -> bool:
+    """Write `data` at one end of a pty, read it all at the other; False if it did not come."""
+    import os
+    import select
+
+    os.write(src, data)
+    got = 0
+    deadline = time.monotonic() + timeout_s
+    while got < len(data):
+        left = deadline - time.monotonic()
+        if left <= 0 or not select.select([dst], [], [], left)[0]:
+            return False
+        got += len(os.read(dst, 4096))
+    return True
 
 
 def bench_rls(n: int = 200_000) -> dict:
@@ -251,6 +317,8 @@ def run_bench(duration_s: float = 60.0, rate_Hz: float = 100.0, progress: bool =
     out = {"loop": bench_loop(duration_s, rate_Hz, progress, wire, load, realtime), "rls": bench_rls(),
            "model": bench_model(),
            "record": bench_record(), "baseline": bench_baseline(min(duration_s, 30.0), rate_Hz)}
+    if wire != "none":
+        out["pty"] = bench_pty(min(duration_s, 20.0), rate_Hz)
     if progress:
         print("bench: model fit (and the same fit by an ODE solver) ...", file=sys.stderr)
     out["fit"] = bench_fit(ode_fit)
@@ -291,6 +359,11 @@ def format_bench(r: dict) -> str:
         f"{base['lateness_p99_ms']:.3f} ms, max {base['lateness_max_ms']:.3f} ms, "
         f"{base['over_5ms']} ticks over 5 ms",
     ]
+    if "pty" in r:
+        p = r["pty"]
+        lines.append(f"          a pseudo-terminal there and back (the kernel's delivery, no rig code), "
+                     f"{p['duration_s']:g} s: p50 {p['p50_ms']:.3f} ms, p99 {p['p99_ms']:.3f} ms, "
+                     f"max {p['max_ms']:.2f} ms, {p['over_5ms']} of {p['round_trips']} over 5 ms")
     if "max_rate" in r:
         m = r["max_rate"]
         lines.append(f"max rate  {m['max_rate_Hz']} Hz without a late tick over {m['wire']} "
