@@ -124,18 +124,17 @@ def test_hertz_fits_one_curve_at_a_time(tmp_path):
 
 def test_records_that_name_different_indenters_are_refused(tmp_path, monkeypatch):
     import rig.analysis.analyze as an
-    from rig.analysis.data import prepare
     from rig.records import read_record
 
     paths = [hertz_curve(tmp_path / "a.csv", 1), hertz_curve(tmp_path / "b.csv", 2)]
     named = {"a.csv": "sphere:R=5um", "b.csv": "cone:half_angle=35deg"}
 
-    def load(path, *args, **kwargs):  # the records as an instrument that names its tip gives them
+    def read(path, *args, **kwargs):  # the records as an instrument that names its tip gives them
         rec = read_record(path)
         rec.meta["indenter"] = named[rec.name]
-        return prepare(rec, str(path))
+        return rec
 
-    monkeypatch.setattr(an, "load_trial", load)
+    monkeypatch.setattr(an, "read_record", read)
     with pytest.raises(RigError, match=r"the records name different indenters \(a.csv: sphere:R=5um, "
                                        r"b.csv: cone:half_angle=35deg\)"):
         an.load_inputs([str(p) for p in paths], [], [])

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
 from rig.analysis import criterion
-from rig.analysis.data import PHASES, TrialData, load_trial, prepare
+from rig.analysis.data import PHASES, TrialData, prepare
 from rig.analysis.fit import FitResult, error_table, evaluate, fit, with_record_params
 from rig.analysis.noise import Noise
 from rig.errors import RigError, SpecError
@@ -24,7 +25,7 @@ from rig.models.catalogue import (
 from rig.models.contact import Indenter, parse_indenter
 from rig.models.core import Effect, Model, Param
 from rig.models.plugins import check_plugin_effect, load_plugin
-from rig.records import ReadOptions, Record
+from rig.records import ReadOptions, Record, read_record
 
 
 @dataclass
@@ -40,17 +41,18 @@ class Inputs:
 ROUND = ("paraboloid", "sphere")  # a bare shape that takes a file's radius
 
 
-def _named_indenter(trials: list[TrialData]) -> tuple[Indenter, str] | None:
+def _named_indenter(trials: list[Record]) -> tuple[Indenter, str] | None:
     """The indenter the records name (an instrument's header, a rig log's config), and where from;
     records that name different ones are refused rather than one of them chosen."""
     found = [(parse_indenter(t.meta["indenter"]), t) for t in trials if t.meta.get("indenter")]
     if not found:
         return None
     if len({ind for ind, _ in found}) > 1:
-        raise RigError("the records name different indenters (" + ", ".join(f"{t.name}: {ind.spec()}"
+        raise RigError("the records name different indenters (" + ", ".join(f"{Path(t.name).name}: {ind.spec()}"
                        for ind, t in found) + "): analyse them apart, or give --indenter")
     ind, t = found[0]
-    where = f"the config in {t.name}" if t.source == "mcap" else f"the header of {t.name}"
+    name = Path(t.name).name
+    where = f"the config in {name}" if t.source == "mcap" else f"the header of {name}"
     return ind, where
 
 
@@ -70,11 +72,9 @@ def load_inputs(paths: list[str], holdout: list[str], plugins: list[str],
             if e.name in CATALOGUE:
                 raise RigError(f"{p}: effect '{e.name}' would replace the catalogue's; rename it")
             registry[e.name] = e
-    trials = ([prepare(r, str(p), segment, form) for r, p in zip(records, paths, strict=True)]
-              if records is not None else [load_trial(p, options, segment, form=form) for p in paths])
-    held = [load_trial(p, options, segment, form="force" if form == "force" else "auto") for p in holdout]
+    recs = records if records is not None else [read_record(p, options) for p in paths]
     ind, source = None, ""
-    named = _named_indenter(trials)
+    named = _named_indenter(recs)
     shape = (indenter or "").strip().lower()
     if shape in ROUND and named and named[0].kind in ROUND:
         # a round shape alone takes its size from the file: `--indenter paraboloid` on a file that
@@ -91,6 +91,11 @@ def load_inputs(paths: list[str], holdout: list[str], plugins: list[str],
     if ind is not None:
         registry[CONTACT] = contact_effect(ind, poisson)
         registry[CONTACT_POINT.name] = CONTACT_POINT
+    # a pull on the way out is kept where adhesion can describe it: with an indenter's contact
+    pull = ind is not None
+    trials = [prepare(r, str(p), segment, form, keep_pull=pull) for r, p in zip(recs, paths, strict=True)]
+    held = [prepare(read_record(p, options), str(p), segment, "force" if form == "force" else "auto",
+                    keep_pull=pull) for p in holdout]
     for e in registry.values():
         if e.source == "plugin":
             m = build_model("linear_elastic", [e.name], registry)

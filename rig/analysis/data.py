@@ -160,7 +160,8 @@ def held_samples(rec: Record) -> np.ndarray | None:
     return held if np.any(held) else None
 
 
-def prepare(rec: Record, where: str = "", segment: str = "all", form: str = "auto") -> TrialData:
+def prepare(rec: Record, where: str = "", segment: str = "all", form: str = "auto", *,
+            keep_pull: bool = False) -> TrialData:
     """Contact, sign, baseline, uniform grid, velocity and phases of one record (`segment`
     "approach": its approach alone, as AFM users fit an elastic contact). `form`: "auto" fits
     the samples where a controller held the force in creep form (the indentation predicted from
@@ -203,7 +204,8 @@ def prepare(rec: Record, where: str = "", segment: str = "all", form: str = "aut
         contact_m = float(-x[0])  # x counts from contact: its first value is minus the travel to it
         estimated = level is not None
         end = _end_of_contact(x, f - (level or 0.0))
-        pull = _end_of_pull(f - (level or 0.0), end, baseline)
+        # a pull on the way out (the tip stuck) only where the adhesion effect can describe it
+        pull = _end_of_pull(f - (level or 0.0), end, baseline) if keep_pull else end
         if pull > end:
             notes.append(f"the specimen pulls on the probe on the way out (down to "
                          f"{_fmt_force(float(np.min(f[end:pull]) - (level or 0.0)))}): analysed through the "
