@@ -403,18 +403,26 @@ def count_curves(path: str | Path, options: ReadOptions | None = None) -> int:
     return n
 
 
-def _hdf5_checked(path: Path, options: ReadOptions):
-    """afmformats, once the options and the file are known to suit its HDF5 reader (what its
-    loader refuses, refused as `_load` refuses it)."""
+def _suited(path: Path, fmt: AfmFormat, options: ReadOptions):
+    """afmformats, once the options, the suffix and the content suit its reader for `fmt`."""
     af = _afmformats(path)
     where = str(path)
     if options.block is not None:
         raise SpecError("--block picks a data block of a Mach-1 file; an AFM file's curves are picked with "
                         "--curve N", path=where)
     if path.suffix not in af.formats.formats_by_suffix:
-        raise SpecError(f"read as {HDF5.what}, which afmformats reads only under the suffix .h5: rename it",
-                        path=where)
-    _check_content(path, HDF5)
+        # afmformats matches suffixes exactly
+        raise SpecError(f"read as {fmt.what}, which afmformats reads only under the suffix "
+                        f"{' or '.join(fmt.suffixes)}: rename it", path=where)
+    _check_content(path, fmt)
+    return af
+
+
+def _hdf5_checked(path: Path, options: ReadOptions):
+    """afmformats, once the options and the file are known to suit its HDF5 reader (what its
+    loader refuses, refused as `_load` refuses it)."""
+    af = _suited(path, HDF5, options)
+    where = str(path)
     given = [f for f, v in (("--spring-constant", options.spring_constant_N_per_m),
                             ("--sensitivity", options.sensitivity_m_per_V)) if v is not None]
     if given:  # as afmformats' own loader refuses them
@@ -515,16 +523,8 @@ def _translated(path: Path, fmt: AfmFormat):
 
 def _load(path: Path, fmt: AfmFormat, options: ReadOptions) -> tuple[list, list[str]]:
     """afmformats' curves of the file (data are read when asked for), and the warnings it gave."""
-    af = _afmformats(path)
+    af = _suited(path, fmt, options)
     where = str(path)
-    if options.block is not None:
-        raise SpecError("--block picks a data block of a Mach-1 file; an AFM file's curves are picked with "
-                        "--curve N", path=where)
-    if path.suffix not in af.formats.formats_by_suffix:
-        # afmformats matches suffixes exactly
-        raise SpecError(f"read as {fmt.what}, which afmformats reads only under the suffix "
-                        f"{' or '.join(fmt.suffixes)}: rename it", path=where)
-    _check_content(path, fmt)
     override: dict[str, float] = {}
     if options.spring_constant_N_per_m is not None:
         override["spring constant"] = float(options.spring_constant_N_per_m)
