@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rig.models.frame import NotConverged
+from rig.models.frame import NotConverged, backtrack
 
 HELD_RTOL = 1e-10  # of the held force's own peak
 HELD_MAX_ITER = 40
@@ -142,16 +142,11 @@ def solve_held(tissue: Callable[[np.ndarray], np.ndarray], drive_slopes: Callabl
             break
         if not np.all(np.isfinite(step)):
             break
-        for _ in range(30):  # backtrack until the equation's error falls
-            z_new = z + step
-            r_new = residual(z_new)
-            norm_new = float(np.max(np.abs(r_new)))
-            if np.isfinite(norm_new) and norm_new < norm:
-                break
-            step = 0.5 * step
-        else:
+        found = backtrack(lambda s, z=z: residual(z + s), step, norm)
+        if found is None:
             break
-        z, r, norm = z_new, r_new, norm_new
+        step, r = found
+        z, norm = z + step, float(np.max(np.abs(r)))
     if norm > HELD_RTOL * scale * 1e3:
         warnings.warn(NotConverged(f"creep form: the held force equation holds only to {norm:.3g} N", norm),
                       stacklevel=4)

@@ -205,20 +205,30 @@ def solve(give: Give, tissue: Tissue, drive: Drive, lag: tuple[float, float, flo
                 if not norm_new < norm:
                     continue
         else:
-            for _ in range(30):  # backtrack until the equation's error falls
-                r_new, out_new, xc_new, vc_new = residual(f + step)
-                norm_new = float(np.max(np.abs(r_new)))
-                if np.isfinite(norm_new) and norm_new < norm:
-                    break
-                step = 0.5 * step
-            else:
+            found = backtrack(lambda s, f=f: residual(f + s), step, norm)
+            if found is None:
                 break
+            step, (r_new, out_new, xc_new, vc_new) = found
+            norm_new = float(np.max(np.abs(r_new)))
             fresh = False
         contraction = norm_new / norm
         f, r, out, xc, vc, norm = f + step, r_new, out_new, xc_new, vc_new, norm_new
     warnings.warn(NotConverged(f"frame compliance: the force did not converge (residual {norm:.3g} N)", norm),
                   stacklevel=4)
     return Solution(f - r, None)
+
+
+def backtrack(evaluate: Callable, step: np.ndarray, norm: float, tries: int = 30):
+    """Newton's step halved until the equation's error falls below `norm`: (step, what
+    `evaluate(step)` gave, its first item the residual), or None if it never does."""
+    for _ in range(tries):
+        got = evaluate(step)
+        r = got[0] if isinstance(got, tuple) else got
+        norm_new = float(np.max(np.abs(r)))
+        if np.isfinite(norm_new) and norm_new < norm:
+            return step, got
+        step = 0.5 * step
+    return None
 
 
 def _build(give: Give, drive: Drive, lag, branch, f, xc, vc, out, x_scale, v_scale, scale, dt) -> _Step | None:

@@ -329,12 +329,7 @@ def _load_hdf5_curves(path: Path, options: ReadOptions, curves: set[int]) -> tup
     if path.suffix not in af.formats.formats_by_suffix:
         raise SpecError(f"read as {HDF5.what}, which afmformats reads only under the suffix .h5: rename it",
                         path=where)
-    given = [f for f, v in (("--spring-constant", options.spring_constant_N_per_m),
-                            ("--sensitivity", options.sensitivity_m_per_V)) if v is not None]
-    if given:  # as afmformats' own loader refuses them
-        raise SpecError(f"the file ({HDF5.what}) holds its own cantilever calibration, which afmformats "
-                        f"does not let {' and '.join(given)} override: leave {' and '.join(given)} out",
-                        path=where)
+    _no_override(options, where)
     cls = af.formats.default_data_classes_by_modality["force-distance"]
     with _translated(path, HDF5) as caught, h5py.File(path, "r") as h5:
         keys = sorted((k for k in h5 if k.isdigit()), key=int)
@@ -418,17 +413,22 @@ def _suited(path: Path, fmt: AfmFormat, options: ReadOptions):
     return af
 
 
+def _no_override(options: ReadOptions, where: str) -> None:
+    """An HDF5 file holds its own calibration: refused as afmformats' own loader refuses it."""
+    given = [f for f, v in (("--spring-constant", options.spring_constant_N_per_m),
+                            ("--sensitivity", options.sensitivity_m_per_V)) if v is not None]
+    if given:
+        raise SpecError(f"the file ({HDF5.what}) holds its own cantilever calibration, which afmformats "
+                        f"does not let {' and '.join(given)} override: leave {' and '.join(given)} out",
+                        path=where)
+
+
 def _hdf5_checked(path: Path, options: ReadOptions):
     """afmformats, once the options and the file are known to suit its HDF5 reader (what its
     loader refuses, refused as `_load` refuses it)."""
     af = _suited(path, HDF5, options)
     where = str(path)
-    given = [f for f, v in (("--spring-constant", options.spring_constant_N_per_m),
-                            ("--sensitivity", options.sensitivity_m_per_V)) if v is not None]
-    if given:  # as afmformats' own loader refuses them
-        raise SpecError(f"the file ({HDF5.what}) holds its own cantilever calibration, which afmformats "
-                        f"does not let {' and '.join(given)} override: leave {' and '.join(given)} out",
-                        path=where)
+    _no_override(options, where)
     return af
 
 
