@@ -43,11 +43,11 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(autouse=True)
 def share_the_machine(request):
     """Under pytest-xdist, a worker computing gives way to one on the clock: the computing one
-    runs at nice 10, so the kernel's threads that pass a pseudo-terminal's bytes on (at normal
-    priority) are not queued behind it. Back to 0 for a clock test (allowed as root, as in CI;
-    elsewhere the worker stays where it is)."""
+    runs at nice 19 (the least share the scheduler gives), so the kernel's threads that pass a
+    pseudo-terminal's bytes on (at normal priority) are not queued behind it. Back to 0 for a
+    clock test (allowed as root, as in CI; elsewhere the worker stays where it is)."""
     if "PYTEST_XDIST_WORKER" in os.environ:
-        want = 0 if request.node.get_closest_marker("xdist_group") else 10
+        want = 0 if request.node.get_closest_marker("xdist_group") else 19
         with contextlib.suppress(OSError):
             os.setpriority(os.PRIO_PROCESS, 0, want)
     yield
