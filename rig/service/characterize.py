@@ -267,8 +267,7 @@ def _fit_all(req: Request, logs: list[str], model_name: str, extra: list[str], l
              turn: Turn, journal: Journal) -> tuple[FitResult, Explanation, list[str]]:
     inp = load_inputs(logs, [], [], ReadOptions(), indenter=req.indenter)
     model = build_model(model_name, extra, inp.registry)
-    start = last.values if last is not None else None
-    base = fit(model, inp.trials, initial=start) if start else fit(model, inp.trials)
+    base = fit(model, inp.trials, initial=last.values if last is not None else None)
     steps = auto(base, inp.registry)
     final = steps[-1]["fit"]
     for s in steps[1:]:
