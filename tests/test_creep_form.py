@@ -132,3 +132,23 @@ def test_the_json_gives_the_creep_in_lengths(creep_log, capsys):
     for s in holds:
         assert s["creep_m"] > 0 and len(s["J_per_Pa"]) == 4
         assert s["J_per_Pa"][-1] > s["J_per_Pa"][1] > 0  # held, the contact grows more compliant
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_the_length_noise_is_read_on_the_holds_not_the_force_ramps(seed):
+    """A force ramp's position runs ahead and turns within the lags the noise is read at: counted
+    beside the holds it read the length noise twice what it is (rig.analysis.data.creep_weight)."""
+    from rig.analysis.data import creep_weight
+
+    rng = np.random.default_rng(seed)
+    sigma_m, sigma_N = 30e-6, 0.04
+    t = np.arange(3500) * 0.01
+    # a force ramp (157 samples: the position accelerates into contact), then holds of 8 and 25 s
+    # with a smooth creep; white position noise throughout
+    x = np.where(t < 1.57, 2e-3 * (t / 1.57) ** 3, 2e-3 + 1e-3 * (1 - np.exp(-(t - 1.57) / 8.0)))
+    x = x + sigma_m * rng.standard_normal(len(t))
+    runs = np.where(t < 1.57, 1, np.where(t < 9.57, 2, 3))
+    phase = np.where(t < 1.57, "ramp", "hold_late").astype(object)
+    held = np.ones(len(t), dtype=bool)
+    weight, _ = creep_weight(x, np.full(len(t), 1.0), held, runs, sigma_N, phase)
+    assert sigma_N / weight == pytest.approx(sigma_m, rel=0.1)

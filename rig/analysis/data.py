@@ -239,14 +239,14 @@ def prepare(rec: Record, where: str = "", segment: str = "all", form: str = "aut
             smoothed = held_force(f, held, runs)
             notes.append(f"creep form on {int(held.sum())} samples where the force was held (the indentation "
                          "predicted from the force, smoothed within each step); force form elsewhere")
-    weight, held_ar = creep_weight(x, f, held, runs, noise) if held is not None else (None, ())
+    weight, held_ar = creep_weight(x, f, held, runs, noise, phase) if held is not None else (None, ())
     return TrialData(Path(rec.name).name, m, f, phase, noise, rec.source, len(base), scales,
                      base if len(base) >= MIN_BASELINE else None, fu, lu, notes, dict(rec.meta), contact_m,
                      estimated, held, weight, smoothed, held_ar)
 
 
 def creep_weight(x: np.ndarray, f: np.ndarray, held: np.ndarray, runs: np.ndarray,
-                 noise_N: float | None) -> tuple[float, tuple[float, ...]]:
+                 noise_N: float | None, phase: np.ndarray | None = None) -> tuple[float, tuple[float, ...]]:
     """How a length residual on held samples counts against a force residual: the force noise over
     the length noise (N/m), so that either, divided by its own noise, enters one likelihood; and
     the length noise's spectrum (AR coefficients).
@@ -258,11 +258,19 @@ def creep_weight(x: np.ndarray, f: np.ndarray, held: np.ndarray, runs: np.ndarra
     so the steps too short to show it are left out). That is what a right model leaves there: on
     a simulated creep trial at two forces, the position solved with the true parameters missed
     the measured one by 0.066 mm RMS, and the position's own short-lag noise (the force loop's
-    jitter and the encoder's steps) read 0.063 and 0.055 mm in the two holds."""
+    jitter and the encoder's steps) read 0.063 and 0.055 mm in the two holds.
+
+    Only the holds count where there are any long enough (`phase`): in a force ramp the position
+    runs ahead and turns within the lags the noise is read at, and one trend term shared with the
+    holds cannot take it out. With a 157-sample ramp counted beside holds of 800 and 2500 samples,
+    the length noise read 79 um where the holds alone read 46 and 40 um and a right model left 49
+    and 31 um: every creep fit then read half the noise, and a missing effect half as strongly."""
     from rig.analysis.noise import from_residual
 
     idx = [np.flatnonzero((runs == r) & held) for r in np.unique(runs[held])]
-    long = [i for i in idx if len(i) >= 128] or [max(idx, key=len)]
+    holds = [i for i in idx if phase is None or str(phase[i[len(i) // 2]]).startswith("hold")]
+    long = ([i for i in holds if len(i) >= 128] or [i for i in idx if len(i) >= 128]
+            or [max(idx, key=len)])
     length = from_residual([x[i] for i in long])
     sigma_x = length.std_N
     sigma_f = noise_N if noise_N else from_residual([f[i] for i in long]).std_N

@@ -32,8 +32,9 @@ SEEDS = (1, 2, 3, 4, 5)
 # the hidden effects, as mechanisms of the simulator, sized for these trials: the drift 0.1 N over
 # the trial (2.5x the noise), the frame's give at the held 1.6 N 3.2 mm (a tenth of the travel; at
 # 2000 N/m, 0.8 mm, the paper's model without it was adequate on 2 of 3 seeds), a second branch as
-# stiff as the tissue at depth, with a 20 s time constant and a last hold of 25 s to show it
-# against the tissue's own 8 s
+# stiff as the tissue at depth, with a 20 s time constant and a last hold of 60 s to show it
+# against the tissue's own 8 s (over 25 s it tied with a damping and a contact offset: within 0.3 %
+# of each other's error, and its fitted time constant 10-12 s, the tissue's own)
 HIDDEN = {"drift": P.DriftParams(rate_N_per_s=0.004), "compliance": P.ComplianceParams(k_frame_N_per_m=500.0),
           "relaxation2": P.Relaxation2Params(k_N_per_m=100.0, tau_s=20.0)}
 LONG_HOLD = """name: creep at two forces, the last held long
@@ -42,7 +43,7 @@ steps:
   - ramp_force: {to_N: 0.8, rate_N_s: 1.0, max_mm: 35}
   - hold_force: {force_N: 0.8, duration_s: 8, max_mm: 35}
   - ramp_force: {to_N: 1.6, rate_N_s: 1.0, max_mm: 35}
-  - hold_force: {force_N: 1.6, duration_s: 25, max_mm: 35}
+  - hold_force: {force_N: 1.6, duration_s: 60, max_mm: 35}
   - return: {speed_mm_s: 10}
 """
 
