@@ -234,6 +234,32 @@ def _trial(c: Candidate, config: RigConfig) -> TrialData:
 
 # ------------------------------------------------------------------ the design
 
+def rig_candidates(shape: Shape, config: RigConfig) -> list[Candidate]:
+    """`candidate_steps` within this rig's speed and travel (from the slider's start), each
+    with its commanded motion (`Candidate.trial`)."""
+    limits = config.limits
+    start = config.sim.slider.start_mm if config.slider.backend == "sim" else 0.0
+    room_m = 0.95 * (limits.travel_mm[1] - start) / 1000.0  # the deepest a candidate may go
+    out = candidate_steps(shape, limits.max_speed_mm_s / 1000.0, room_m)
+    for c in out:
+        c.trial = _trial(c, config)
+    return out
+
+
+def inadmissible(c: Candidate, peak_N: float, config: RigConfig) -> str:
+    """Why the candidate may not be run on this rig ("" when it may): its protocol beyond a
+    limit (as `rig run` checks it), or its predicted peak force within FORCE_MARGIN of the force
+    limit."""
+    try:
+        check_limits(parse_protocol(protocol_text(c, c.name, None, []), c.name), config)
+    except LimitError as exc:
+        return str(exc)
+    if peak_N * FORCE_MARGIN > config.limits.max_force_N:
+        return (f"{c.name}: predicted peak {peak_N:.3g} N, within {FORCE_MARGIN:g}x of the force limit "
+                f"{config.limits.max_force_N:g} N")
+    return ""
+
+
 def design(ex: Explanation, config: RigConfig | None = None) -> Design | None:
     """The protocol that best separates the first look-alike pair, or None without one."""
     if not ex.lookalikes:
@@ -246,10 +272,7 @@ def design(ex: Explanation, config: RigConfig | None = None) -> Design | None:
     shape = shape_of(trials)
     limits = config.limits
     cands, refused = [], []
-    start = config.sim.slider.start_mm if config.slider.backend == "sim" else 0.0
-    room_m = 0.95 * (limits.travel_mm[1] - start) / 1000.0  # the deepest a candidate may go
-    for c in candidate_steps(shape, limits.max_speed_mm_s / 1000.0, room_m):
-        c.trial = _trial(c, config)
+    for c in rig_candidates(shape, config):
         duration = float(c.trial.motion.t_s[-1])
         if duration > MAX_DURATION * shape.duration_s:
             refused.append(f"{c.name}: {duration:.0f} s, over {MAX_DURATION:g}x the trials given")
@@ -257,14 +280,9 @@ def design(ex: Explanation, config: RigConfig | None = None) -> Design | None:
         pa, pb = a.model.predict(a.values, c.trial.motion), b.model.predict(b.values, c.trial.motion)
         c.predictions = (pa, pb)
         c.peak_N = float(max(np.max(pa), np.max(pb)))
-        try:
-            check_limits(parse_protocol(protocol_text(c, c.name, None, []), c.name), config)
-        except LimitError as exc:
-            refused.append(str(exc))
-            continue
-        if c.peak_N * FORCE_MARGIN > limits.max_force_N:
-            refused.append(f"{c.name}: predicted peak {c.peak_N:.3g} N, within {FORCE_MARGIN:g}x of the "
-                           f"force limit {limits.max_force_N:g} N")
+        why = inadmissible(c, c.peak_N, config)
+        if why:
+            refused.append(why)
             continue
         c.difference_N = float(np.sqrt(np.mean((pa - pb) ** 2)))
         cands.append(c)

@@ -35,18 +35,10 @@ from pathlib import Path
 import numpy as np
 
 from rig.analysis.analyze import load_inputs
-from rig.analysis.design import (
-    FORCE_MARGIN,
-    Candidate,
-    _trial,
-    candidate_steps,
-    design,
-    protocol_text,
-    shape_of,
-)
+from rig.analysis.design import Candidate, design, inadmissible, protocol_text, rig_candidates, shape_of
 from rig.analysis.explain import Explanation, auto, explain
 from rig.analysis.fit import FitResult, fit
-from rig.errors import LimitError, RigError
+from rig.errors import RigError
 from rig.models.catalogue import build_model
 from rig.records import ReadOptions
 from rig.service.run import RunOptions, run_trial
@@ -365,22 +357,13 @@ def _most_informative(req: Request, f: FitResult, journal: Journal) -> tuple[Can
     n_all = sum(t.n for t in f.trials)
     share = min(max(f.n_eff / max(n_all, 1), 1e-6), 1.0)
     noise2 = max(f.noise_N, 1e-300) ** 2
-    lim = req.config.limits
-    start = req.config.sim.slider.start_mm if req.config.slider.backend == "sim" else 0.0
-    room = 0.95 * (lim.travel_mm[1] - start) / 1000.0
-    shape = shape_of(f.trials)
     scored, refused = [], []
-    for c in candidate_steps(shape, lim.max_speed_mm_s / 1000.0, room):
-        c.trial = _trial(c, req.config)
-        try:
-            check_limits(parse_protocol(protocol_text(c, c.name, None, []), c.name), req.config)
-        except LimitError as exc:
-            refused.append(str(exc))
-            continue
+    for c in rig_candidates(shape_of(f.trials), req.config):
         m = c.trial.motion
         pred = f.model.predict(f.values, m)
-        if float(np.max(pred)) * FORCE_MARGIN > lim.max_force_N:
-            refused.append(f"{c.name}: predicted peak {float(np.max(pred)):.3g} N near the force limit")
+        why = inadmissible(c, float(np.max(pred)), req.config)
+        if why:
+            refused.append(why)
             continue
         J = np.empty((len(pred), len(names)))
         for j, v in enumerate(values):
