@@ -196,9 +196,9 @@ def test_doubtful_errors_say_why():
 def test_fit_errors_match_the_spread_over_seeds(tmp_path):
     """A trial of the simulated rig with noise correlated over several samples (a filtering
     indicator's, AR(1) with rho 0.8): the standard errors `fit` reports match how far the
-    parameters scatter between forty noise draws. (The noise is added to the prepared trial:
-    on a raw record the contact point and the tare are estimated from the same noise, which
-    moves the cubic's coefficients further than any residual-based error can know.)"""
+    parameters scatter between forty noise draws. (The noise is added to the prepared trial, so
+    its zero is exact; on a raw record the tare's error is counted apart:
+    test_a_tares_error_counts_in_the_standard_errors.)"""
     cfg = RigConfig()
     cfg.sim.loadcell.noise_N = 0.0
     proto = ("name: ramp\nsteps:\n  - ramp: {to_mm: 30, speed_mm_s: 3}\n  - hold: {duration_s: 20}\n"
@@ -208,7 +208,9 @@ def test_fit_errors_match_the_spread_over_seeds(tmp_path):
     values, errs = [], []
     for _ in range(40):
         noise = 0.2 * lfilter([np.sqrt(1 - 0.8 ** 2)], [1, -0.8], rng.normal(size=clean.n + 200))[200:]
-        res = fit(build_model("proposed"), [dataclasses.replace(clean, force_N=clean.force_N + noise)])
+        # the noise comes after the tare: this record's zero is exact (no tare to count)
+        res = fit(build_model("proposed"), [dataclasses.replace(clean, force_N=clean.force_N + noise,
+                                                                baseline_n=0)])
         assert res.white_L > 5.0  # the residual is the correlated noise
         values.append([res.values[k] for k in res.model.param_names])
         errs.append([res.stderr[k] for k in res.model.param_names])
@@ -258,3 +260,30 @@ def test_one_bic_everywhere(tmp_path):
     # the same definition: the difference of the two models' BIC at the simpler one's N_eff
     assert top.delta_bic == pytest.approx(bic(rss * ratio, n, len(top.fit.model.params), base.n_eff)
                                           - bic(rss, n, k, base.n_eff))
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_tares_error_counts_in_the_standard_errors(seed):
+    """Each record tared on the mean of 50 samples at rest carries that mean's error as a constant
+    under every sample, which its residual cannot show: `zeros` puts it in the sandwich. Over 300
+    draws of three ramps sharing one slope, the slope's 1.96-SE interval covers the truth about
+    95 % of the time with it, and far less without."""
+    from rig.analysis.uncertainty import hac_covariance
+
+    rng = np.random.default_rng(seed)
+    m, sigma, n_tare = 400, 1.0, 50
+    x = np.concatenate([np.linspace(0.0, 1.0, m)] * 3)
+    J = x[:, None]
+    covered = {True: 0, False: 0}
+    draws = 300
+    for _ in range(draws):
+        zero = rng.normal(0.0, sigma / np.sqrt(n_tare), 3)
+        y = 2.0 * x + np.repeat(zero, m) + rng.normal(0.0, sigma, 3 * m)
+        b = float(x @ y / (x @ x))
+        r = y - b * x
+        for with_zero in (True, False):
+            zeros = [sigma ** 2 / n_tare] * 3 if with_zero else None
+            se = float(np.sqrt(hac_covariance(J, r, [m] * 3, zeros=zeros)[0, 0]))
+            covered[with_zero] += abs(b - 2.0) <= 1.96 * se
+    assert 0.92 <= covered[True] / draws <= 0.98, covered
+    assert covered[False] / draws < 0.8, covered

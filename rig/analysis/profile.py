@@ -67,12 +67,17 @@ def interval(res: FitResult, name: str) -> Interval:
     p = next(q for q in res.model.params if q.name == name)
     lo_bound, hi_bound = _si_bounds(res, p)
     fits = 0
+    # the records' tared zeros add a variance no cost shows (`FitResult.zero_variance`): the
+    # threshold grows by the standard error's share from them, as the Wald interval does
+    share = res.zero_variance.get(name, 0.0)
+    widen = se ** 2 / (se ** 2 - share) if se and math.isfinite(se) and se ** 2 > share > 0.0 else 1.0
+    threshold = CHI2_95 * widen
 
     def rise(v: float) -> float:
         nonlocal fits
         fits += 1
         b = fit(_held(res.model, name, v), res.trials, starts=1, initial=res.values)
-        return res.n_eff * math.log(max(b.overall.n * b.overall.rmse_N ** 2, 1e-300) / rss0) - CHI2_95
+        return res.n_eff * math.log(max(b.overall.n * b.overall.rmse_N ** 2, 1e-300) / rss0) - threshold
 
     def side(sign: float) -> float | None:
         inside, step = v0, step0

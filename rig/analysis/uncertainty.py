@@ -443,12 +443,15 @@ def _basis(J: np.ndarray) -> np.ndarray:
 
 def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
                    notes: list[str] | None = None, quiet: list[int] | None = None,
-                   stationary: list[bool] | None = None) -> np.ndarray:
+                   stationary: list[bool] | None = None, zeros: list[float] | None = None) -> np.ndarray:
     """Covariance of least-squares parameters (in the units of J's columns) from the
     Jacobian `J` and the residual `r` of trials of `lengths` samples stacked in that order,
     each starting with `quiet` samples at rest (the approach before contact), if known.
     `stationary`: blocks whose noise is known not to walk (a creep-form residual: the force
     loop's own jitter of the position, bounded by the loop), given the AR model alone.
+    `zeros`: per block, the variance of an error constant over the whole block that the residual
+    cannot show (a tare's: the record's zero), in the residual's units squared; its score is that
+    constant times the block's summed Jacobian.
     Reasons to doubt it, if any, are appended to `notes` as sentences."""
     n, p = J.shape
     g = J * r[:, None]
@@ -460,6 +463,9 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
     for k, m in enumerate(lengths):
         sl = slice(start, start + m)
         start += m
+        if zeros and zeros[k] > 0.0:
+            s = J[sl].sum(axis=0)
+            level_meat += zeros[k] * np.outer(s, s)
         gk, rk = g[sl], r[sl]
         if m < MIN_SAMPLES or not np.any(rk):
             meat += gk.T @ gk
