@@ -246,7 +246,7 @@ def prepare(rec: Record, where: str = "", segment: str = "all", form: str = "aut
 
 
 def creep_weight(x: np.ndarray, f: np.ndarray, held: np.ndarray, runs: np.ndarray,
-                 noise_N: float | None, phase: np.ndarray | None = None) -> tuple[float, tuple[float, ...]]:
+                 noise_N: float | None, phase: np.ndarray) -> tuple[float, tuple[float, ...]]:
     """How a length residual on held samples counts against a force residual: the force noise over
     the length noise (N/m), so that either, divided by its own noise, enters one likelihood; and
     the length noise's spectrum (AR coefficients).
@@ -268,7 +268,7 @@ def creep_weight(x: np.ndarray, f: np.ndarray, held: np.ndarray, runs: np.ndarra
     from rig.analysis.noise import from_residual
 
     idx = [np.flatnonzero((runs == r) & held) for r in np.unique(runs[held])]
-    holds = [i for i in idx if phase is None or str(phase[i[len(i) // 2]]).startswith("hold")]
+    holds = [i for i in idx if str(phase[i[len(i) // 2]]).startswith("hold")]
     long = ([i for i in holds if len(i) >= 128] or [i for i in idx if len(i) >= 128]
             or [max(idx, key=len)])
     length = from_residual([x[i] for i in long])

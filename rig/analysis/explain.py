@@ -216,7 +216,7 @@ def _among_passing(passing: list[Suggestion], base: FitResult) -> list[Suggestio
     full = [s for s in passing if s.full_rate]
     if len(full) < 2:
         return passing
-    rss = {id(s): float(np.sum(np.concatenate(s.fit.residuals) ** 2)) for s in full}
+    rss = {id(s): _rss(s.fit) for s in full}
     lead = min(full, key=lambda s: rss[id(s)])
     n_ref = max(base.n_eff, lead.fit.n_eff)
     score = {id(s): n_ref * np.log(max(rss[id(s)], 1e-300)) + len(s.fit.model.params) * np.log(n_ref)

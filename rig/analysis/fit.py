@@ -37,7 +37,7 @@ from rig.analysis.lean import predictor
 from rig.analysis.noise import Noise, integral_scale, measure
 from rig.analysis.scaling import ParamScaling
 from rig.analysis.uncertainty import bic as effective_bic
-from rig.analysis.uncertainty import correlation, hac_covariance, notable_correlations
+from rig.analysis.uncertainty import correlation, hac_covariance, notable_correlations, zero_meat
 from rig.models.catalogue import CONTACT_POINT, RECORD_ZERO
 from rig.models.core import Effect, Model
 from rig.models.frame import NotConverged
@@ -364,9 +364,7 @@ def _force_form_start(model, trials, scales: Scales, lo, hi, ps: ParamScaling) -
     on a simulated creep trial held 60 s at 1.6 N the paper's model ended 50x the noise, or not
     finite at all. Fitted the other way round (force from position: always defined) the same
     model lands where the tissue's response is, a biased but physical start."""
-    from dataclasses import replace as _replace
-
-    forced = [_replace(t, held=None) for t in trials]
+    forced = [replace(t, held=None) for t in trials]
     pre = _fit(model, forced, 1, 0, None, 1e-6, 100, scales, False)
     for t in trials:
         t.motion.forget_solutions()
@@ -551,8 +549,8 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     lengths = [t.n for t in trials]
     to_si = ps.jacobian(z)
     doubts: list[str] = []
-    blocks, quiet, still = noise_blocks(trials)
-    zeros = _zero_variances(trials, noise, scales)
+    blocks, quiet, still, tared = noise_blocks(trials)
+    zeros = _zero_variances(tared, noise, scales)
     cov = _covariance(best, to_si, blocks, doubts, quiet, still, zeros)
     zero_variance = _zero_share(best.jac, to_si, blocks, zeros, model.param_names)
     stderr = _stderr(cov, model.param_names)
@@ -603,11 +601,12 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
                      cov, n_eff, noise, counted, zero_variance)
 
 
-def noise_blocks(trials: list[TrialData]) -> tuple[list[int], list[int], list[bool]]:
+def noise_blocks(trials: list[TrialData]) -> tuple[list[int], list[int], list[bool], list[int]]:
     """The residual's blocks of independent noise, in order (samples each), the samples at rest at
-    the start of each, and whether each is in creep form: one block per trial, and within a trial
-    with held samples one per run of creep form and of force form (a length residual's noise is
-    not the force's), the rest before contact with the first.
+    the start of each, whether each is in creep form, and the samples of the tare its zero is the
+    mean of (0: none, or a zero the fit finds: `_zero_variances`): one block per trial, and within
+    a trial with held samples one per run of creep form and of force form (a length residual's
+    noise is not the force's), the rest before contact with the first.
 
     A creep-form block's noise is the position's jitter under the force loop (the slider follows
     the loop's reading, the model the smoothed force): correlated over the loop's response time
@@ -616,12 +615,14 @@ def noise_blocks(trials: list[TrialData]) -> tuple[list[int], list[int], list[bo
     residual better at short lags, made the paper's model's standard errors on a simulated
     creep trial about 18x the AR's (tau1: 6.9 s against 0.39 s; its spread over five seeds,
     0.26 s)."""
-    lengths, quiet, still = [], [], []
+    lengths, quiet, still, tared = [], [], [], []
     for t in trials:
         if not t.creep:
             lengths.append(t.n)
             quiet.append(t.quiet_n)
             still.append(False)
+            # a tare recorded apart from the record's samples (quiet_n 0): the zero is its mean
+            tared.append(t.baseline_n if not t.contact_estimated and t.quiet_n == 0 else 0)
             continue
         edges = np.flatnonzero(np.diff(t.held.astype(np.int8))) + 1
         starts = np.r_[0, edges]
@@ -629,7 +630,8 @@ def noise_blocks(trials: list[TrialData]) -> tuple[list[int], list[int], list[bo
         lengths += runs
         quiet += [min(t.quiet_n, runs[0])] + [0] * (len(runs) - 1)
         still += [bool(t.held[a]) for a in starts]
-    return lengths, quiet, still
+        tared += [0] * len(runs)
+    return lengths, quiet, still, tared
 
 
 def _inside(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -641,26 +643,20 @@ def _inside(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.clip(z, lo_in, hi_in)
 
 
-def _zero_variances(trials: list[TrialData], noise: Noise, scales: Scales) -> list[float]:
-    """Per noise block (`noise_blocks`), the variance of the error in the record's zero where it
-    is not fitted, in the fit's units of force: a record tared on the mean of its rest before the
-    push (the rig's trials, a CSV with a tare step) carries that mean's noise, sigma^2 L / n, as a
-    constant under every sample, which no residual shows (the record's zero is its own).
+def _zero_variances(tared: list[int], noise: Noise, scales: Scales) -> list[float]:
+    """Per noise block, the variance of the error in its record's zero, in the fit's units of
+    force: a record tared on the mean of `tared` samples at rest before the push (the rig's
+    trials, a CSV with a tare step; `noise_blocks`) carries that mean's noise, sigma^2 L / n, as
+    a constant under every sample, which no residual shows (the record's zero is its own).
 
     Left out, it made the standard errors of long, informative trials too small: over six seeds
     of a designed campaign's three trials, each tared on 50 samples (0.011 N of error at 0.08 N
     noise), the estimates spread 1.1-1.7x their standard errors, the largest 6.4 standard errors
     from the truth, and the residual at the true parameters held each trial's zero error as a
     constant (0.005-0.021 N). A record whose zero is fitted (`contact_estimated`) or in creep form
-    (the held force's zero enters the position) gets none here."""
-    out: list[float] = []
-    for t in trials:
-        v = 0.0
-        # a tare recorded apart from the record's samples (quiet_n 0): the zero is its mean
-        if not t.contact_estimated and t.baseline_n > 0 and t.quiet_n == 0 and not t.creep:
-            v = (noise.std_N / scales.force_N) ** 2 * max(noise.scale_samples, 1.0) / t.baseline_n
-        out += [v] if not t.creep else [0.0] * (1 + int(np.count_nonzero(np.diff(t.held.astype(np.int8)))))
-    return out
+    (the held force's zero enters the position) has none here."""
+    per_sample = (noise.std_N / scales.force_N) ** 2 * max(noise.scale_samples, 1.0)
+    return [per_sample / n if n > 0 else 0.0 for n in tared]
 
 
 def _zero_share(J: np.ndarray, to_si: np.ndarray, lengths: list[int], zeros: list[float],
@@ -669,9 +665,7 @@ def _zero_share(J: np.ndarray, to_si: np.ndarray, lengths: list[int], zeros: lis
     holds, B^-1 (sum_k v_k s_k s_k^T) B^-1, s_k block k's summed Jacobian."""
     if not any(zeros):
         return {}
-    edges = np.cumsum([0, *lengths])
-    Z = sum(v * np.outer(J[a:b].sum(axis=0), J[a:b].sum(axis=0))
-            for v, a, b in zip(zeros, edges[:-1], edges[1:], strict=True) if v > 0.0)
+    Z = zero_meat(J, lengths, zeros)
     bread = np.linalg.pinv(J.T @ J)
     var = np.diag(to_si @ (bread @ Z @ bread) @ to_si.T)
     return {n: float(v) for n, v in zip(names, var, strict=True) if np.isfinite(v)}

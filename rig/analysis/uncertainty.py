@@ -463,9 +463,6 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
     for k, m in enumerate(lengths):
         sl = slice(start, start + m)
         start += m
-        if zeros and zeros[k] > 0.0:
-            s = J[sl].sum(axis=0)
-            level_meat += zeros[k] * np.outer(s, s)
         gk, rk = g[sl], r[sl]
         if m < MIN_SAMPLES or not np.any(rk):
             meat += gk.T @ gk
@@ -515,12 +512,21 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
             clipped.append(k)
     # the residual is smaller than the noise by the p directions the fit took out of it
     meat *= n / max(n - p, 1)
+    if zeros:
+        meat += zero_meat(J, lengths, zeros)
     meat += level_meat  # its variances are restricted-likelihood estimates: already for the residual's n - p
     bread = np.linalg.pinv(J.T @ J)
     cov = _undetermined(0.5 * (bread @ meat @ bread + (bread @ meat @ bread).T), J)
     if notes is not None:
         notes.extend(_doubts(cov, J, r, lengths, bounded, clipped, drifting, misfit))
     return cov
+
+
+def zero_meat(J: np.ndarray, lengths: list[int], zeros: list[float]) -> np.ndarray:
+    """The score's covariance from an error constant over each block (variance `zeros[k]`, in the
+    residual's units squared): that constant times the block's summed Jacobian."""
+    sums = np.add.reduceat(J, np.cumsum([0, *lengths[:-1]]), axis=0)
+    return sums.T @ (np.asarray(zeros, dtype=float)[:, None] * sums)
 
 
 def _doubts(cov: np.ndarray, J: np.ndarray, r: np.ndarray, lengths: list[int], bounded: list[int],
