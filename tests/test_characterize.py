@@ -82,3 +82,26 @@ def test_a_stop_in_the_second_trial_ends_the_campaign_cleanly(tmp_path):
     log = read_log(camp.turns[1].log)
     assert abs(log.samples["position_mm"][-1] - log.samples["position_mm"][0]) < 0.05
     assert camp.final is not None and len(camp.final.trials) == 1  # the stopped trial is not fitted
+
+
+def test_the_next_trial_is_chosen_within_the_budget_left(tmp_path):
+    """A candidate longer than the specimen time left is refused (and journaled so); the trial
+    chosen fits, and the campaign ends on its budget, not past it."""
+    from rig.specs.protocol import parse_protocol, plan
+
+    config = parse_config("sim:\n  seed: 4\n  effects:\n    drift: {rate_N_per_s: 0.004}\n")
+    first = tmp_path / "first.yaml"
+    first.write_text(SHORT)
+    d1 = plan(parse_protocol(SHORT, "<t>"), config).duration_s
+    rest_s = 10.0
+    budget_s = d1 + rest_s + 45.0  # 45 s for a second trial: the long candidates cannot come
+    camp = characterize(Request("liver-4", config, tmp_path, first=str(first), max_trials=3, speed=0,
+                                rest_s=rest_s, budget_min=budget_s / 60.0, say=lambda _: None))
+    assert camp.elapsed_s <= budget_s + 1e-6
+    assert len(camp.turns) == 2 and camp.status == "budget"
+    events = _events(camp.journal)
+    decision = next(e for e in events if e["event"] == "decision")
+    assert decision["kind"] in ("inform", "separate")
+    assert any("the budget leaves" in r for r in decision["refused"])
+    second = next(e for e in events if e["event"] == "trial" and e["n"] == 2)
+    assert second["duration_s"] <= budget_s - d1 - rest_s

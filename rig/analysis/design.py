@@ -260,8 +260,10 @@ def inadmissible(c: Candidate, peak_N: float, config: RigConfig) -> str:
     return ""
 
 
-def design(ex: Explanation, config: RigConfig | None = None) -> Design | None:
-    """The protocol that best separates the first look-alike pair, or None without one."""
+def design(ex: Explanation, config: RigConfig | None = None,
+           max_duration_s: float | None = None) -> Design | None:
+    """The protocol that best separates the first look-alike pair, or None without one;
+    `max_duration_s`: the specimen time left for it (a campaign's budget)."""
     if not ex.lookalikes:
         return None
     config = config or RigConfig()
@@ -276,6 +278,9 @@ def design(ex: Explanation, config: RigConfig | None = None) -> Design | None:
         duration = float(c.trial.motion.t_s[-1])
         if duration > MAX_DURATION * shape.duration_s:
             refused.append(f"{c.name}: {duration:.0f} s, over {MAX_DURATION:g}x the trials given")
+            continue
+        if max_duration_s is not None and duration > max_duration_s:
+            refused.append(f"{c.name}: {duration:.0f} s, over the {max_duration_s:.0f} s the budget leaves")
             continue
         pa, pb = a.model.predict(a.values, c.trial.motion), b.model.predict(b.values, c.trial.motion)
         c.predictions = (pa, pb)

@@ -238,6 +238,7 @@ class Trial:
                 "(`rig tare` with the probe out of contact, or loadcell.zero_N, fixes that)")
         self._seq = self._late = self._missed = 0
         self._tick_times: list[float] = []
+        self._t0: float | None = None
 
     # ------------------------------------------------------------- control
     def request_stop(self, mode: StopMode = StopMode.ABORT, user: str = "",
@@ -266,6 +267,11 @@ class Trial:
         if phase != "running":
             self._stop_now(received)
         return ticket
+
+    @property
+    def started_s(self) -> float | None:
+        """The clock's reading at the first tick's slot (the log's t_s = 0); None before it."""
+        return self._t0
 
     @property
     def phase(self) -> str:

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from rig.control.estimator import StiffnessRLS
+from rig.diagnostics.stalls import StallProbe
 from rig.recording.messages import SAMPLE
 from rig.recording.recorder import Recorder
 from rig.specs.config import RigConfig
@@ -75,12 +76,16 @@ def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: s
             busy = f", {load} CPU-bound processes beside it" if load else ""
             print(f"bench: {duration_s:g} s real-clock trial at {rate_Hz:g} Hz, {where}{busy} ...",
                   file=sys.stderr)
-        with CpuLoad(load):
-            result = run_trial(proto, config, RunOptions(speed=1.0, progress=False, log_path=log))
+        trial = []
+        with CpuLoad(load), StallProbe(config.loop.realtime_priority + 1) as probe:
+            result = run_trial(proto, config, RunOptions(speed=1.0, progress=False, log_path=log,
+                                                         on_start=lambda t, _: trial.append(t)))
         err = result.period_errors_ms
         replay = bench_replay(log)
         meta, health = read_log_meta(log)
         scheduling = meta.get("realtime", "")
+        machine = _machine_stalls(probe, log, trial[0].started_s if trial else None,
+                                  config.loop.late_tolerance_ms)
     return {
         "load_processes": load,
         "scheduling": scheduling,
@@ -99,7 +104,30 @@ def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: s
         "bus_errors": int(health.get("bus_errors", 0)),
         "wire": wire_share(config, wire, result.bus_transactions / max(result.samples, 1)),
         "replay": replay,
+        "machine": machine,
     }
+
+
+def _machine_stalls(probe: StallProbe, log: Path, t0: float | None, late_tolerance_ms: float) -> dict:
+    """The probe's stalls over the run, and how many of the run's troubled ticks (late, or after
+    skipped ones) came right after one of at least half the late tolerance: the machine's, then,
+    not the rig's. `t0`: the trial's first slot on the monotonic clock."""
+    from rig.recording.logs import read_log
+
+    samples = read_log(log).samples
+    t = np.asarray(samples["t_s"], dtype=float)
+    gaps = np.diff(t, prepend=t[0]) if len(t) else t
+    period = float(np.median(gaps[1:])) if len(gaps) > 1 else 0.0
+    troubled = np.flatnonzero((samples["late_ms"] > late_tolerance_ms) | (gaps > 1.5 * period))
+    at_stall = 0
+    if t0 is not None:
+        at_stall = sum(probe.near(t0 + t[i]) >= late_tolerance_ms / 2.0 for i in troubled)
+    out = {"probe_realtime": probe.realtime, "threshold_ms": probe.threshold_ms,
+           "troubled_ticks": len(troubled), "troubled_at_stall": int(at_stall)}
+    for kind in ("wake", "pty"):
+        ms = [m for _, m, k in probe.stalls if k == kind]
+        out[kind] = {"stalls": len(ms), "max_ms": max(ms, default=0.0), "over_5ms": sum(m > 5.0 for m in ms)}
+    return out
 
 
 def wire_share(config: RigConfig, wire: str, transactions_per_tick: float | None = None) -> dict | None:
@@ -341,6 +369,16 @@ def format_bench(r: dict) -> str:
         f"          scheduling: {lp['scheduling']}; {lp['load_processes']} CPU-bound processes beside it",
         f"          outcome {lp['outcome']}" + (f": {lp['fault']}" if lp.get("fault") else ""),
     ]
+    if lp.get("machine"):
+        m = lp["machine"]
+        w, p = m["wake"], m["pty"]
+        lines.append(f"          beside it, above the loop's priority: {w['stalls']} wake-ups over "
+                     f"{m['threshold_ms']:g} ms late (max {w['max_ms']:.2f} ms), {p['stalls']} pty crossings "
+                     f"over {m['threshold_ms']:g} ms (max {p['max_ms']:.2f} ms)"
+                     + ("" if m["probe_realtime"] else "; the probe was refused real-time priority"))
+        if m["troubled_ticks"]:
+            lines.append(f"          {m['troubled_at_stall']} of the {m['troubled_ticks']} late or "
+                         "skipped-over ticks came right after such a stall of the machine's")
     if lp.get("wire"):
         w = lp["wire"]
         lines.append(f"wire      {w['wire_ms_per_tick']:.2f} ms per tick on the wire ({w['line']}; "

@@ -50,6 +50,7 @@ MAX_TRIALS = 6
 BUDGET_MIN = 30.0
 REST_S = 60.0  # between trials: the specimen recovers (counted in the budget; waited at speed 1)
 SEPARATES = 2.0  # a designed trial must leave the wrong model this many noise levels off
+TRIAL_MARGIN_S = 5.0  # a trial's tare and settling beyond its candidate's motion
 INFORMATION_GAIN = 0.9  # a candidate must bring the largest relative error below this share of today's
 
 
@@ -282,12 +283,33 @@ def _fit_all(req: Request, logs: list[str], model_name: str, extra: list[str], l
     return final, ex, [e for e in final.model.effect_names if e not in plain]
 
 
+def _time_left(req: Request, camp: Campaign) -> float:
+    """Specimen time the next trial may take: the budget less what was spent and the rest before
+    it, less a margin for what a candidate's motion leaves out (the tare, the drive's settling)."""
+    return 60.0 * req.budget_min - camp.elapsed_s - req.rest_s - TRIAL_MARGIN_S
+
+
 def _decide(req: Request, f: FitResult, ex: Explanation, turn: Turn, journal: Journal,
             camp: Campaign) -> tuple[str, str] | None:
+    if not ex.lookalikes and f.adequate and turn.max_rse <= req.target_rse:
+        return _inform_or_stop(req, f, turn, journal, camp)  # done
+    if not ex.lookalikes and not f.adequate:
+        journal.write("decision", kind="nothing better", why=ex.summary)
+        camp.status = "nothing better"
+        camp.reason = f"the model is not adequate and nothing in the catalogue explains the rest: {ex.summary}"
+        return None
+    left = _time_left(req, camp)
+    if len(camp.turns) >= req.max_trials or left <= 0:
+        why = (f"{req.max_trials} trials run (--max-trials)" if len(camp.turns) >= req.max_trials else
+               f"{camp.elapsed_s / 60:.1f} of the {req.budget_min:g} min budget spent, with a "
+               f"{req.rest_s:.0f} s rest before any next trial")
+        journal.write("decision", kind="budget", why=why)
+        camp.status, camp.reason = "budget", why
+        return None
     if ex.lookalikes:
         pair = ex.lookalikes[0]["effects"]
         try:
-            d = design(ex, req.config)
+            d = design(ex, req.config, max_duration_s=left)
         except RigError as exc:
             journal.write("decision", kind="nothing better", why=str(exc))
             camp.status = "nothing better"
@@ -305,11 +327,6 @@ def _decide(req: Request, f: FitResult, ex: Explanation, turn: Turn, journal: Jo
         miss = (d.best.separation_N or 0) / d.noise_N
         return d.yaml, (f"separate {pair[0]} from {pair[1]}: {d.best.name} (the wrong model would still miss "
                         f"it by {miss:.1f}x the noise)")
-    if not f.adequate:
-        journal.write("decision", kind="nothing better", why=ex.summary)
-        camp.status = "nothing better"
-        camp.reason = f"the model is not adequate and nothing in the catalogue explains the rest: {ex.summary}"
-        return None
     return _inform_or_stop(req, f, turn, journal, camp)
 
 
@@ -322,11 +339,11 @@ def _inform_or_stop(req: Request, f: FitResult, turn: Turn, journal: Journal,
         camp.reason = (f"the model is adequate and every parameter is determined to {100 * req.target_rse:g} % "
                        f"(largest: {turn.worst}, {100 * turn.max_rse:.2f} %)")
         return None
-    best = _most_informative(req, f, journal)
+    best = _most_informative(req, f, journal, _time_left(req, camp))
     if best is None:
         camp.status = "nothing better"
-        camp.reason = (f"no protocol within the limits brings {turn.worst} ({100 * turn.max_rse:.1f} %) "
-                       f"below {100 * INFORMATION_GAIN:g} % of its error")
+        camp.reason = (f"no protocol within the limits and the budget left brings {turn.worst} "
+                       f"({100 * turn.max_rse:.1f} %) below {100 * INFORMATION_GAIN:g} % of its error")
         return None
     c, after = best
     text = protocol_text(c, f"inform {turn.worst}: {c.name}", req.config.limits.max_force_N,
@@ -336,10 +353,12 @@ def _inform_or_stop(req: Request, f: FitResult, turn: Turn, journal: Journal,
                   f"to {100 * after:.1f} % with {c.name}")
 
 
-def _most_informative(req: Request, f: FitResult, journal: Journal) -> tuple[Candidate, float] | None:
+def _most_informative(req: Request, f: FitResult, journal: Journal,
+                      max_duration_s: float = math.inf) -> tuple[Candidate, float] | None:
     """The candidate protocol after which the largest relative standard error is smallest, from
     the fit's covariance and the candidate's Fisher information at the fitted values (white noise
-    of the fit's level, discounted by the fit's own effective share of independent samples)."""
+    of the fit's level, discounted by the fit's own effective share of independent samples),
+    among those that fit in `max_duration_s` of specimen time."""
     if f.covariance is None:
         return None
     names = f.model.param_names
@@ -361,7 +380,9 @@ def _most_informative(req: Request, f: FitResult, journal: Journal) -> tuple[Can
     for c in rig_candidates(shape_of(f.trials), req.config):
         m = c.trial.motion
         pred = f.model.predict(f.values, m)
-        why = inadmissible(c, float(np.max(pred)), req.config)
+        duration = float(m.t_s[-1])
+        why = (f"{c.name}: {duration:.0f} s, over the {max_duration_s:.0f} s the budget leaves"
+               if duration > max_duration_s else inadmissible(c, float(np.max(pred)), req.config))
         if why:
             refused.append(why)
             continue

@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from pathlib import Path
@@ -25,7 +26,7 @@ from rig.analysis.explain import auto, explain
 from rig.analysis.fit import fit
 from rig.models.catalogue import build_model
 from rig.records import ReadOptions
-from rig.service.characterize import Request, _rse, _tissue_params, characterize
+from rig.service.characterize import REST_S, Request, _rse, _tissue_params, characterize
 from rig.specs.config import parse_config
 from tests.conftest import PROTOCOLS, per_seed, run_sim
 
@@ -45,17 +46,28 @@ def _config(effect: str, seed: int):
     return parse_config(f"sim:\n  seed: {100 * seed}\n  effects:\n    {HIDDEN[effect][0]}\n")
 
 
-def _campaign(seed: int, effect: str, out: str) -> dict:
+def _errors(f, effect: str) -> dict:
+    """Each true parameter's error relative to its truth (inf where the model lacks it)."""
+    truth = {**TISSUE, **HIDDEN[effect][1]}
+    return {k: abs(f.values[k] - v) / abs(v) if k in f.values else math.inf for k, v in truth.items()}
+
+
+def _campaign(seed: int, effect: str, out: str, max_trials: int | None = None,
+              budget_min: float | None = None) -> dict:
     t0 = time.perf_counter()
+    more = {"max_trials": max_trials} if max_trials else {}
+    if budget_min:
+        more["budget_min"] = budget_min
     camp = characterize(Request(f"{effect}-{seed}", _config(effect, seed), Path(out) / f"{effect}{seed}",
-                                speed=0, say=lambda _: None))
+                                speed=0, say=lambda _: None, **more))
     f = camp.final
     truth = {**TISSUE, **HIDDEN[effect][1]}
     z = {k: (f.values[k] - v) / f.stderr[k] for k, v in truth.items() if k in f.values and f.stderr.get(k)}
     return {"seed": seed, "effect": effect, "status": camp.status, "trials": len(camp.turns),
             "minutes": camp.elapsed_s / 60, "wall_s": time.perf_counter() - t0, "model": f.model.effect_names,
             "found": effect in f.model.effect_names, "z": z, "missing": [k for k in truth if k not in z],
-            "max_rse": max(_rse(f, k) for k in _tissue_params(f))}
+            "max_rse": max(_rse(f, k) for k in _tissue_params(f)), "errors": _errors(f, effect),
+            "protocols": [t.protocol for t in camp.turns]}
 
 
 @pytest.mark.parametrize("effect", sorted(HIDDEN))
@@ -74,27 +86,46 @@ def test_the_campaign_finds_the_hidden_effect_and_its_parameters(effect, tmp_pat
 
 
 def _paper_set(seed: int, effect: str, out: str) -> dict:
-    cfg = _config(effect, seed)
-    logs = []
-    for k, name in enumerate(("paper-0.75mm_s.yaml", "paper-1.5mm_s.yaml", "paper-3mm_s.yaml")):
-        from dataclasses import replace
+    from dataclasses import replace
 
-        c = replace(cfg, sim=replace(cfg.sim, seed=cfg.sim.seed + k))
-        logs.append(str(run_sim(PROTOCOLS / name, c, Path(out), name=f"{effect}{seed}-{k}.mcap").log_path))
+    cfg = _config(effect, seed)
+    logs, seconds = [], 0.0
+    for k, name in enumerate(("paper-0.75mm_s.yaml", "paper-1.5mm_s.yaml", "paper-3mm_s.yaml")):
+        c = replace(cfg, sim=replace(cfg.sim, seed=cfg.sim.seed + k))  # the campaign's seeds, trial by trial
+        result = run_sim(PROTOCOLS / name, c, Path(out), name=f"{effect}{seed}-{k}.mcap")
+        logs.append(str(result.log_path))
+        seconds += result.duration_s
     inp = load_inputs(logs, [], [], ReadOptions())
     steps = auto(fit(build_model("proposed"), inp.trials), inp.registry)
     f = steps[-1]["fit"]
     explain(f, inp.registry)
-    minutes = sum(t.motion.t_s[-1] for t in inp.trials) / 60 + 2.0  # two 60 s rests
+    minutes = seconds / 60 + 2 * REST_S / 60  # the campaign's rests between its trials
     return {"max_rse": max(_rse(f, k) for k in _tissue_params(f)), "minutes": minutes,
-            "found": effect in f.model.effect_names}
+            "found": effect in f.model.effect_names, "errors": _errors(f, effect),
+            "model": f.model.effect_names}
+
+
+def _worst(errors: dict) -> float:
+    return max(errors.values())
 
 
 @pytest.mark.parametrize("effect", ["drift", "compliance"])
 def test_against_the_papers_fixed_set(effect, tmp_path):
-    paper = per_seed(_paper_set, SEEDS, effect, str(tmp_path))
-    camp = per_seed(_campaign, SEEDS, effect, str(tmp_path))
+    """Given the paper's three trials' specimen time (rests included) and no more trials, the
+    campaign's largest relative standard error and its largest actual error, seed by seed."""
+    paper = per_seed(_paper_set, SEEDS, effect, str(tmp_path / "paper"))
+    budget = max(p["minutes"] for p in paper)
+    camp = per_seed(_campaign, SEEDS, effect, str(tmp_path / "campaign"), 3, budget)
+    wins_se = wins_err = 0
     for p, c in zip(paper, camp, strict=True):
-        print(f"\n{effect} seed {c['seed']}: paper set 3 trials, {p['minutes']:.1f} min, largest relative "
-              f"error {100 * p['max_rse']:.1f} % (effect found: {p['found']}); campaign {c['trials']} trials, "
-              f"{c['minutes']:.1f} min, {100 * c['max_rse']:.1f} % (found: {c['found']})")
+        wins_se += c["max_rse"] <= p["max_rse"]
+        wins_err += _worst(c["errors"]) <= _worst(p["errors"])
+        print(f"\n{effect} seed {c['seed']}: paper set 3 trials, {p['minutes']:.1f} min, "
+              f"{'+'.join(p['model'])}: largest relative SE {100 * p['max_rse']:.1f} %, largest error "
+              f"{100 * _worst(p['errors']):.1f} %\n    campaign {c['trials']} trials, {c['minutes']:.1f} min, "
+              f"{'+'.join(c['model'])}: largest relative SE {100 * c['max_rse']:.1f} %, largest error "
+              f"{100 * _worst(c['errors']):.1f} %  [{c['status']}; {' | '.join(c['protocols'])}]")
+    print(f"{effect}: campaign's SE at most the paper set's in {wins_se} of {len(camp)} seeds, its largest "
+          f"error in {wins_err}; budget {budget:.1f} min")
+    assert all(c["trials"] <= 3 and c["minutes"] <= budget + 1e-6 for c in camp)
+    assert wins_se >= len(camp) - 1 and wins_err >= len(camp) - 1
