@@ -60,6 +60,7 @@ STATUS_HZ = 10.0  # DESIGN.md: status and alarm read at about 10 Hz, whatever th
 
 def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: str = "none",
                load: int = 0, realtime: str = "auto") -> dict:
+    from rig.recording.logs import read_log
     from rig.service.run import RunOptions, run_trial
 
     config = RigConfig()
@@ -84,7 +85,7 @@ def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: s
         replay = bench_replay(log)
         meta, health = read_log_meta(log)
         scheduling = meta.get("realtime", "")
-        machine = _machine_stalls(probe, log, trial[0].started_s if trial else None,
+        machine = _machine_stalls(probe, read_log(log).samples, trial[0].started_s if trial else None,
                                   config.loop.late_tolerance_ms)
     return {
         "load_processes": load,
@@ -108,13 +109,11 @@ def bench_loop(duration_s: float, rate_Hz: float, progress: bool = True, wire: s
     }
 
 
-def _machine_stalls(probe: StallProbe, log: Path, t0: float | None, late_tolerance_ms: float) -> dict:
+def _machine_stalls(probe: StallProbe, samples: dict, t0: float | None, late_tolerance_ms: float) -> dict:
     """The probe's stalls over the run, and how many of the run's troubled ticks (late, or after
     skipped ones) came right after one of at least half the late tolerance: the machine's, then,
-    not the rig's. `t0`: the trial's first slot on the monotonic clock."""
-    from rig.recording.logs import read_log
-
-    samples = read_log(log).samples
+    not the rig's. `samples`: the log's t_s and late_ms; `t0`: the trial's first slot on the
+    monotonic clock."""
     t = np.asarray(samples["t_s"], dtype=float)
     gaps = np.diff(t, prepend=t[0]) if len(t) else t
     period = float(np.median(gaps[1:])) if len(gaps) > 1 else 0.0
