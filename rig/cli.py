@@ -307,6 +307,22 @@ def cmd_start(args: argparse.Namespace) -> int:
     from rig.service.client import request
     from rig.specs.yamlspec import read_text
 
+    if args.characterize:
+        req = {"cmd": "start", "specimen": args.specimen, "operator": args.operator,
+               "characterize": {"model": args.fit_model, "indenter": args.indenter,
+                                "max_trials": args.max_trials, "budget_min": args.budget_min,
+                                "target_rse": args.target_rse, "rest_s": args.rest_s}}
+        if args.protocol:
+            path = Path(args.protocol).resolve()
+            req.update(protocol_text=read_text(path, "protocol file"), protocol_path=str(path))
+        reply = _reply(request(_socket(args), req))
+        for w in reply.get("warnings") or []:
+            print(w, file=sys.stderr)
+        print(f"characterizing specimen {reply['characterize']}; logs and journal in {reply['out']} "
+              "(rig watch follows it, rig stop ends it)")
+        return 0
+    if not args.protocol:
+        raise RigError("rig start: give a protocol file (or --characterize for a campaign)")
     path = Path(args.protocol).resolve()
     text = read_text(path, "protocol file")
     req = {"cmd": "start", "protocol_text": text, "protocol_path": str(path), "specimen": args.specimen,
@@ -356,7 +372,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
         if msg.get("end"):
             watcher.finish(msg.get("last"))
             return 0
-        watcher.update(msg["snapshot"], msg.get("trial", {}))
+        watcher.update(msg.get("snapshot"), msg.get("trial", {}), msg.get("campaign"))
     return 0
 
 
@@ -696,12 +712,27 @@ def build_parser() -> argparse.ArgumentParser:
         c.set_defaults(func=func)
         return c
 
-    r = client("start", "start a protocol on the daemon", cmd_start)
-    r.add_argument("protocol", help="protocol file (YAML)")
+    r = client("start", "start a protocol on the daemon (or, with --characterize, a campaign)", cmd_start)
+    r.add_argument("protocol", nargs="?",
+                   help="protocol file (YAML); with --characterize, the campaign's first trial (default: "
+                        "an exploratory ramp-hold inside the limits)")
     r.add_argument("--specimen", default="specimen")
     r.add_argument("--operator", default="", help="default: your user name")
     r.add_argument("--notes", default="")
     r.add_argument("--model", metavar="MODEL.json", help="run this saved model in the loop")
+    g = r.add_argument_group("campaign (rig characterize on the daemon; rig watch shows it, rig stop ends it)")
+    g.add_argument("--characterize", action="store_true",
+                   help="run, fit, diagnose and design trials until the model is right")
+    g.add_argument("--fit-model", default="proposed",
+                   help="the model the campaign starts from (default: proposed)")
+    g.add_argument("--indenter", help="the probe's geometry, for a modulus in Pa (e.g. sphere:R=2mm)")
+    g.add_argument("--max-trials", type=int, default=6, help="at most this many trials (default 6)")
+    g.add_argument("--budget-min", type=float, default=30.0,
+                   help="specimen time for trials and rests, minutes (default 30)")
+    g.add_argument("--target-rse", type=float, default=0.05,
+                   help="every parameter's relative standard error at most this (default 0.05)")
+    g.add_argument("--rest-s", type=float, default=60.0,
+                   help="rest between trials for the specimen to recover, s (default 60)")
     r = client("stop", "stop the running trial, then return to the start position", cmd_stop)
     r.add_argument("--hold", action="store_true", help="stop and stay where it is")
     client("estop", "emergency stop: stop the motor now, nothing else", cmd_estop)

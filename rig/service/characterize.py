@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -38,12 +39,13 @@ from rig.analysis.analyze import load_inputs
 from rig.analysis.design import Candidate, design, inadmissible, protocol_text, rig_candidates, shape_of
 from rig.analysis.explain import Explanation, auto, explain
 from rig.analysis.fit import FitResult, fit
+from rig.control.trial import TrialResult
 from rig.errors import RigError
 from rig.models.catalogue import build_model
 from rig.records import ReadOptions
 from rig.service.run import RunOptions, run_trial
 from rig.specs.config import RigConfig
-from rig.specs.protocol import check_limits, parse_protocol, plan
+from rig.specs.protocol import Protocol, check_limits, parse_protocol, plan
 
 TARGET_RSE = 0.05
 MAX_TRIALS = 6
@@ -103,6 +105,7 @@ class Request:
     model: str = "proposed"
     indenter: str | None = None
     first: str | None = None  # protocol file of the first trial; None: exploratory
+    first_text: str | None = None  # or its text (the daemon receives the file's contents)
     max_trials: int = MAX_TRIALS
     budget_min: float = BUDGET_MIN
     target_rse: float = TARGET_RSE
@@ -112,6 +115,10 @@ class Request:
     say: Callable[[str], None] = print
     # more RunOptions for trial n (on_start, on_tick: a watcher, a stop button)
     trial_options: Callable[[int], dict] | None = None
+    # runs trial n on devices someone else holds (the daemon's): (protocol, n, log path) -> result
+    runner: Callable[[Protocol, int, Path], TrialResult] | None = None
+    stop: threading.Event | None = None  # set: no further trial (a rest in progress ends at once)
+    on_event: Callable[[str, dict], None] | None = None  # each journal event as written (a live view)
     warned: set[str] = field(default_factory=set)
 
 
@@ -150,14 +157,17 @@ def exploratory(config: RigConfig) -> str:
 class Journal:
     """JSON lines, one per event, flushed as written (a stopped campaign keeps all of it)."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, on_event: Callable[[str, dict], None] | None = None) -> None:
         self.path = path
+        self.on_event = on_event
         path.parent.mkdir(parents=True, exist_ok=True)
         self._fh = open(path, "a", encoding="utf-8")  # noqa: SIM115 - held for the campaign
 
     def write(self, event: str, **data) -> None:
         self._fh.write(json.dumps({"t": time.time(), "event": event, **data}, default=_plain) + "\n")
         self._fh.flush()
+        if self.on_event is not None:
+            self.on_event(event, data)
 
     def close(self) -> None:
         self._fh.close()
@@ -175,10 +185,10 @@ def characterize(req: Request) -> Campaign:
     camp = Campaign(req.specimen)
     stamp = time.strftime("%Y%m%d-%H%M%S")
     camp.journal = req.out_dir / f"characterize-{req.specimen}-{stamp}.jsonl"
-    journal = Journal(camp.journal)
-    journal.write("start", specimen=req.specimen, model=req.model, indenter=req.indenter,
-                  target_rse=req.target_rse, max_trials=req.max_trials, budget_min=req.budget_min,
-                  limits=vars(req.config.limits))
+    journal = Journal(camp.journal, req.on_event)
+    journal.write("start", journal=str(camp.journal), specimen=req.specimen, model=req.model,
+                  indenter=req.indenter, target_rse=req.target_rse, max_trials=req.max_trials,
+                  budget_min=req.budget_min, limits=vars(req.config.limits))
     try:
         _run(req, camp, journal)
     finally:
@@ -188,8 +198,9 @@ def characterize(req: Request) -> Campaign:
 
 
 def _run(req: Request, camp: Campaign, journal: Journal) -> None:
-    text = Path(req.first).read_text() if req.first else exploratory(req.config)
-    why = f"given ({req.first})" if req.first else "exploratory: the first look inside the rig's limits"
+    text = req.first_text or (Path(req.first).read_text() if req.first else exploratory(req.config))
+    why = (f"given ({req.first or 'with the request'})" if req.first or req.first_text else
+           "exploratory: the first look inside the rig's limits")
     logs: list[str] = []
     model_name, extra = req.model, []
     last: FitResult | None = None
@@ -207,13 +218,20 @@ def _run(req: Request, camp: Campaign, journal: Journal) -> None:
             camp.reason = (f"the next trial ({duration:.0f} s after a {rest:.0f} s rest) would pass the "
                            f"{req.budget_min:g} min budget")
             break
+        if rest and req.speed:  # the specimen recovers before the next trial
+            if req.stop is not None:
+                req.stop.wait(rest / req.speed)
+            else:
+                time.sleep(rest / req.speed)
+        if req.stop is not None and req.stop.is_set():
+            camp.status, camp.reason = "stopped", f"stopped on request after {len(camp.turns)} trials"
+            journal.write("decision", kind="stopped", why=camp.reason)
+            break
+        camp.elapsed_s += rest
         turn = Turn(proto.name, why)
         camp.turns.append(turn)
         journal.write("trial", n=len(camp.turns), protocol=proto.name, why=why, yaml=text, duration_s=duration)
         req.say(f"trial {len(camp.turns)}: {proto.name} ({duration:.0f} s): {why}")
-        if rest and req.speed:
-            time.sleep(rest / req.speed)
-        camp.elapsed_s += rest
         result = _one_trial(req, proto, len(camp.turns))
         camp.elapsed_s += result.duration_s
         turn.log, turn.outcome = str(result.log_path), result.outcome
@@ -243,6 +261,8 @@ def _one_trial(req: Request, proto, n: int):
 
         config = replace(config, sim=replace(config.sim, seed=config.sim.seed + n - 1))
     log = req.out_dir / f"{req.specimen}-trial{n}.mcap"
+    if req.runner is not None:
+        return req.runner(proto, n, log)
     more = req.trial_options(n) if req.trial_options else {}
     return run_trial(proto, config, RunOptions(specimen=req.specimen, speed=req.speed, progress=False,
                                                log_path=log, notes=f"characterize trial {n}", **more),

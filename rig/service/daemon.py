@@ -86,6 +86,9 @@ class Daemon:
                                     max_request_bytes=config.daemon.max_request_bytes, say=self.say)
         self.watchdog: Watchdog | None = None
         self.live = None  # rig.service.live.LiveView when daemon.live is configured
+        self.campaign: dict = {}  # the campaign running (rig start --characterize), its last word
+        self.campaign_thread: threading.Thread | None = None
+        self.campaign_stop: threading.Event | None = None
 
     def say(self, msg: str) -> None:
         print(f"rigd: {msg}", file=self.log, flush=True)
@@ -137,7 +140,13 @@ class Daemon:
             self.say(f"left {path} alone: another process is writing it")
 
     def _busy(self) -> bool:
+        return self._trial_running() or self._campaign_running()
+
+    def _trial_running(self) -> bool:
         return self.trial is not None and self.trial_thread is not None and self.trial_thread.is_alive()
+
+    def _campaign_running(self) -> bool:
+        return self.campaign_thread is not None and self.campaign_thread.is_alive()
 
     def _healthy(self) -> bool:
         t = self.trial
@@ -156,10 +165,14 @@ class Daemon:
     def shutdown(self) -> None:
         notify("STOPPING=1")
         t = self.trial
-        if self._busy():
+        if self.campaign_stop is not None:
+            self.campaign_stop.set()
+        if self._trial_running():
             self.say("stopping the running trial before shutting down")
             t.request_stop(StopMode.ABORT, user="rigd shutdown")
             self.trial_thread.join(120.0)
+        if self._campaign_running():
+            self.campaign_thread.join(120.0)
         if self.watchdog:
             self.watchdog.stop()
         self.server.close()
@@ -191,9 +204,13 @@ class Daemon:
 
     def cmd_status(self, req: dict, user: str, received: float) -> dict:
         t = self.trial
-        running = self._busy()
+        running = self._trial_running()
         out: dict = {"ok": True, "state": "running" if running else "idle", "last": self.last,
                      "recovered": self.recovered}
+        if self.campaign:
+            out["campaign"] = dict(self.campaign)
+            if self._campaign_running() and not running:
+                out["state"] = "characterizing"
         if running:
             snap = t.snapshot
             # the log's name as the recorder took it (another run may have had the one planned)
@@ -223,16 +240,25 @@ class Daemon:
     def cmd_logs(self, req: dict, user: str, received: float) -> dict:
         return {"ok": True, "trials": [e.as_dict() for e in list_trials(self.out_dir)]}
 
+    def _refuse_if_busy(self) -> None:
+        if self._campaign_running():
+            c = self.campaign
+            raise RequestError(f"busy: characterizing specimen {c['specimen']} (started by {c['user']} at "
+                               f"{c['started']}; {c['phase']}); `rig stop` ends it")
+        if self._trial_running():
+            m = self.trial_meta
+            raise RequestError(f"busy: trial '{m['protocol']}' (specimen {m['specimen']}, started "
+                               f"by {m['user']} at {m['started']}) is running; log {m['log']}")
+
     def cmd_start(self, req: dict, user: str, received: float) -> dict:
+        if req.get("characterize") is not None:
+            return self._start_campaign(req, user)
         text = req.get("protocol_text")
         if not isinstance(text, str) or not text.strip():
             raise RequestError('start needs "protocol_text" (the protocol file\'s contents)')
         path = str(req.get("protocol_path") or "<protocol>")
         with self.state_lock:
-            if self._busy():
-                m = self.trial_meta
-                raise RequestError(f"busy: trial '{m['protocol']}' (specimen {m['specimen']}, started "
-                                   f"by {m['user']} at {m['started']}) is running; log {m['log']}")
+            self._refuse_if_busy()
             proto = parse_protocol(text, path)  # SpecError -> error reply
             # From where the slider is now: the trial's zero is there, not at 0.
             check_limits(proto, self.config, start_mm=self._read_position())  # LimitError -> error reply
@@ -240,17 +266,9 @@ class Daemon:
             operator = str(req.get("operator") or user)
             log_path = default_log_path(self.out_dir, proto, specimen)
             warnings = self.devices.warnings
-            info = TrialInfo(specimen=specimen, operator=operator, notes=str(req.get("notes") or ""),
-                             clock="real", extra={"requested_by": user, "devices": self.devices.description,
-                                                  "daemon": "rigd", "backstop": self.devices.backstop,
-                                                  "warnings": " | ".join(warnings)})
-            model = self._model(req)
-            trial = Trial(proto, self.config, self.devices.slider, self.devices.loadcell,
-                          RealClock(self.config.loop.spin_ms / 1000.0), log_path, info, model=model,
-                          zero=self.zero)
+            trial = self._new_trial(proto, specimen, operator, str(req.get("notes") or ""), user, log_path,
+                                    self._model(req))
             warnings = [*warnings, *trial.warnings]
-            trial.on_tick = self._on_tick
-            trial.live = self.live
             self.trial = trial
             self.trial_meta = {"protocol": proto.name, "specimen": specimen, "user": user,
                                "operator": operator, "log": str(log_path),
@@ -278,6 +296,124 @@ class Daemon:
             self.say(w)
         notify(f"STATUS=running '{proto.name}'")
         return {"ok": True, "log": str(log_path), "protocol": proto.name, "warnings": warnings}
+
+    # ------------------------------------------------------------------ campaigns
+    def _start_campaign(self, req: dict, user: str) -> dict:
+        """`rig start --characterize`: the campaign in a thread of its own; each of its trials runs
+        on the daemon's devices like a started one (status, watch, stop and estop reach it)."""
+        from rig.service.characterize import Request
+
+        opts = req.get("characterize")
+        if not isinstance(opts, dict):
+            raise RequestError('"characterize" must be an object of options (max_trials, budget_min, ...)')
+        specimen = str(req.get("specimen") or "specimen")
+        text = req.get("protocol_text") or None
+        if text is not None:
+            if not isinstance(text, str):
+                raise RequestError('"protocol_text" must be the protocol file\'s contents')
+            parse_protocol(text, str(req.get("protocol_path") or "<protocol>"))  # refused here, not later
+        numbers = {"max_trials": int, "budget_min": float, "target_rse": float, "rest_s": float}
+        kw = {}
+        for name, kind in numbers.items():
+            if opts.get(name) is not None:
+                try:
+                    kw[name] = kind(opts[name])
+                except (TypeError, ValueError):
+                    raise RequestError(f'characterize "{name}" must be a number, not {opts[name]!r}') from None
+                if kw[name] < 0 or (name == "max_trials" and kw[name] < 1):
+                    raise RequestError(f'characterize "{name}" must be positive, not {opts[name]!r}')
+        with self.state_lock:
+            self._refuse_if_busy()
+            self.campaign_stop = threading.Event()
+            out = self.out_dir / f"characterize-{specimen}"
+            request = Request(specimen, self.config, out, model=str(opts.get("model") or "proposed"),
+                              indenter=opts.get("indenter"), first_text=text, speed=1.0, say=self.say,
+                              runner=lambda proto, n, log: self._campaign_trial(proto, n, log, req, user),
+                              stop=self.campaign_stop, on_event=self._campaign_event, **kw)
+            self.campaign = {"specimen": specimen, "user": user, "started": time.strftime("%H:%M:%S"),
+                             "phase": "starting", "trials": 0, "status": "running", "journal": None}
+            self.campaign_thread = threading.Thread(target=self._run_campaign, args=(request,),
+                                                    name="campaign", daemon=True)
+            self.campaign_thread.start()
+        self.say(f"{user} started characterizing specimen {specimen} -> {out}")
+        notify(f"STATUS=characterizing {specimen}")
+        return {"ok": True, "characterize": specimen, "out": str(out),
+                "warnings": list(self.devices.warnings)}
+
+    def _run_campaign(self, request) -> None:
+        from rig.service.characterize import characterize
+
+        try:
+            camp = characterize(request)
+            self.campaign.update(status=camp.status, reason=camp.reason, phase=f"ended: {camp.status}",
+                                 journal=str(camp.journal))
+            self.say(f"campaign {camp.status}: {camp.reason}; journal {camp.journal}")
+            self.last = {**(self.last or {}), "campaign": camp.summary()}
+        except BaseException as exc:  # noqa: BLE001 - the daemon must outlive a failed campaign
+            self.campaign.update(status="error", reason=f"{type(exc).__name__}: {exc}", phase="ended: error")
+            self.say(f"campaign failed: {exc}")
+        finally:
+            notify("STATUS=idle")
+
+    def _campaign_event(self, event: str, data: dict) -> None:
+        """Each journal event: the campaign's phase for status and watch, and the live view's
+        event channel (the decisions beside the trial's samples)."""
+        phase = {"trial": lambda: f"trial {data.get('n')}: {data.get('protocol')} ({data.get('why')})",
+                 "fit": lambda: f"fitted {data.get('trials')} trials: {data.get('model')}"
+                                f"{'' if data.get('adequate') else ' (not adequate)'}",
+                 "decision": lambda: f"decided: {data.get('kind')}"}.get(event)
+        if phase is not None:
+            self.campaign["phase"] = phase()
+        if event == "trial":
+            self.campaign["trials"] = data.get("n", 0)
+        if event == "start":
+            self.campaign["journal"] = data.get("journal")
+        if self.live is not None and event != "start":
+            from rig.recording.messages import EVENT
+
+            text = self.campaign["phase"] if phase is not None else event
+            self.live.put(EVENT.topic, time.time_ns(),
+                          EVENT.record(t_s=0.0, kind=f"characterize {event}", message=text,
+                                       data={k: v for k, v in data.items() if k != "yaml"}))
+
+    def _campaign_trial(self, proto, n: int, log_path: Path, req: dict, user: str) -> TrialResult:
+        """One trial of the campaign, on this thread, with the devices held for its whole length."""
+        specimen = self.campaign["specimen"]
+        with self.state_lock:
+            check_limits(proto, self.config, start_mm=self._read_position())
+            trial = self._new_trial(proto, specimen, str(req.get("operator") or user),
+                                    f"characterize trial {n}", user, log_path, None)
+            self.trial_meta = {"protocol": proto.name, "specimen": specimen, "user": user,
+                               "operator": str(req.get("operator") or user), "log": str(log_path),
+                               "started": time.strftime("%H:%M:%S"), "campaign": f"characterize trial {n}"}
+            self.trial = trial
+            self.trial_thread = threading.current_thread()
+            self.beat = time.monotonic()
+            self.dev_lock.acquire()
+        try:
+            result = trial.run()
+            self.zero = trial.zero or self.zero
+            self.last = {"outcome": result.outcome, "log": str(result.log_path), "samples": result.samples,
+                         "duration_s": round(result.duration_s, 3), "fault": result.fault,
+                         **{k: self.trial_meta[k] for k in ("protocol", "specimen", "user")}}
+            self.say(f"campaign trial {n} {result.outcome}: {result.samples} samples -> {result.log_path}")
+            return result
+        finally:
+            with self.state_lock:
+                self.trial_thread = None
+            self.dev_lock.release()
+
+    def _new_trial(self, proto, specimen: str, operator: str, notes: str, user: str, log_path: Path,
+                   model) -> Trial:
+        info = TrialInfo(specimen=specimen, operator=operator, notes=notes, clock="real",
+                         extra={"requested_by": user, "devices": self.devices.description, "daemon": "rigd",
+                                "backstop": self.devices.backstop,
+                                "warnings": " | ".join(self.devices.warnings)})
+        trial = Trial(proto, self.config, self.devices.slider, self.devices.loadcell,
+                      RealClock(self.config.loop.spin_ms / 1000.0), log_path, info, model=model, zero=self.zero)
+        trial.on_tick = self._on_tick
+        trial.live = self.live
+        return trial
 
     def _model(self, req: dict):
         """The model sent with the request ("model_text"), else the config's `model:`."""
@@ -332,7 +468,7 @@ class Daemon:
             notify("STATUS=idle")
 
     def _running_trial(self) -> Trial:
-        if not self._busy():
+        if not self._trial_running():
             raise RequestError("no trial is running")
         return self.trial
 
@@ -340,6 +476,13 @@ class Daemon:
         mode = req.get("mode", "abort")
         if mode not in ("abort", "hold"):
             raise RequestError('stop "mode" must be "abort" (stop, then return) or "hold" (stop and stay)')
+        campaign = self._campaign_running()
+        if campaign:
+            self.campaign_stop.set()
+            if not self._trial_running():
+                self.say(f"{user} stopped the campaign between trials")
+                return {"ok": True, "mode": mode, "message": "the campaign ends before its next trial (no "
+                        "trial was running; the probe is where the last trial left it)"}
         ticket = self._running_trial().request_stop(StopMode(mode), user=user, received_s=received)
         self.say(f"{user} requested stop ({mode})")
         if ticket.trial_over:
@@ -357,13 +500,15 @@ class Daemon:
 
     def cmd_estop(self, req: dict, user: str, received: float) -> dict:
         self.say(f"{user} requested an emergency stop")
+        if self.campaign_stop is not None:
+            self.campaign_stop.set()  # no further trial of a campaign
         # A trial owns the bus from its thread's start to its end: ask it (it sends at once when
         # its loop is not ticking); otherwise take the idle devices. Re-checked until one of the
         # two answers, so an estop that meets a trial starting or ending is never turned away.
         deadline = time.monotonic() + 1.0
         while True:
             t = self.trial
-            if self._busy():
+            if self._trial_running():
                 ticket = t.request_stop(StopMode.ESTOP, user=user, received_s=received)
                 if not ticket.trial_over:
                     return self._stop_reply(ticket, "estop")
@@ -384,7 +529,7 @@ class Daemon:
 
     def cmd_reset_alarm(self, req: dict, user: str, received: float) -> dict:
         if self._busy():
-            raise RequestError("reset_alarm: a trial is running; stop it first")
+            raise RequestError("reset_alarm: a trial or a campaign is running; stop it first")
         with self._idle_devices("reset_alarm: the devices stayed busy for 1 s") as dev:
             before = dev.slider.status().value.alarm_code
             dev.slider.reset_alarm()
@@ -398,9 +543,13 @@ class Daemon:
     def cmd_watch(self, conn: socket.socket, req: dict) -> bool:
         rate = float(req.get("rate_Hz") or self.config.daemon.watch_rate_Hz)
         period = 1.0 / min(max(rate, 0.5), 100.0)
-        t = self.trial
         while self._busy():
-            if not send(conn, {"ok": True, "snapshot": asdict(t.snapshot), "trial": self.trial_meta}):
+            t = self.trial
+            msg = {"ok": True, "snapshot": asdict(t.snapshot) if t is not None else None,
+                   "trial": self.trial_meta}
+            if self._campaign_running():
+                msg["campaign"] = dict(self.campaign)
+            if not send(conn, msg):
                 return False
             time.sleep(period)
         send(conn, {"ok": True, "end": True, "last": self.last})

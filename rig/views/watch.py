@@ -21,6 +21,10 @@ def format_status(reply: dict) -> str:
     state = reply["state"]
     snap = reply.get("snapshot") or {}
     lines = [f"state     {state}"]
+    camp = reply.get("campaign")
+    if camp:
+        lines.append(f"campaign  specimen {camp.get('specimen')} (started {camp.get('started')} by "
+                     f"{camp.get('user')}): {camp.get('phase')}; {camp.get('trials', 0)} trials")
     if state in ("running", "fault"):
         t = reply.get("trial", {})
         lines += [
@@ -62,10 +66,15 @@ class Watcher:
         self.pos: deque[float] = deque(maxlen=trend)
         self._drawn = 0
 
-    def update(self, snap: dict, trial: dict) -> None:
+    def update(self, snap: dict | None, trial: dict, campaign: dict | None = None) -> None:
+        head = [f"characterize {campaign['specimen']}: {campaign['phase']}"] if campaign else []
+        if snap is None:  # a campaign before its first trial
+            self._draw(head or ["waiting for the first trial"])
+            return
         self.force.append(snap["force_N"])
         self.pos.append(snap["position_mm"])
         block = [
+            *head,
             f"{trial.get('protocol', '')}  specimen {trial.get('specimen', '')}  "
             f"t = {snap['t_s']:6.1f} s  step {snap['step'] + 1}/{snap['steps_total']} {snap['step_kind']:<8}"
             f" ~{snap['time_left_s']:.0f} s left",
@@ -75,8 +84,11 @@ class Watcher:
             + (f"   FAULT {snap['fault']}" if snap.get("fault") else ""),
         ]
         if snap.get("force_model_N") is not None:
-            block.insert(2, f"  model    {snap['force_model_N']:8.3f} N   error "
-                            f"{snap['force_N'] - snap['force_model_N']:+.3f} N")
+            block.insert(len(head) + 2, f"  model    {snap['force_model_N']:8.3f} N   error "
+                                        f"{snap['force_N'] - snap['force_model_N']:+.3f} N")
+        self._draw(block)
+
+    def _draw(self, block: list[str]) -> None:
         if self.tty and self._drawn:
             self.out.write(f"\x1b[{self._drawn}F")
         text = "\n".join(line + ("\x1b[K" if self.tty else "") for line in block) + "\n"
@@ -85,6 +97,10 @@ class Watcher:
         self._drawn = len(block)
 
     def finish(self, last: dict | None) -> None:
+        camp = (last or {}).get("campaign")
+        if camp:
+            self.out.write(f"campaign {camp.get('status')}: {camp.get('reason', '')}; "
+                           f"journal {camp.get('journal')}\n")
         if last:
             self.out.write(f"trial {last.get('outcome')}: {last.get('samples', '?')} samples -> "
                            f"{last.get('log', '')}\n")
