@@ -50,7 +50,7 @@ def test_late_and_skipped_over_ticks_are_laid_against_the_stalls():
     assert _machine_stalls(probe, {"t_s": t, "late_ms": late}, t0, 5.0)["troubled_at_stall"] == 0
 
 
-def test_the_report_says_which_late_ticks_the_machine_caused():
+def _report(machine: dict) -> dict:
     loop = {"ticks": 100, "rate_Hz": 100.0, "duration_s": 1.0, "devices": "in-process",
             "period_err_p50_ms": 0.0, "period_err_p99_ms": 0.1, "period_err_max_ms": 9.0,
             "late_ticks": 2, "missed_ticks": 0,
@@ -58,13 +58,32 @@ def test_the_report_says_which_late_ticks_the_machine_caused():
             "load_processes": 0, "outcome": "completed", "wire": None,
             "replay": {"lateness_p99_ms": 0.1, "lateness_max_ms": 9.0, "samples_per_s": 1e6, "reads": 5,
                        "samples": 100, "first_read_samples_per_s": 1e6, "columns": True},
-            "machine": {"probe_realtime": True, "threshold_ms": 2.0, "troubled_ticks": 2,
-                        "troubled_at_stall": 1,
-                        "wake": {"stalls": 3, "max_ms": 11.5, "over_5ms": 1},
-                        "pty": {"stalls": 0, "max_ms": 0.0, "over_5ms": 0}}}
-    r = {"loop": loop, "rls": {"update_us": 1.0}, "model": {"step_us": {"proposed": 1.0}},
-         "record": {"put_us": 1.0, "writer_us_per_sample": 2.0, "bytes_per_sample": 30.0},
-         "baseline": {"duration_s": 1.0, "lateness_p99_ms": 0.1, "lateness_max_ms": 0.2, "over_5ms": 0}}
+            "machine": machine}
+    return {"loop": loop, "rls": {"update_us": 1.0}, "model": {"step_us": {"proposed": 1.0}},
+            "record": {"put_us": 1.0, "writer_us_per_sample": 2.0, "bytes_per_sample": 30.0},
+            "baseline": {"duration_s": 1.0, "lateness_p99_ms": 0.1, "lateness_max_ms": 0.2, "over_5ms": 0}}
+
+
+def test_the_report_says_which_late_ticks_the_machine_caused():
+    r = _report({"probe_realtime": True, "threshold_ms": 2.0, "troubled_ticks": 2, "troubled_at_stall": 1,
+                 "wake": {"stalls": 3, "max_ms": 11.5, "over_5ms": 1},
+                 "pty": {"stalls": 0, "max_ms": 0.0, "over_5ms": 0}})
     text = format_bench(r)
     assert "3 wake-ups over 2 ms late (max 11.50 ms)" in text
     assert "1 of the 2 late or skipped-over ticks came right after such a stall" in text
+
+
+def test_the_report_names_the_tty_workers_when_bytes_waited():
+    from rig.diagnostics.stalls import tty_workers
+
+    tw = tty_workers()
+    assert 0 <= tw["realtime"] <= tw["threads"]
+    machine = {"probe_realtime": True, "threshold_ms": 2.0, "troubled_ticks": 0, "troubled_at_stall": 0,
+               "wake": {"stalls": 0, "max_ms": 0.0, "over_5ms": 0},
+               "pty": {"stalls": 12, "max_ms": 21.0, "over_5ms": 4},
+               "tty_workers": {"threads": 7, "realtime": 0}}
+    r = _report(machine)
+    assert "12 pty crossings over 2 ms (max 21.00 ms)" in format_bench(r)
+    assert "tty workers run at normal priority (7 of 7 kworker/u threads)" in format_bench(r)
+    machine["tty_workers"] = {"threads": 7, "realtime": 7}
+    assert "tty workers" not in format_bench(_report(machine))

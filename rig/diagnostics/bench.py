@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from rig.control.estimator import StiffnessRLS
-from rig.diagnostics.stalls import StallProbe
+from rig.diagnostics.stalls import StallProbe, tty_workers
 from rig.recording.messages import SAMPLE
 from rig.recording.recorder import Recorder
 from rig.specs.config import RigConfig
@@ -122,7 +122,7 @@ def _machine_stalls(probe: StallProbe, samples: dict, t0: float | None, late_tol
     if t0 is not None:
         at_stall = sum(probe.near(t0 + t[i]) >= late_tolerance_ms / 2.0 for i in troubled)
     out = {"probe_realtime": probe.realtime, "threshold_ms": probe.threshold_ms,
-           "troubled_ticks": len(troubled), "troubled_at_stall": int(at_stall)}
+           "troubled_ticks": len(troubled), "troubled_at_stall": int(at_stall), "tty_workers": tty_workers()}
     for kind in ("wake", "pty"):
         ms = [m for _, m, k in probe.stalls if k == kind]
         out[kind] = {"stalls": len(ms), "max_ms": max(ms, default=0.0), "over_5ms": sum(m > 5.0 for m in ms)}
@@ -378,6 +378,12 @@ def format_bench(r: dict) -> str:
         if m["troubled_ticks"]:
             lines.append(f"          {m['troubled_at_stall']} of the {m['troubled_ticks']} late or "
                          "skipped-over ticks came right after such a stall of the machine's")
+        tw = m.get("tty_workers") or {}
+        if p["stalls"] and tw.get("threads") and tw["realtime"] < tw["threads"]:
+            slow = tw["threads"] - tw["realtime"]
+            lines.append(f"          the kernel's tty workers run at normal priority ({slow} "
+                         f"of {tw['threads']} kworker/u threads): bytes on a pty or a USB serial line wait "
+                         "behind busy processes; as root, `chrt -f -p 45 PID` for each raises them")
     if lp.get("wire"):
         w = lp["wire"]
         lines.append(f"wire      {w['wire_ms_per_tick']:.2f} ms per tick on the wire ({w['line']}; "

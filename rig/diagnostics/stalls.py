@@ -59,6 +59,27 @@ class StallProbe:
                    default=0.0)
 
 
+def tty_workers() -> dict:
+    """The kernel's unbound workers (kworker/u*), which carry every byte written to a pty or a
+    USB serial adapter to its reader: how many there are and how many run at real-time priority.
+    At normal priority (the kernel's default) the bytes wait behind any busy process."""
+    import os
+
+    threads = realtime = 0
+    for pid in os.listdir("/proc") if os.path.isdir("/proc") else []:
+        if not pid.isdigit():
+            continue
+        try:
+            with open(f"/proc/{pid}/comm") as fh:
+                if not fh.read().startswith("kworker/u"):
+                    continue
+            threads += 1
+            realtime += os.sched_getscheduler(int(pid)) in (os.SCHED_FIFO, os.SCHED_RR)
+        except OSError:  # gone meanwhile, or not ours to read
+            continue
+    return {"threads": threads, "realtime": realtime}
+
+
 def _crossing_s(src: int, dst: int, data: bytes) -> float:
     """Seconds for `data` written at one end of a pty to arrive at the other (inf: not in 1 s)."""
     import os
