@@ -42,8 +42,10 @@ class CpuLoad:
     """N processes that do nothing but burn a CPU each: a busy lab PC, made on purpose."""
 
     def __init__(self, n: int) -> None:
-        self.procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"],
-                                       stdin=subprocess.DEVNULL) for _ in range(n)]
+        # each ends by itself once the bench is gone (killed, not only closed)
+        burn = "import os\nparent = os.getppid()\nwhile os.getppid() == parent:\n    pass\n"
+        self.procs = [subprocess.Popen([sys.executable, "-c", burn], stdin=subprocess.DEVNULL)
+                      for _ in range(n)]
 
     def __enter__(self) -> CpuLoad:
         return self
