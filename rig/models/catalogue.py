@@ -39,12 +39,15 @@ def _nonlinear_damping(x, v, tau2_N_s_per_m2):
 
 
 def _relaxation(drive, dt, tau1_s):
-    return first_order_lag(drive, dt, tau1_s)
+    # floored: driven to pull (a fast unloading's damping), the tissue separates and stores no
+    # tension for the next loading to climb out of
+    return first_order_lag(drive, dt, tau1_s, floor=True)
 
 
 def _relaxation2(x, v, dt, k_m_N_per_m, tau_m_s):
-    # Maxwell element: f2 + tau df2/dt = k tau dx/dt, i.e. a lag of k tau v
-    return first_order_lag(k_m_N_per_m * tau_m_s * v, dt, tau_m_s)
+    # Maxwell element: f2 + tau df2/dt = k tau dx/dt, i.e. a lag of k tau v; floored as the
+    # main lag: the branch separates rather than pull
+    return first_order_lag(k_m_N_per_m * tau_m_s * v, dt, tau_m_s, floor=True)
 
 
 def _speed_relaxation(m: Motion, relax_rate_per_speed_1_per_mm):

@@ -8,7 +8,7 @@ effect plugs into one stage of it:
     drive      terms summed into the drive g        (elastic and damping terms)
     rate       a trial's extra lag rate             (speed_relaxation: each of the lag's
                                                      time constants tau becomes 1/(1/tau + rate))
-    lag        f + tau df/dt = g                    (relaxation; else f = g)
+    lag        f + tau df/dt = g, f >= 0            (relaxation; else f = g)
     branch     parallel branches added after it     (relaxation2, fractional_relaxation)
     clamp      the tissue cannot pull: f >= 0
     sensor     what the load cell adds              (offset, drift, friction)
@@ -410,7 +410,7 @@ class Model:
                 w = b0 * drive
                 w[1:] += b1 * drive[:-1]
                 w[held] = (b0 + b1) * drive[held]
-                f = linear_recursion(w, 1.0, 0.0, a)
+                f = floored_recursion(w, a)
             else:
                 f = e.fn(drive, m.dt_s, **self._lag_args(e, m, by_stage, args))
         if by_stage["branch"]:
@@ -437,10 +437,44 @@ def lag_coefficients(dt: float, tau: float) -> tuple[float, float, float]:
     return b0, one_minus_a - b0, 1.0 - one_minus_a
 
 
-def first_order_lag(u: np.ndarray, dt: float, tau: float) -> np.ndarray:
-    """y + tau dy/dt = u from rest, exact for u linear between samples (a linear filter)."""
+def first_order_lag(u: np.ndarray, dt: float, tau: float, floor: bool = False) -> np.ndarray:
+    """y + tau dy/dt = u from rest, exact for u linear between samples (a linear filter).
+
+    `floor`: y never goes below zero. Where it would, it stays at zero until the input alone
+    lifts it: a part of the tissue driven to pull (the damping of a fast unloading) separates
+    from the probe instead of storing tension, so a reloading starts from zero, not from a debt
+    it must first climb out of."""
     b0, b1, a = lag_coefficients(dt, tau)
-    return linear_recursion(u, b0, b1, a)
+    if not floor:
+        return linear_recursion(u, b0, b1, a)
+    u = np.asarray(u, dtype=float)
+    w = b0 * u
+    if len(u) > 1 and b1:
+        w[1:] += b1 * u[:-1]
+    return floored_recursion(w, a)
+
+
+def floored_recursion(w: np.ndarray, a: float) -> np.ndarray:
+    """y[i] = max(a y[i-1] + w[i], 0) from rest. Between two stays at zero this is the linear
+    recursion, so it is solved as one: the scan, then from the first sample it would go below
+    zero, zero until the first positive input, and the scan again from there (a few restarts
+    per trial, one per separation)."""
+    w = np.asarray(w, dtype=float)
+    y = linear_recursion(w, 1.0, 0.0, a)
+    start = 0
+    while True:
+        below = np.flatnonzero(y[start:] < 0.0)
+        if not len(below):
+            return y
+        j = start + int(below[0])
+        lift = np.flatnonzero(w[j + 1:] > 0.0)
+        if not len(lift):
+            y[j:] = 0.0
+            return y
+        k = j + 1 + int(lift[0])
+        y[j:k] = 0.0
+        y[k:] = linear_recursion(w[k:], 1.0, 0.0, a)
+        start = k
 
 
 def linear_recursion(u: np.ndarray, b0: float, b1: float, a: float) -> np.ndarray:

@@ -96,7 +96,7 @@ class OnlineModel:
             g = 0.0
         if self._lag1 is not None:
             b0, b1, a = self._lag1
-            self._f1 = a * self._f1 + b0 * g + b1 * self._g_prev
+            self._f1 = max(a * self._f1 + b0 * g + b1 * self._g_prev, 0.0)  # floored as Model.predict
             self._g_prev = g
             f = self._f1
         else:
@@ -106,7 +106,7 @@ class OnlineModel:
             f = f if f > 0.0 else 0.0
             b0, b1, a = self._lag2
             u = self._km_tau * v
-            self._f2 = a * self._f2 + b0 * u + b1 * self._u_prev
+            self._f2 = max(a * self._f2 + b0 * u + b1 * self._u_prev, 0.0)
             self._u_prev = u
             f += self._f2
         f = f if f > 0.0 else 0.0

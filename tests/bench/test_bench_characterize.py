@@ -89,6 +89,7 @@ def _paper_set(seed: int, effect: str, out: str) -> dict:
     from dataclasses import replace
 
     cfg = _config(effect, seed)
+    Path(out).mkdir(parents=True, exist_ok=True)
     logs, seconds = [], 0.0
     for k, name in enumerate(("paper-0.75mm_s.yaml", "paper-1.5mm_s.yaml", "paper-3mm_s.yaml")):
         c = replace(cfg, sim=replace(cfg.sim, seed=cfg.sim.seed + k))  # the campaign's seeds, trial by trial
@@ -129,3 +130,42 @@ def test_against_the_papers_fixed_set(effect, tmp_path):
           f"error in {wins_err}; budget {budget:.1f} min")
     assert all(c["trials"] <= 3 and c["minutes"] <= budget + 1e-6 for c in camp)
     assert wins_se >= len(camp) - 1 and wins_err >= len(camp) - 1
+
+
+ONE_RAMP = ("name: one ramp\nsteps:\n  - ramp: {to_mm: 30, speed_mm_s: 3}\n  - hold: {duration_s: 10}\n"
+            "  - return: {to_mm: 0, speed_mm_s: 5}\n")
+
+
+def _lookalike_campaign(seed: int, out: str) -> dict:
+    first = Path(out) / f"one-ramp-{seed}.yaml"
+    first.parent.mkdir(parents=True, exist_ok=True)
+    first.write_text(ONE_RAMP)
+    camp = characterize(Request(f"tie-{seed}", _config("compliance", seed), Path(out) / f"tie{seed}",
+                                first=str(first), max_trials=3, speed=0, say=lambda _: None))
+    return {"seed": seed, "status": camp.status, "turns": [(t.why, t.model, t.lookalikes) for t in camp.turns],
+            "final": camp.final.model.effect_names}
+
+
+def test_the_campaign_separates_compliance_from_stiffening_by_itself(tmp_path):
+    """One ramp at one speed leaves the frame's compliance and the cubic stiffening look-alikes;
+    the campaign designs the trial that tells them apart, runs it, and the verdict after it has
+    no look-alike left."""
+    rows = per_seed(_lookalike_campaign, SEEDS, str(tmp_path))
+    separated = tied = 0
+    for r in rows:
+        first_pairs = [set(p) for p in r["turns"][0][2]]
+        tie = {"compliance", "poly_elastic"} in first_pairs
+        tied += tie
+        designed = len(r["turns"]) > 1 and r["turns"][1][0].startswith("separate ")
+        after = [set(p) for p in r["turns"][1][2]] if len(r["turns"]) > 1 else None
+        last = r["turns"][-1][2]
+        ok = (tie and designed and {"compliance", "poly_elastic"} not in after and last == []
+              and "compliance" in r["final"])
+        separated += ok
+        print(f"\nseed {r['seed']}: first trial look-alikes {first_pairs}; second trial: "
+              f"{r['turns'][1][0] if len(r['turns']) > 1 else '-'}; look-alikes after it {after}; "
+              f"final {'+'.join(r['final'])} after {len(r['turns'])} trials ({r['status']}), look-alikes "
+              f"{last}; {'OK' if ok else 'MISS'}")
+    print(f"tied after the first trial in {tied} of {len(rows)} seeds; separated by the campaign in "
+          f"{separated}")
+    assert tied >= len(rows) - 1 and separated == tied
