@@ -84,10 +84,12 @@ def _integrate(effect: str, p: dict, speed_m_s: float, t_s: np.ndarray) -> np.nd
             drive += p["b_N_s_per_m_n1"] * xi ** p["n"] * vi
         if not contact:
             drive = 0.0
-        f1 = drive + (state["f1"] - drive) * a1
+        # neither the lag nor the branch stores tension: driven to pull, the tissue separates
+        # (as the simulated tissue does)
+        f1 = max(drive + (state["f1"] - drive) * a1, 0.0)
         f2 = state["f2"]
         if "k_m_N_per_m" in p:  # Maxwell branch: f2' = k v - f2 / tau
-            f2 += h * (p["k_m_N_per_m"] * vi - f2 / p["tau_m_s"])
+            f2 = max(f2 + h * (p["k_m_N_per_m"] * vi - f2 / p["tau_m_s"]), 0.0)
         return f1, f2, max(f1 + f2, 0.0)
 
     history: list[tuple[float, float]] = []

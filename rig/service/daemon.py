@@ -529,7 +529,8 @@ class Daemon:
 
     def cmd_reset_alarm(self, req: dict, user: str, received: float) -> dict:
         if self._busy():
-            raise RequestError("reset_alarm: a trial or a campaign is running; stop it first")
+            raise RequestError("reset_alarm: " + ("a trial is running" if self._trial_running() else
+                                                  "a campaign is running (between trials)") + "; stop it first")
         with self._idle_devices("reset_alarm: the devices stayed busy for 1 s") as dev:
             before = dev.slider.status().value.alarm_code
             dev.slider.reset_alarm()
