@@ -584,6 +584,18 @@ def _rig_config(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="rig config (YAML); default: the built-in simulated rig")
 
 
+def _campaign_options(p) -> None:
+    """The options a campaign takes, for `rig characterize` and `rig start --characterize`."""
+    p.add_argument("--indenter", help="the probe's geometry, for a modulus in Pa (e.g. sphere:R=2mm)")
+    p.add_argument("--max-trials", type=int, default=6, help="at most this many trials (default 6)")
+    p.add_argument("--budget-min", type=float, default=30.0,
+                   help="specimen time for trials and rests, minutes (default 30)")
+    p.add_argument("--target-rse", type=float, default=0.05,
+                   help="every parameter's relative standard error at most this (default 0.05)")
+    p.add_argument("--rest-s", type=float, default=60.0,
+                   help="rest between trials for the specimen to recover, s (default 60)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from rig.sim.afm_map import add_map_parser
 
@@ -622,15 +634,8 @@ def build_parser() -> argparse.ArgumentParser:
     _rig_config(r)
     r.add_argument("--specimen", required=True, help="specimen ID (the logs and the journal carry it)")
     r.add_argument("--model", default="proposed", help="the model to start from (default: proposed)")
-    r.add_argument("--indenter", help="the probe's geometry, for a modulus in Pa (e.g. sphere:R=2mm)")
     r.add_argument("--protocol", help="the first trial (default: an exploratory ramp-hold inside the limits)")
-    r.add_argument("--max-trials", type=int, default=6, help="at most this many trials (default 6)")
-    r.add_argument("--budget-min", type=float, default=30.0,
-                   help="specimen time for trials and rests, minutes (default 30)")
-    r.add_argument("--target-rse", type=float, default=0.05,
-                   help="every parameter's relative standard error at most this (default 0.05)")
-    r.add_argument("--rest-s", type=float, default=60.0,
-                   help="rest between trials for the specimen to recover, s (default 60)")
+    _campaign_options(r)
     r.add_argument("--out", help="directory for the logs, the journal and the figure (default: the config's "
                                  "recorder.out_dir / characterize-SPECIMEN)")
     r.add_argument("--speed", type=_positive_or_zero, default=1.0,
@@ -725,14 +730,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run, fit, diagnose and design trials until the model is right")
     g.add_argument("--fit-model", default="proposed",
                    help="the model the campaign starts from (default: proposed)")
-    g.add_argument("--indenter", help="the probe's geometry, for a modulus in Pa (e.g. sphere:R=2mm)")
-    g.add_argument("--max-trials", type=int, default=6, help="at most this many trials (default 6)")
-    g.add_argument("--budget-min", type=float, default=30.0,
-                   help="specimen time for trials and rests, minutes (default 30)")
-    g.add_argument("--target-rse", type=float, default=0.05,
-                   help="every parameter's relative standard error at most this (default 0.05)")
-    g.add_argument("--rest-s", type=float, default=60.0,
-                   help="rest between trials for the specimen to recover, s (default 60)")
+    _campaign_options(g)
     r = client("stop", "stop the running trial, then return to the start position", cmd_stop)
     r.add_argument("--hold", action="store_true", help="stop and stay where it is")
     client("estop", "emergency stop: stop the motor now, nothing else", cmd_estop)
