@@ -385,7 +385,8 @@ def format_bench(r: dict) -> str:
             slow = tw["threads"] - tw["realtime"]
             lines.append(f"          the kernel's tty workers run at normal priority ({slow} "
                          f"of {tw['threads']} kworker/u threads): bytes on a pty or a USB serial line wait "
-                         "behind busy processes; as root, `chrt -f -p 45 PID` for each raises them")
+                         "behind busy processes (as root, `chrt -f -p 45 PID` raises one; it shortens "
+                         "those waits, not the machine's own stalls above)")
     if lp.get("wire"):
         w = lp["wire"]
         lines.append(f"wire      {w['wire_ms_per_tick']:.2f} ms per tick on the wire ({w['line']}; "
