@@ -391,13 +391,7 @@ class Daemon:
             self.beat = time.monotonic()
             self.dev_lock.acquire()
         try:
-            result = trial.run()
-            self.zero = trial.zero or self.zero
-            self.last = {"outcome": result.outcome, "log": str(result.log_path), "samples": result.samples,
-                         "duration_s": round(result.duration_s, 3), "fault": result.fault,
-                         **{k: self.trial_meta[k] for k in ("protocol", "specimen", "user")}}
-            self.say(f"campaign trial {n} {result.outcome}: {result.samples} samples -> {result.log_path}")
-            return result
+            return self._trial_ran(trial, f"campaign trial {n}")
         finally:
             with self.state_lock:
                 self.trial_thread = None
@@ -449,21 +443,29 @@ class Daemon:
     def _on_tick(self, snap: Snapshot) -> None:
         self.beat = time.monotonic()
 
-    def _run_trial(self, trial: Trial) -> None:
+    def _trial_ran(self, trial: Trial, label: str) -> TrialResult:
+        """Run a trial on this thread (it holds the devices) and record its outcome as the last;
+        a started trial and a campaign's both come here."""
         old = sys.getswitchinterval()
         sys.setswitchinterval(0.0005)
         try:
             result: TrialResult = trial.run()
-            self.zero = trial.zero or self.zero
-            self.last = {"outcome": result.outcome, "log": str(result.log_path), "samples": result.samples,
-                         "duration_s": round(result.duration_s, 3), "fault": result.fault,
-                         **{k: self.trial_meta[k] for k in ("protocol", "specimen", "user")}}
-            self.say(f"trial {result.outcome}: {result.samples} samples -> {result.log_path}")
+        finally:
+            sys.setswitchinterval(old)
+        self.zero = trial.zero or self.zero
+        self.last = {"outcome": result.outcome, "log": str(result.log_path), "samples": result.samples,
+                     "duration_s": round(result.duration_s, 3), "fault": result.fault,
+                     **{k: self.trial_meta[k] for k in ("protocol", "specimen", "user")}}
+        self.say(f"{label} {result.outcome}: {result.samples} samples -> {result.log_path}")
+        return result
+
+    def _run_trial(self, trial: Trial) -> None:
+        try:
+            self._trial_ran(trial, "trial")
         except BaseException as exc:  # noqa: BLE001 - the daemon must outlive a failed trial
             self.last = {"outcome": "error", "error": f"{type(exc).__name__}: {exc}"}
             self.say(f"trial failed: {exc}")
         finally:
-            sys.setswitchinterval(old)
             self.dev_lock.release()
             notify("STATUS=idle")
 
