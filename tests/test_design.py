@@ -146,3 +146,29 @@ def test_bad_design_arguments_get_one_line(argv, message, tmp_path, capsys):
     assert main(["analyze", str(tmp_path / "none.mcap"), *argv]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and message in err and err.startswith("rig analyze: error: ")
+
+
+def test_a_slowed_candidate_fills_the_time_given_along_the_same_path():
+    """`slowed` keeps a candidate's path, holds and return, slows its ramps by one factor so that
+    the whole takes the time given (never longer), never below SLOWEST of their speed, and leaves
+    a candidate that already takes that long alone."""
+    from rig.analysis.design import SLOWEST, Shape, rig_candidates, slowed
+
+    config = RigConfig()
+    shape = Shape(depth_m=0.03, speed_m_s=0.0015, hold_s=30.0, return_m_s=0.005, duration_s=60.0)
+    cands = {c.name: c for c in rig_candidates(shape, config)}
+    for name in ("ramp at 0.75 mm/s", "staircase", "load-unload cycles"):
+        c = cands[name]
+        took = float(c.trial.motion.t_s[-1])
+        s = slowed(c, took + 40.0, config)
+        assert s is not None and took + 30.0 <= float(s.trial.motion.t_s[-1]) <= took + 40.0
+        assert [k for k, _ in s.steps] == [k for k, _ in c.steps]
+        ratios = {round(b["speed"] / a["speed"], 9) for (k, a), (_, b) in zip(c.steps, s.steps, strict=True)
+                  if k == "ramp"}
+        assert len(ratios) == 1 and SLOWEST <= ratios.pop() < 1.0
+        assert all(a == b for (k, a), (_, b) in zip(c.steps, s.steps, strict=True) if k != "ramp")
+        assert float(s.trial.motion.x_m.max()) == float(c.trial.motion.x_m.max())
+        assert slowed(c, took, config) is None
+        floor = slowed(c, 100 * took, config)
+        assert all(abs(b["speed"] - SLOWEST * a["speed"]) < 1e-12
+                   for (k, a), (_, b) in zip(c.steps, floor.steps, strict=True) if k == "ramp")

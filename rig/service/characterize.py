@@ -36,7 +36,15 @@ from pathlib import Path
 import numpy as np
 
 from rig.analysis.analyze import load_inputs
-from rig.analysis.design import Candidate, design, inadmissible, protocol_text, rig_candidates, shape_of
+from rig.analysis.design import (
+    Candidate,
+    design,
+    inadmissible,
+    protocol_text,
+    rig_candidates,
+    shape_of,
+    slowed,
+)
 from rig.analysis.explain import Explanation, auto, explain
 from rig.analysis.fit import FitResult, fit
 from rig.control.trial import TrialResult
@@ -359,7 +367,8 @@ def _inform_or_stop(req: Request, f: FitResult, turn: Turn, journal: Journal,
         camp.reason = (f"the model is adequate and every parameter is determined to {100 * req.target_rse:g} % "
                        f"(largest: {turn.worst}, {100 * turn.max_rse:.2f} %)")
         return None
-    best = _most_informative(req, f, journal, _time_left(req, camp))
+    left = _time_left(req, camp)
+    best = _most_informative(req, f, journal, left, left / max(req.max_trials - len(camp.turns), 1))
     if best is None:
         camp.status = "nothing better"
         camp.reason = (f"no protocol within the limits and the budget left brings {turn.worst} "
@@ -373,12 +382,14 @@ def _inform_or_stop(req: Request, f: FitResult, turn: Turn, journal: Journal,
                   f"to {100 * after:.1f} % with {c.name}")
 
 
-def _most_informative(req: Request, f: FitResult, journal: Journal,
-                      max_duration_s: float = math.inf) -> tuple[Candidate, float] | None:
+def _most_informative(req: Request, f: FitResult, journal: Journal, max_duration_s: float = math.inf,
+                      share_s: float = math.inf) -> tuple[Candidate, float] | None:
     """The candidate protocol after which the largest relative standard error is smallest, from
     the fit's covariance and the candidate's Fisher information at the fitted values (white noise
     of the fit's level, discounted by the fit's own effective share of independent samples),
-    among those that fit in `max_duration_s` of specimen time."""
+    among those that fit in `max_duration_s` of specimen time. Each candidate shorter than
+    `share_s` (the time left shared among the trials still allowed) is also considered with its
+    ramps slowed to fill it (`design.slowed`): time the budget holds for a trial is information."""
     if f.covariance is None:
         return None
     names = f.model.param_names
@@ -397,7 +408,11 @@ def _most_informative(req: Request, f: FitResult, journal: Journal,
     share = min(max(f.n_eff / max(n_all, 1), 1e-6), 1.0)
     noise2 = max(f.noise_N, 1e-300) ** 2
     scored, refused = [], []
-    for c in rig_candidates(shape_of(f.trials), req.config):
+    cands = rig_candidates(shape_of(f.trials), req.config)
+    if math.isfinite(share_s):
+        fill = min(share_s, max_duration_s)
+        cands += [s for s in (slowed(c, fill, req.config) for c in cands) if s is not None]
+    for c in cands:
         m = c.trial.motion
         pred = f.model.predict(f.values, m)
         duration = float(m.t_s[-1])
