@@ -45,6 +45,10 @@ def test_a_campaign_names_the_hidden_drift_and_journals_every_decision(tmp_path,
     assert any(e["event"] == "model" and e["added"] == "drift" for e in events)
     decision = next(e for e in events if e["event"] == "decision")
     assert decision["kind"] in ("inform", "separate") and decision["considered"]
+    if decision["kind"] == "inform":  # both forecasts, the white-noise one and the calibrated one
+        assert all(c["expected_max_rse"] > 0 and c["expected_max_rse_noise_as_so_far"] > 0
+                   for c in decision["considered"])
+        assert "if its noise is worth what the trials' so far was" in out["trials"][1]["why"]
     for t in out["trials"]:
         assert read_log(t["log"]).samples["force_N"].size > 100
 
@@ -105,3 +109,26 @@ def test_the_next_trial_is_chosen_within_the_budget_left(tmp_path):
     assert any("the budget leaves" in r for r in decision["refused"])
     second = next(e for e in events if e["event"] == "trial" and e["n"] == 2)
     assert second["duration_s"] <= budget_s - d1 - rest_s
+
+
+def test_the_calibrated_forecast_discounts_a_trial_as_the_trials_so_far_were_discounted():
+    """`_as_so_far` maps white-noise information to what the trials' own covariance proved it
+    worth: unchanged when that covariance is the white-noise one, divided by k when it is k
+    times larger, and direction by direction when only one parameter's variance is inflated."""
+    import numpy as np
+
+    from rig.service.characterize import _as_so_far
+
+    rng = np.random.default_rng(3)
+    J = rng.standard_normal((400, 3))
+    W = J.T @ J
+    white = np.linalg.inv(W)
+    info = rng.standard_normal((50, 3))
+    info = info.T @ info
+    assert np.allclose(_as_so_far(white, W)(info), info)
+    assert np.allclose(_as_so_far(9.0 * white, W)(info), info / 9.0)
+    D = np.diag([1.0, 1.0, 4.0])  # the third parameter's error doubled, alone (an orthogonal design)
+    W_diag = np.diag(np.diag(W))
+    got = _as_so_far(D @ np.linalg.inv(W_diag) @ D, W_diag)(np.eye(3))
+    assert np.allclose(got, np.diag([1.0, 1.0, 1.0 / 16.0]))
+    assert _as_so_far(np.zeros((3, 3)), W) is None
