@@ -172,3 +172,8 @@ def test_a_slowed_candidate_fills_the_time_given_along_the_same_path():
         floor = slowed(c, 100 * took, config)
         assert all(abs(b["speed"] - SLOWEST * a["speed"]) < 1e-12
                    for (k, a), (_, b) in zip(c.steps, floor.steps, strict=True) if k == "ramp")
+        # a floor in m/s (a campaign's: a quarter of its first trial's speed) holds every ramp above it
+        least = 0.6 * min(p["speed"] for k, p in c.steps if k == "ramp")
+        held = slowed(c, 100 * took, config, least)
+        assert min(p["speed"] for k, p in held.steps if k == "ramp") >= least * (1 - 1e-12)
+        assert slowed(c, 100 * took, config, 2.0 * least / 0.6) is None  # cannot be slowed at all

@@ -249,31 +249,35 @@ def rig_candidates(shape: Shape, config: RigConfig) -> list[Candidate]:
 SLOWEST = 0.25  # a slowed candidate's ramps at no less than this share of their speed
 
 
-def slowed(c: Candidate, seconds: float, config: RigConfig) -> Candidate | None:
-    """`c` with its ramps slowed so that the whole takes about `seconds` (its holds and return as
-    they were), or None when it already takes that long. The same path with more samples along
-    it, each nearer the tissue's slow response: on a campaign's simulated specimen with a frame
-    spring, the paper's quadratic term came out at 44 % relative error after a 0.45 mm/s ramp
-    where the same ramp at 0.75 mm/s left 62 % (one seed; 67 against 117 % on another). Never
-    slower than SLOWEST of the speeds designed: a longer trial always promises more, and a
-    campaign's budget is not there to be spent on one ramp."""
+def slowed(c: Candidate, seconds: float, config: RigConfig, slowest_m_s: float = 0.0) -> Candidate | None:
+    """`c` with its ramps slowed by one factor so that the whole takes about `seconds` (its holds
+    and return as they were), or None when it already takes that long or cannot be slowed. The
+    same path with more samples along it, each nearer the tissue's slow response: on a
+    campaign's simulated specimen with a frame spring, the paper's quadratic term came out at
+    44 % relative error after a 0.45 mm/s ramp where the same ramp at 0.75 mm/s left 62 % (one
+    seed; 67 against 117 % on another). Never slower than SLOWEST of the speeds designed, nor
+    than `slowest_m_s`: a longer trial always promises more, and a budget is not there to be
+    spent on one ramp."""
     if c.trial is None:
         c.trial = _trial(c, config)
     dt = c.trial.motion.dt_s
     took = float(c.trial.motion.t_s[-1])
     ramping = float(np.sum(c.trial.phase == "ramp")) * dt
-    if ramping <= 0.0 or took >= 0.97 * seconds:
+    speeds = [p["speed"] for k, p in c.steps if k == "ramp"]
+    if ramping <= 0.0 or took >= 0.97 * seconds or not speeds:
         return None
-    share = max(ramping / (ramping + seconds - took), SLOWEST)
-    for _ in range(8):  # the drive's acceleration makes a ramp a little longer than its length over its speed
+    least = max(SLOWEST, slowest_m_s / min(speeds))
+    share = max(ramping / (ramping + seconds - took), least)
+    out = None
+    while share < 1.0:  # the drive's acceleration makes a ramp a little longer than its length over its speed
         steps = [(k, {**p, "speed": p["speed"] * share}) if k == "ramp" else (k, p) for k, p in c.steps]
         out = Candidate(f"{c.name}, ramps at {100 * share:.0f} % speed",
                         f"{c.why}; slowed to use the time left", steps)
         out.trial = _trial(out, config)
-        if float(out.trial.motion.t_s[-1]) <= seconds or share >= 1.0:
-            break
-        share = min(1.0, share * 1.03)
-    return out if share < 1.0 else None
+        if float(out.trial.motion.t_s[-1]) <= seconds:
+            return out
+        share *= 1.03
+    return None
 
 
 def inadmissible(c: Candidate, peak_N: float, config: RigConfig) -> str:

@@ -37,6 +37,7 @@ import numpy as np
 
 from rig.analysis.analyze import load_inputs
 from rig.analysis.design import (
+    SLOWEST,
     Candidate,
     design,
     inadmissible,
@@ -438,7 +439,11 @@ def _most_informative(req: Request, f: FitResult, journal: Journal, max_duration
     cands = rig_candidates(shape_of(f.trials), req.config)
     if math.isfinite(share_s):
         fill = min(share_s, max_duration_s)
-        cands += [s for s in (slowed(c, fill, req.config) for c in cands) if s is not None]
+        # never slower than a quarter of the first trial's speed: each trial could otherwise go a
+        # quarter slower than the slowest before it, and on a 30 min budget the ramps fell to
+        # 0.12 mm/s, six-minute trials whose fits took four minutes each
+        floor = SLOWEST * shape_of(f.trials[:1]).speed_m_s
+        cands += [s for s in (slowed(c, fill, req.config, floor) for c in cands) if s is not None]
     scored, refused = [], []
     for c in cands:
         m = c.trial.motion
