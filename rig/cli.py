@@ -589,7 +589,8 @@ def _campaign_options(p) -> None:
     p.add_argument("--indenter", help="the probe's geometry, for a modulus in Pa (e.g. sphere:R=2mm)")
     p.add_argument("--max-trials", type=int, default=6, help="at most this many trials (default 6)")
     p.add_argument("--budget-min", type=float, default=30.0,
-                   help="specimen time for trials and rests, minutes (default 30)")
+                   help="specimen time for trials and rests, minutes (default 30); a trial chosen to "
+                        "narrow a parameter may be slowed to take its share of what is left")
     p.add_argument("--target-rse", type=float, default=0.05,
                    help="every parameter's relative standard error at most this (default 0.05)")
     p.add_argument("--rest-s", type=float, default=60.0,
