@@ -42,8 +42,8 @@ def test_a_campaign_on_the_daemon_runs_its_trials_and_is_watched(tmp_path):
     with WireSim(SimParams(), rtu=False) as sim:
         d = DaemonProc(tmp_path, sim)
         try:
-            # 30 s: the second trial takes what the first (7 s) and the rest leave, less a margin
-            r = _start(d, max_trials=2, budget_min=0.5, rest_s=1.0)
+            # 24 s: the second trial takes what the first (7 s) and the rest leave, less a margin
+            r = _start(d, max_trials=2, budget_min=0.4, rest_s=1.0)
             assert r["ok"], r
             refused = d.start_trial(FIRST)
             assert not refused["ok"] and "busy: characterizing specimen liver-9" in refused["error"]
@@ -63,7 +63,7 @@ def test_a_campaign_on_the_daemon_runs_its_trials_and_is_watched(tmp_path):
             assert [e["n"] for e in events if e["event"] == "ran"] == [1, 2]
             assert all(e["outcome"] == "completed" for e in events if e["event"] == "ran")
             second = next(e for e in events if e["event"] == "trial" and e["n"] == 2)
-            assert second["why"] and second["duration_s"] <= 0.5 * 60
+            assert second["why"] and second["duration_s"] <= 0.4 * 60
             logs = [e["log"] for e in events if e["event"] == "ran"]
             for log in logs:
                 trial = read_log(log).trial
