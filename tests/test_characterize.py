@@ -48,7 +48,7 @@ def test_a_campaign_names_the_hidden_drift_and_journals_every_decision(tmp_path,
     if decision["kind"] == "inform":  # both forecasts, the white-noise one and the calibrated one
         assert all(c["expected_max_rse"] > 0 and c["expected_max_rse_noise_as_so_far"] > 0
                    for c in decision["considered"])
-        assert "if its noise is worth what the trials' so far was" in out["trials"][1]["why"]
+        assert "if its samples are worth what the earlier trials' were" in out["trials"][1]["why"]
     for t in out["trials"]:
         assert read_log(t["log"]).samples["force_N"].size > 100
 
@@ -127,8 +127,36 @@ def test_the_calibrated_forecast_discounts_a_trial_as_the_trials_so_far_were_dis
     info = info.T @ info
     assert np.allclose(_as_so_far(white, W)(info), info)
     assert np.allclose(_as_so_far(9.0 * white, W)(info), info / 9.0)
-    D = np.diag([1.0, 1.0, 4.0])  # the third parameter's error doubled, alone (an orthogonal design)
+    D = np.diag([1.0, 1.0, 4.0])  # the third parameter's error 4x, alone (an orthogonal design)
     W_diag = np.diag(np.diag(W))
     got = _as_so_far(D @ np.linalg.inv(W_diag) @ D, W_diag)(np.eye(3))
     assert np.allclose(got, np.diag([1.0, 1.0, 1.0 / 16.0]))
     assert _as_so_far(np.zeros((3, 3)), W) is None
+    # a covariance that does not share the white-noise information's axes: W itself is mapped to
+    # C^-1, the information the trials so far actually carry
+    C = rng.standard_normal((3, 3))
+    C = C @ C.T + 0.1 * np.eye(3)
+    assert np.allclose(_as_so_far(C, W)(W), np.linalg.inv(C))
+
+
+def test_the_rest_runs_while_the_trials_are_fitted():
+    """The rest before the next trial begins when the last one ended: the fits and the choice
+    that follow run while the specimen recovers, so only what is left of the rest is waited, and
+    a fit longer than the rest counts as rest. At speed 0 (simulation) no specimen time passes
+    while fitting: the whole rest is still to come."""
+    import time
+
+    from rig.service.characterize import Campaign, Turn, _rest_before_next
+
+    config = parse_config("sim:\n  seed: 4\n")
+    camp = Campaign("liver-5")
+    req = Request("liver-5", config, Path("."), rest_s=60.0, speed=1.0)
+    assert _rest_before_next(req, camp) == (0.0, 0.0)  # before the first trial
+    camp.turns.append(Turn("first", "given"))
+    for gone, expected in ((20.0, (60.0, 40.0)), (90.0, (90.0, 0.0))):
+        camp.trial_ended = time.monotonic() - gone
+        rest, wait = _rest_before_next(req, camp)
+        assert abs(rest - expected[0]) < 0.5 and abs(wait - expected[1]) < 0.5
+    camp.trial_ended = time.monotonic() - 20.0
+    simulated = Request("liver-5", config, Path("."), rest_s=60.0, speed=0.0)
+    assert _rest_before_next(simulated, camp) == (60.0, 60.0)

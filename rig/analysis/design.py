@@ -258,20 +258,20 @@ def slowed(c: Candidate, seconds: float, config: RigConfig, slowest_m_s: float =
     seed; 67 against 117 % on another). Never slower than SLOWEST of the speeds designed, nor
     than `slowest_m_s`: a longer trial always promises more, and a budget is not there to be
     spent on one ramp."""
-    if c.trial is None:
-        c.trial = _trial(c, config)
-    dt = c.trial.motion.dt_s
-    took = float(c.trial.motion.t_s[-1])
-    ramping = float(np.sum(c.trial.phase == "ramp")) * dt
+    trial = c.trial if c.trial is not None else _trial(c, config)
+    took = float(trial.motion.t_s[-1])
+    ramping = float(np.sum(trial.phase == "ramp")) * trial.motion.dt_s  # the time going deeper
     speeds = [p["speed"] for k, p in c.steps if k == "ramp"]
-    if ramping <= 0.0 or took >= 0.97 * seconds or not speeds:
+    if ramping <= 0.0 or not speeds or not took < 0.97 * seconds:
         return None
     least = max(SLOWEST, slowest_m_s / min(speeds))
     share = max(ramping / (ramping + seconds - took), least)
-    out = None
-    while share < 1.0:  # the drive's acceleration makes a ramp a little longer than its length over its speed
+    # the first share counts only the time going deeper (a cycle's ramps back out are slowed too)
+    # and the drive's acceleration as it was: where the trial comes out too long, a little faster
+    while share < 1.0:
         steps = [(k, {**p, "speed": p["speed"] * share}) if k == "ramp" else (k, p) for k, p in c.steps]
-        out = Candidate(f"{c.name}, ramps at {100 * share:.0f} % speed",
+        shown = ", ".join(dict.fromkeys(_mm(p["speed"]) for k, p in steps if k == "ramp"))
+        out = Candidate(f"{c.name}, ramps at {100 * share:.0f} % speed ({shown} mm/s)",
                         f"{c.why}; slowed to use the time left", steps)
         out.trial = _trial(out, config)
         if float(out.trial.motion.t_s[-1]) <= seconds:

@@ -93,6 +93,7 @@ class Campaign:
     final: FitResult | None = None
     journal: Path | None = None
     elapsed_s: float = 0.0  # specimen time: the trials and the rests between them
+    trial_ended: float | None = None  # time.monotonic() when the last trial ended
 
     def summary(self) -> dict:
         out = {"specimen": self.specimen, "status": self.status, "reason": self.reason,
@@ -221,17 +222,17 @@ def _run(req: Request, camp: Campaign, journal: Journal) -> None:
         if len(camp.turns) >= req.max_trials:
             camp.status, camp.reason = "budget", f"{req.max_trials} trials run (--max-trials)"
             break
-        rest = req.rest_s if camp.turns else 0.0
+        rest, wait = _rest_before_next(req, camp)
         if camp.elapsed_s + rest + duration > budget_s:
             camp.status = "budget"
             camp.reason = (f"the next trial ({duration:.0f} s after a {rest:.0f} s rest) would pass the "
                            f"{req.budget_min:g} min budget")
             break
-        if rest and req.speed:  # the specimen recovers before the next trial
+        if wait and req.speed:  # the specimen recovers before the next trial
             if req.stop is not None:
-                req.stop.wait(rest / req.speed)
+                req.stop.wait(wait / req.speed)
             else:
-                time.sleep(rest / req.speed)
+                time.sleep(wait / req.speed)
         if req.stop is not None and req.stop.is_set():
             camp.status, camp.reason = "stopped", f"stopped on request after {len(camp.turns)} trials"
             journal.write("decision", kind="stopped", why=camp.reason)
@@ -243,6 +244,7 @@ def _run(req: Request, camp: Campaign, journal: Journal) -> None:
         req.say(f"trial {len(camp.turns)}: {proto.name} ({duration:.0f} s): {why}")
         result = _one_trial(req, proto, len(camp.turns))
         camp.elapsed_s += result.duration_s
+        camp.trial_ended = time.monotonic()
         turn.log, turn.outcome = str(result.log_path), result.outcome
         journal.write("ran", n=len(camp.turns), outcome=result.outcome, log=str(result.log_path),
                       fault=result.fault, samples=result.samples)
@@ -312,10 +314,22 @@ def _fit_all(req: Request, logs: list[str], model_name: str, extra: list[str], l
     return final, ex, [e for e in final.model.effect_names if e not in plain]
 
 
+def _rest_before_next(req: Request, camp: Campaign) -> tuple[float, float]:
+    """The rest before the next trial, and what of it is still to wait, in specimen time. The
+    rest begins when the last trial ends: the fits and the choice that follow it run while the
+    specimen recovers, so a rest already outlasted by them is not waited again (and a fit that
+    outlasts the rest counts as rest: the specimen waited for it)."""
+    if not camp.turns:
+        return 0.0, 0.0
+    gone = (time.monotonic() - camp.trial_ended) * req.speed if camp.trial_ended is not None else 0.0
+    rest = max(req.rest_s, gone)
+    return rest, rest - gone
+
+
 def _time_left(req: Request, camp: Campaign) -> float:
     """Specimen time the next trial may take: the budget less what was spent and the rest before
     it, less a margin for what a candidate's motion leaves out (the tare, the drive's settling)."""
-    return 60.0 * req.budget_min - camp.elapsed_s - req.rest_s - TRIAL_MARGIN_S
+    return 60.0 * req.budget_min - camp.elapsed_s - _rest_before_next(req, camp)[0] - TRIAL_MARGIN_S
 
 
 def _decide(req: Request, f: FitResult, ex: Explanation, turn: Turn, journal: Journal,
@@ -376,7 +390,7 @@ def _inform_or_stop(req: Request, f: FitResult, turn: Turn, journal: Journal,
                        f"({100 * turn.max_rse:.1f} %) below {100 * INFORMATION_GAIN:g} % of its error")
         return None
     c, after, so_far = best
-    also = (f" ({100 * so_far:.1f} % if its noise is worth what the trials' so far was)"
+    also = (f" ({100 * so_far:.1f} % if its samples are worth what the earlier trials' were)"
             if math.isfinite(so_far) else "")
     text = protocol_text(c, f"inform {turn.worst}: {c.name}", req.config.limits.max_force_N,
                          [f"Chosen by rig characterize to narrow {turn.worst}: expected largest relative "
@@ -442,7 +456,7 @@ def _most_informative(req: Request, f: FitResult, journal: Journal, max_duration
         # never slower than a quarter of the first trial's speed: each trial could otherwise go a
         # quarter slower than the slowest before it, and on a 30 min budget the ramps fell to
         # 0.12 mm/s, six-minute trials whose fits took four minutes each
-        floor = SLOWEST * shape_of(f.trials[:1]).speed_m_s
+        floor = SLOWEST * _first_speed(f.trials)
         cands += [s for s in (slowed(c, fill, req.config, floor) for c in cands) if s is not None]
     scored, refused = [], []
     for c in cands:
@@ -472,6 +486,16 @@ def _most_informative(req: Request, f: FitResult, journal: Journal, max_duration
     return c, rse, so_far
 
 
+def _first_speed(trials) -> float:
+    """The ramp speed of the first trial that has a ramp (m/s)."""
+    for t in trials:
+        try:
+            return shape_of([t]).speed_m_s
+        except RigError:
+            continue
+    return 0.0
+
+
 def _gram(J: np.ndarray) -> np.ndarray:
     return J.T @ J
 
@@ -479,9 +503,11 @@ def _gram(J: np.ndarray) -> np.ndarray:
 def _as_so_far(cov: np.ndarray, white_info: np.ndarray) -> Callable[[np.ndarray], np.ndarray] | None:
     """The map that makes white-noise information worth what the trials so far showed theirs to
     be: with C their fit's covariance and W their white-noise information, A = C^1/2 W^1/2 takes
-    the white-noise covariance W^-1 to C, and a candidate's information I becomes A^-T I A^-1
-    (direction by direction, as the trials' own noise and zeros discounted theirs). None when
-    either matrix is singular."""
+    the white-noise covariance W^-1 to C (A W^-1 A^T = C), and a candidate's information I
+    becomes A^-T I A^-1 (W itself becomes C^-1). Any A R with R a rotation does the same to W;
+    the symmetric roots are the choice made here, and where C and W do not share their axes
+    another choice would move the forecast by some per cent. None when either matrix is
+    singular."""
     def root(M: np.ndarray) -> np.ndarray | None:
         w, V = np.linalg.eigh(0.5 * (M + M.T))
         if not np.all(w > 1e-12 * max(float(w.max()), 1e-300)):
