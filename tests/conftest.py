@@ -65,17 +65,12 @@ class _Machine:
         base = Path(tempfile.gettempdir()) / f"rig-pytest-{run_id}"
         self.machine = open(f"{base}.machine", "a")  # noqa: SIM115 (held for the worker's life)
         self.intent = open(f"{base}.intent", "a")  # noqa: SIM115
-        # flock(2) is not fair: a worker asking for the intent alone waited 476 s while the other
-        # took it shared test after test, and the clock tests ran only once the analysis tests
-        # were all done, on one worker. This file (the asking worker's pid) makes the other wait.
-        self.wanted = Path(f"{base}.wanted")
         self.alone = False
 
     def take_alone(self) -> None:
         import fcntl
 
         if not self.alone:
-            self.wanted.write_text(str(os.getpid()))
             fcntl.flock(self.intent, fcntl.LOCK_EX)
             fcntl.flock(self.machine, fcntl.LOCK_EX)
             self.alone = True
@@ -84,33 +79,14 @@ class _Machine:
         import fcntl
 
         if self.alone:
-            self.wanted.unlink(missing_ok=True)
             fcntl.flock(self.machine, fcntl.LOCK_UN)
             fcntl.flock(self.intent, fcntl.LOCK_UN)
             self.alone = False
-
-    def _asked_for(self) -> bool:
-        """Whether a live worker has asked for the machine alone."""
-        try:
-            pid = int(self.wanted.read_text())
-        except (OSError, ValueError):
-            return False
-        if pid == os.getpid():
-            return False
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return False
-        except PermissionError:
-            return True
-        return True
 
     @contextlib.contextmanager
     def shared(self):
         import fcntl
 
-        while self._asked_for():
-            time.sleep(0.05)
         fcntl.flock(self.intent, fcntl.LOCK_SH)
         fcntl.flock(self.machine, fcntl.LOCK_SH)
         fcntl.flock(self.intent, fcntl.LOCK_UN)
