@@ -106,7 +106,8 @@ def autocovariance(x: np.ndarray, lags: int) -> np.ndarray:
     x = np.atleast_2d(x)
     x = x - x.mean(axis=1, keepdims=True)
     n = x.shape[1]
-    nfft = 1 << int(np.ceil(np.log2(2 * n)))
+    # padded only as far as the lags asked for need: the circular products wrap past them alone
+    nfft = 1 << int(np.ceil(np.log2(n + max(lags, 0))))
     f = np.fft.rfft(x, nfft, axis=1)
     return np.fft.irfft(f * np.conj(f), nfft, axis=1)[:, : lags + 1] / n
 
