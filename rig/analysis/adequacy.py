@@ -57,13 +57,26 @@ def simulate(noise: Noise, n: int, draws: int, rng: Draws | np.random.Generator)
     spectrum, by spectral synthesis on a period long enough that the wrap does not matter)."""
     span = int(min(max(4 * noise.scale_samples, 64), 1 << 16))
     m = 1 << int(np.ceil(np.log2(n + span)))
-    gain = response(noise.ar, m // 2 + 1) if noise.ar else np.ones(m // 2 + 1)
-    power = (gain[0] ** 2 + gain[-1] ** 2 + 2.0 * np.sum(gain[1:-1] ** 2)) / m
-    x = np.fft.irfft(_white_spectrum(rng, draws, m) * gain, m, axis=1)[:, :n]
-    return x * (noise.gauss_std_N / math.sqrt(power))
+    key = (rng.position, draws, m, tuple(noise.ar)) if isinstance(rng, Draws) else None
+    spectrum = _white_spectrum(rng, draws, m)
+    got = _SERIES.get(key) if key else None
+    if got is None:
+        gain = response(noise.ar, m // 2 + 1) if noise.ar else np.ones(m // 2 + 1)
+        power = (gain[0] ** 2 + gain[-1] ** 2 + 2.0 * np.sum(gain[1:-1] ** 2)) / m
+        got = (np.fft.irfft(spectrum * gain, m, axis=1), math.sqrt(power))
+        if key:
+            # the same draws through the same spectrum give the same series: every curve of a map
+            # whose noise has the same AR filter (white, most often) shares them
+            got[0].flags.writeable = False
+            if len(_SERIES) >= _SPECTRA_KEPT:
+                _SERIES.pop(next(iter(_SERIES)))
+            _SERIES[key] = got
+    x, root = got
+    return x[:, :n] * (noise.gauss_std_N / root)
 
 
 _SPECTRA: dict[tuple[int, int, int], np.ndarray] = {}
+_SERIES: dict[tuple, tuple[np.ndarray, float]] = {}
 _SPECTRA_KEPT = 8
 
 

@@ -114,7 +114,7 @@ def plan(files: list[str], req: BatchRequest) -> list[Curve]:
     instrument numbers it, placed as its metadata says), any other file one unit. A file that
     cannot be opened is one unit, whose row will say why."""
     from rig.records import ReadOptions, list_curves
-    from rig.records.afm import format_of
+    from rig.records.afm import curve_numbers, format_of
     from rig.records.mach1 import count_blocks, looks_like_mach1
 
     options = ReadOptions(spring_constant_N_per_m=req.spring_constant_N_per_m,
@@ -131,6 +131,11 @@ def plan(files: list[str], req: BatchRequest) -> list[Curve]:
                 out.append(Curve(f))  # one record
             continue
         try:
+            nums = curve_numbers(f, options)
+            if nums is not None:
+                # an HDF5 map's places are read by the workers with each curve (`_placed`)
+                out += [Curve(f, i) for i in nums]
+                continue
             infos = list_curves(f, options)
         except RigError:
             out.append(Curve(f))
@@ -164,7 +169,7 @@ def analyze_chunk(chunk: list[Curve], req: BatchRequest) -> list[dict]:
     for a curve: a curve that cannot be read or fitted gets a row that says why."""
     import warnings
 
-    from rig.records import ReadOptions, each_record, read_record
+    from rig.records import ReadOptions, Record, each_record, read_record
 
     options = ReadOptions(spring_constant_N_per_m=req.spring_constant_N_per_m,
                           sensitivity_m_per_V=req.sensitivity_m_per_V, block=req.block)
@@ -179,9 +184,15 @@ def analyze_chunk(chunk: list[Curve], req: BatchRequest) -> list[dict]:
             except (RigError, OSError) as exc:
                 return [_failed(c, exc) for c in chunk]
             read_s = (time.perf_counter() - t0) / len(wanted)  # one load of the file, shared
+            unplaced = {n for n, c in wanted.items() if c.x_m is None and c.grid_x is None
+                        and not isinstance(got.get(n), Record)}
+            places = _places(chunk[0].file, unplaced)
             for n, c in wanted.items():
                 rec = got.get(n, RigError(f"curve {n} is no longer in the file"))
-                rows.append(_failed(c, rec) if isinstance(rec, Exception) else _analyze(c, rec, req, read_s))
+                if isinstance(rec, Exception):
+                    rows.append(_failed(_placed(c, places.get(n)), rec))
+                else:
+                    rows.append(_analyze(_placed(c, rec.meta), rec, req, read_s))
         else:
             for c in chunk:
                 t0 = time.perf_counter()
@@ -192,6 +203,29 @@ def analyze_chunk(chunk: list[Curve], req: BatchRequest) -> list[dict]:
                     continue
                 rows.append(_analyze(c, rec, req, time.perf_counter() - t0))
     return rows
+
+
+def _placed(c: Curve, where: Any) -> Curve:
+    """`c` with its place on the sample and the grid, when the plan left it to the worker: from
+    the curve's record (`Record.meta`) or, for a curve that could not be read, its `CurveInfo`."""
+    if c.x_m is not None or c.grid_x is not None or where is None:
+        return c
+    if isinstance(where, dict):
+        grid = where.get("grid_index") or (None, None)
+        return replace(c, x_m=where.get("x_m"), y_m=where.get("y_m"), grid_x=grid[0], grid_y=grid[1])
+    return replace(c, x_m=where.x_m, y_m=where.y_m, grid_x=where.grid_x, grid_y=where.grid_y)
+
+
+def _places(file: str, curves: set[int]) -> dict:
+    """The places of an HDF5 map's curves that could not be read (nothing to read otherwise)."""
+    if not curves:
+        return {}
+    from rig.records.afm import HDF5, format_of, hdf5_places
+
+    try:
+        return hdf5_places(file, curves) if format_of(file) is HDF5 else {}
+    except (RigError, OSError):
+        return {}
 
 
 def _one_blas_thread():
@@ -217,7 +251,7 @@ def _analyze(c: Curve, rec: Any, req: BatchRequest, read_s: float) -> dict:
     try:
         out = analyze(AnalyzeRequest(
             [c.file], model=req.model, add=list(req.add), plugins=list(req.plugins), explain=req.explain,
-            indenter=req.indenter, poisson=req.poisson, segment=req.segment, records=[rec])).json
+            indenter=req.indenter, poisson=req.poisson, segment=req.segment, records=[rec], row_only=True)).json
     except RigError as exc:
         return _failed(c, exc)
     except Exception as exc:  # noqa: BLE001 (a curve the analysis cannot handle must not end the batch)

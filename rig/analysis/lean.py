@@ -65,5 +65,5 @@ def _lean(model: Model) -> Predict | None:
 
     # what rig.analysis.contact_fit solves this model from: the parameters' names and g, the
     # force per unit modulus at each depth
-    predict.parts = (x_c, modulus, offset, lambda d: contact_fn(d, None, 1.0))
+    predict.parts = (x_c, modulus, offset, lambda d: contact_fn(d, None, 1.0), contact_fn)
     return predict

@@ -87,12 +87,22 @@ def quiet_length(y: np.ndarray) -> int:
     if s == 0.0:
         return n
     while end + block <= n:
+        # the steps until the line is next refitted (where `end` reaches a multiple of four
+        # blocks), judged at once: each step's block and the next against the same line
+        steps = next((j for j in range(1, 5) if (end + j * block) % (4 * block) == 0), n)
+        inside = (n - end) // block  # the blocks from `end` that the record holds whole
+        t_max = min(steps, inside)
+        k = min(t_max + 1, inside)
+        a = end + np.arange(k * block)
+        off = np.abs((y[a] - np.polyval(coef, i[a])).reshape(k, block).mean(axis=1)) > QUIET_SIGMAS * s
         # a block off the line may be the noise's own excursion; two in a row are the force rising
-        off = [abs(float((y[a:a + block] - np.polyval(coef, i[a:a + block])).mean())) > QUIET_SIGMAS * s
-               for a in (end, end + block) if a + block <= n]
-        if all(off):
+        # (a block with no whole block after it is judged alone)
+        nxt = np.append(off[1:], True) if k == t_max else off[1:]
+        rising = off[:t_max] & nxt[:t_max]
+        if rising.any():
+            end += int(np.argmax(rising)) * block
             break
-        end += block
+        end += t_max * block
         if end % (4 * block) == 0:
             coef, s_new = scatter(end)
             s = max(s, s_new) if s_new > 0 else s

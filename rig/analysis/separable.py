@@ -196,7 +196,7 @@ def _bounded_lstsq(A: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray)
     return fixed
 
 
-def _minimise(cost, lo: float, hi: float, costs=None) -> float:
+def _minimise(cost, lo: float, hi: float, costs=None, tol: float = 1e-10) -> float:
     """The lowest point of a cost of one variable on [lo, hi]: a grid finds the valley of the
     global minimum, golden-section search with parabolic steps (Brent) refines it. `costs`, where
     given, is the cost at every point of the grid at once."""
@@ -211,7 +211,7 @@ def _minimise(cost, lo: float, hi: float, costs=None) -> float:
         i = int(np.argmin(values))
         values[i] = cost(grid[i])
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, GRID - 1)]
-    return _brent(cost, a, b, grid[i], values[i])
+    return _brent(cost, a, b, grid[i], values[i], tol)
 
 
 def _brent(f, a: float, b: float, x: float, fx: float, tol: float = 1e-10, iters: int = 100) -> float:

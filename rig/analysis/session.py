@@ -55,6 +55,7 @@ class AnalyzeRequest:
     profile: bool = False  # profile-likelihood intervals of the parameters that trade off
     progress: Any = None  # called with (draws done, draws) as the bootstrap goes
     records: list | None = None  # the inputs already read (rig.records.Record, one per input): a batch's
+    row_only: bool = False  # a batch's row: the JSON without the modulus by depth, and no text
 
 
 @dataclass
@@ -90,7 +91,7 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     creep_rows = creep_json(res, inputs.indenter, inputs.poisson) if any(t.creep for t in res.trials) else []
     if creep_rows:
         out["creep"] = creep_rows
-    material = material_json(res, inputs)
+    material = material_json(res, inputs, depth=not req.row_only)
     if material:
         out["material"] = material
     if before is not None:
@@ -151,6 +152,8 @@ def analyze(req: AnalyzeRequest) -> Analysis:
                                          explain_text=format_explain(ex) if ex else "",
                                          creep_text=format_creep(creep_rows, res, inputs.indenter)))
 
+    if req.row_only:
+        return Analysis(out, "")
     parts = [format_before_after(before, res) if before is not None
              else f"{res.report()}\nfitted in {res.seconds:.2f} s"]
     if creep_rows:
@@ -208,9 +211,10 @@ def format_before_after(before: FitResult, after: FitResult) -> str:
     return "\n".join(lines)
 
 
-def material_json(res: FitResult, inputs) -> dict:
-    """The indenter, Poisson's ratio, the contact point and the modulus by depth (SI), when the
-    model holds the indenter's elastic contact; the instrument's own result where a file has one."""
+def material_json(res: FitResult, inputs, depth: bool = True) -> dict:
+    """The indenter, Poisson's ratio, the contact point and the modulus by depth (SI; `depth`
+    False leaves it out), when the model holds the indenter's elastic contact; the instrument's
+    own result where a file has one."""
     if not res.model.has(CONTACT) or inputs.indenter is None:
         return {}
     out: dict = {"indenter": inputs.indenter.spec(), "indenter_description": inputs.indenter.describe(),
@@ -221,9 +225,10 @@ def material_json(res: FitResult, inputs) -> dict:
         # the contact point in the record's own travel from its first sample
         out["contact_point_m"] = [row["contact_point_m"] for row in placed]
         out["contact_point_m_stderr"] = placed[0]["contact_point_m_stderr"]
-    rows = modulus_vs_depth(res)
-    out["modulus_vs_depth"] = rows
-    out["modulus_drift"] = plateau_drift(rows)
+    if depth:
+        rows = modulus_vs_depth(res)
+        out["modulus_vs_depth"] = rows
+        out["modulus_drift"] = plateau_drift(rows)
     own = [{"trial": t.name, **t.meta["instrument_result"]} for t in res.trials
            if t.meta.get("instrument_result")]
     if own:

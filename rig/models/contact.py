@@ -269,7 +269,9 @@ def hertz_paraboloid(ind: Indenter, d_m: np.ndarray) -> np.ndarray:
         F = 4/3 E/(1-nu^2) sqrt(R) d^(3/2)
 
     Also the small-depth limit of the sphere."""
-    return 4.0 / 3.0 * np.sqrt(ind.R_m) * d_m ** 1.5
+    # d sqrt(d), not d ** 1.5: the same to rounding, at a fifth of the cost (a map's fits
+    # evaluate it some fifty thousand times a curve)
+    return 4.0 / 3.0 * np.sqrt(ind.R_m) * (d_m * np.sqrt(d_m))
 
 
 def sphere_contact_radius(R_m: float, d_m: np.ndarray) -> np.ndarray:
@@ -351,6 +353,17 @@ LAWS: dict[str, Callable[[Indenter, np.ndarray], np.ndarray]] = {
 }
 
 
+# the laws that are a power of the depth, F / E* = c d^p: c from the indenter, and p
+POWERS = {"paraboloid": 1.5, "cone": 2.0, "pyramid": 2.0, "cylinder": 1.0}
+
+
+def power_law(ind: Indenter) -> tuple[float, float] | None:
+    """(c, p) with F / E* = c d^p at every depth d > 0 when the indenter's law is a power of the
+    depth (a sphere's is not), else None."""
+    p = POWERS.get(ind.kind)
+    return None if p is None else (float(LAWS[ind.kind](ind, np.array([1.0]))[0]), p)
+
+
 # ------------------------------------------------------------------------------------------- API
 
 def geometry_factor(ind: Indenter, d_m: np.ndarray, nu: float = 0.5) -> np.ndarray:
@@ -359,11 +372,12 @@ def geometry_factor(ind: Indenter, d_m: np.ndarray, nu: float = 0.5) -> np.ndarr
     if not -1.0 < nu <= 0.5:
         raise ValueError(f"Poisson's ratio nu must lie in (-1, 0.5], got {nu!r}")
     d = np.asarray(d_m, dtype=float)
-    out = np.where(np.isnan(d), np.nan, 0.0)
     touching = d > 0
-    if np.any(touching):
-        out[touching] = LAWS[ind.kind](ind, d[touching]) / (1.0 - nu * nu)
-    return out
+    # the law on every sample (a depth of 1 m where there is no contact: finite for every law)
+    # and the free ones set after: picking the touching samples out and back cost more than the law
+    with np.errstate(over="ignore"):
+        law = LAWS[ind.kind](ind, np.where(touching, d, 1.0))
+    return np.where(touching, law / (1.0 - nu * nu), np.where(d <= 0, 0.0, np.nan))
 
 
 def contact_force(ind: Indenter, E_Pa: float, d_m: np.ndarray, nu: float = 0.5) -> np.ndarray:
