@@ -135,26 +135,29 @@ def ar_fit_rows(gamma: np.ndarray, n: int, max_order: int = MAX_ORDER) -> list[n
     time and the whitening rest on) swings."""
     rows = gamma.shape[0]
     order = min(max_order, gamma.shape[1] - 1, max(n // 10, 1))
-    g0 = gamma[:, 0]
-    ok = g0 > 0
-    v = np.where(ok, g0, 1.0)
-    phi = np.zeros((rows, 0))
-    best_crit = n * np.log(v)
-    phis = [phi]  # the coefficients at every order: each row's best is taken once, at the end
-    best_k = np.zeros(rows, dtype=int)
-    alive = ok.copy()
+    ok = gamma[:, 0] > 0
+    # the recursion alone in the loop (each order's coefficients and innovation variance kept);
+    # the orders' criteria after it, all at once
+    phis = np.zeros((order + 1, rows, max(order, 1)))
+    vs = np.empty((order + 1, rows))
+    vs[0] = np.where(ok, gamma[:, 0], 1.0)
+    phi = phis[0]
     for k in range(1, order + 1):
-        acc = gamma[:, k] - np.einsum("ij,ij->i", phi, gamma[:, k - 1:0:-1]) if k > 1 else gamma[:, 1].copy()
-        refl = acc / v
-        phi = np.column_stack([phi - refl[:, None] * phi[:, ::-1], refl])
-        phis.append(phi)
-        v = v * (1.0 - refl ** 2)
-        alive &= v > 0
-        crit = n * np.log(np.where(alive, v, 1.0)) + k * math.log(n)
-        better = alive & (crit < best_crit)
-        best_k = np.where(better, k, best_k)
-        best_crit = np.where(better, crit, best_crit)
-    return [phis[k][i].copy() for i, k in enumerate(best_k)]
+        acc = gamma[:, k] - np.einsum("ij,ij->i", phi[:, :k - 1], gamma[:, k - 1:0:-1])
+        refl = acc / vs[k - 1]
+        nxt = phis[k]
+        if k > 1:
+            nxt[:, :k - 1] = phi[:, :k - 1] - refl[:, None] * phi[:, k - 2::-1]
+        nxt[:, k - 1] = refl
+        vs[k] = vs[k - 1] * (1.0 - refl ** 2)
+        phi = nxt
+    # an order counts while every variance up to it stays positive; the first lowest BIC wins
+    alive = np.logical_and.accumulate(np.vstack([ok[None, :], vs[1:] > 0]), axis=0)
+    ks = np.arange(order + 1)[:, None]
+    crit = n * np.log(np.where(alive, vs, 1.0)) + ks * math.log(n)
+    crit[0] = n * np.log(vs[0])
+    best_k = np.argmin(np.where(alive | (ks == 0), crit, np.inf), axis=0)
+    return [phis[k, i, :k].copy() for i, k in enumerate(best_k)]
 
 
 def response(ar: tuple[float, ...] | np.ndarray, nfreq: int) -> np.ndarray:

@@ -157,10 +157,22 @@ def savgol_cubic(y: np.ndarray, w: int) -> np.ndarray:
     centre = _savgol_centre(w)
     out = np.empty(len(y))
     out[h:len(y) - h] = np.convolve(y, centre[::-1], mode="valid")
-    k = np.arange(w, dtype=float)
-    for edge, first, at in ((y[:w], 0, k[:h]), (y[-w:], len(y) - h, k[w - h:])):
-        out[first:first + h] = np.polyval(np.polyfit(k, edge, 3), at)
+    left, right = _savgol_edges(w)
+    out[:h] = left @ y[:w]
+    out[len(y) - h:] = right @ y[-w:]
     return out
+
+
+@functools.lru_cache(maxsize=4)
+def _savgol_edges(w: int) -> tuple[np.ndarray, np.ndarray]:
+    """The cubic fitted to the first (last) `w` samples, at the first (last) w // 2: a fixed
+    linear map of the window's samples, computed once for every curve of a map."""
+    h = w // 2
+    k = np.arange(w, dtype=float)
+    fit = np.linalg.pinv(np.vander(k, 4))  # the cubic's coefficients, highest power first
+    left, right = np.vander(k[:h], 4) @ fit, np.vander(k[w - h:], 4) @ fit
+    left.flags.writeable = right.flags.writeable = False
+    return left, right
 
 
 @functools.lru_cache(maxsize=4)
@@ -339,8 +351,15 @@ def _load_hdf5_curves(path: Path, options: ReadOptions, curves: set[int]) -> tup
                 continue
             # the metadata `_build` reads, not all of it: each attribute costs libhdf5 some 0.1 ms,
             # and a curve holds thirty
-            attrs = h5[k].attrs
-            md = {key: attrs[key] for key in _HDF5_META if key in attrs}
+            group = h5[k]
+            attrs = group.attrs
+            held = set(attrs)
+            # the grid's extent only where afmformats must work the grid index out from it; the
+            # sampling rate only where there is no time column
+            skip = set(_PLACE_KEYS[6:]) if {"grid index x", "grid index y"} <= held else set()
+            if "time" in group:
+                skip.add("rate approach")
+            md = {key: attrs[key] for key in _HDF5_META if key in held and key not in skip}
             md.update(path=path, enum=int(k), format="afmformats (HDF5-based)")
             data.append(cls(data=_columns(h5, k, H5DictReader), metadata=md, diskcache=False))
     return data, [str(w.message) for w in caught], len(keys)
