@@ -1,23 +1,35 @@
 """What makes a map's curves fast to analyse gives the same numbers as what it replaced: the lean
-prediction (rig.analysis.lean) against the model's own, the contact point's scan in one pass
-against one point at a time, the adequacy limits' shared draws, the AR orders chosen and the
+prediction (rig.analysis.lean) against the model's own, the contact fit from sums
+(rig.analysis.contact_fit) against the general variable projection, the contact point's scan in
+one pass against one point at a time, the quiet approach judged a stretch at a time against block
+by block, the adequacy limits' shared draws, the AR orders chosen and the
 draws whitened all at once against one row at a time, and an afmformats HDF5 map listed from its
 place attributes against afmformats' full load; all on simulated maps over several seeds."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 from rig.sim.afm_map import MapSpec, write_map
 
-from rig.analysis import adequacy, separable
+from rig.analysis import adequacy, contact_fit, separable
 from rig.analysis.analyze import load_inputs
 from rig.analysis.draws import Draws
 from rig.analysis.fit import fit, with_record_params
 from rig.analysis.lean import predictor
-from rig.analysis.noise import ar_fit_rows, autocovariance, integral_scales, whiten
+from rig.analysis.noise import (
+    MIN_BASELINE,
+    QUIET_SIGMAS,
+    ar_fit_rows,
+    autocovariance,
+    integral_scales,
+    quiet_length,
+    whiten,
+)
 from rig.models.catalogue import build_model
 from rig.records import ReadOptions, each_record, list_curves
 from rig.records.afm import HDF5, _list_hdf5, _load, count_curves
@@ -63,6 +75,7 @@ def test_a_model_of_another_form_keeps_its_own_prediction(small_map):
 
 
 def test_the_scan_in_one_pass_lands_where_one_point_at_a_time_does(small_map, monkeypatch):
+    monkeypatch.setattr(contact_fit, "solve", lambda *a, **k: None)  # the general variable projection
     solve = separable.solve
     for curve in (1, 5, 7):
         model, trials = _trials(small_map, curve, "paraboloid:R=5um")
@@ -144,3 +157,150 @@ def test_a_map_listed_from_its_place_attributes_is_listed_as_afmformats_loads_it
         md = d.metadata
         assert (c.x_m, c.y_m) == (md["position x"], md["position y"])
         assert (c.grid_x, c.grid_y) == (md["grid index x"], md["grid index y"])
+
+
+def _both_ways(model, trials, monkeypatch):
+    """The fit from sums (checked to be the one that ran) and the general path's."""
+    used = []
+    solve = contact_fit.solve
+
+    def spy(*a, **k):
+        got = solve(*a, **k)
+        used.append(got is not None)
+        return got
+
+    monkeypatch.setattr(contact_fit, "solve", spy)
+    fast = fit(model, trials)
+    monkeypatch.setattr(contact_fit, "solve", lambda *a, **k: None)
+    general = fit(model, trials)
+    monkeypatch.setattr(contact_fit, "solve", solve)
+    return fast, general, used
+
+
+def _same_fit(fast, general) -> None:
+    """The same optimum: no higher a cost, every parameter within a thousandth of its standard error
+    (where the contact point's kink stops the general path's Newton steps, the sums' Gauss-Newton
+    steps go on: on a real map's curve, E 2e-7 apart at a lower cost), the same errors and verdict."""
+    assert np.sum(fast.residuals[0] ** 2) <= np.sum(general.residuals[0] ** 2) * (1 + 1e-12)
+    for k, v in general.values.items():
+        assert abs(fast.values[k] - v) <= 1e-3 * general.stderr[k]
+        assert fast.stderr[k] == pytest.approx(general.stderr[k], rel=1e-4)
+    assert fast.overall.rmse_N == pytest.approx(general.overall.rmse_N, rel=1e-12)
+    assert fast.noise_N == pytest.approx(general.noise_N, rel=1e-12)
+    assert fast.adequate == general.adequate
+    assert fast.verdict() == general.verdict() or "RMSE" in general.verdict()
+
+
+@pytest.mark.parametrize("indenter", ["paraboloid:R=5um", "sphere:R=5um", "cone:half_angle=20deg",
+                                      "cylinder:R=1um"])
+def test_the_fit_from_sums_lands_where_the_general_path_does(small_map, indenter, monkeypatch):
+    for curve in (0, 4, 8):
+        model, trials = _trials(small_map, curve, indenter)
+        fast, general, used = _both_ways(model, trials, monkeypatch)
+        assert used == [True]
+        _same_fit(fast, general)
+
+
+REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "afm-fd"
+
+
+@pytest.mark.parametrize("name, curve", [("fmt-jpk-fd_spot3-0192.jpk-force", 0),
+                                         ("fmt-jpk-fd_map2x2_extracted.jpk-force-map", 3),
+                                         ("fmt-igor-fd_U3_3_p10004.ibw", 0)])
+def test_the_fit_from_sums_lands_where_the_general_path_does_on_real_curves(name, curve, monkeypatch):
+    path = REALDATA / name
+    if not path.exists():
+        pytest.skip(f"{path} is absent (the shared real data sit beside the project)")
+    (_, rec), = each_record(path, ReadOptions(), {curve}) if "map" in name else [(0, None)]
+    inputs = load_inputs([str(path)], [], [], ReadOptions(), indenter="paraboloid:R=10um", poisson=0.5,
+                         segment="approach", records=[rec] if rec is not None else None)
+    model = with_record_params(build_model("hertz", [], inputs.registry), inputs.trials)
+    fast, general, used = _both_ways(model, inputs.trials, monkeypatch)
+    assert used == [True]
+    _same_fit(fast, general)
+
+
+def test_the_fit_from_sums_hands_back_what_it_does_not_solve(small_map, monkeypatch):
+    # a curve whose force falls with the indentation: the modulus sits on its bound (zero), which
+    # the general path reports
+    model, trials = _trials(small_map, 2, "paraboloid:R=5um")
+    t = trials[0]
+    trials = [replace(t, force_N=2 * t.force_N[0] - t.force_N)]
+    fast, general, used = _both_ways(model, trials, monkeypatch)
+    assert used == [False]
+    assert fast.values == general.values
+    # nor a model of another form
+    model, trials = _trials(small_map, 2, "paraboloid:R=5um", add=["drift"])
+    fast, general, used = _both_ways(model, trials, monkeypatch)
+    assert used == [False]
+    assert fast.values == general.values
+
+
+def _quiet_length_block_by_block(y: np.ndarray) -> int:
+    """The quiet approach as it was written first: one block, and the one after it, at a time."""
+    n = len(y)
+    head = max(n // 4, min(n, MIN_BASELINE // 2))
+    if head < 32:
+        return n
+    block = max(8, head // 8)
+    i = np.arange(n, dtype=float)
+
+    def scatter(end):
+        coef = np.polyfit(i[:end], y[:end], 1)
+        r = y[:end] - np.polyval(coef, i[:end])
+        means = r[: end // block * block].reshape(-1, block).mean(axis=1)
+        return coef, float(np.sqrt(np.mean(means ** 2)))
+
+    end = head
+    coef, s = scatter(end)
+    if s == 0.0:
+        return n
+    while end + block <= n:
+        off = [abs(float((y[a:a + block] - np.polyval(coef, i[a:a + block])).mean())) > QUIET_SIGMAS * s
+               for a in (end, end + block) if a + block <= n]
+        if all(off):
+            break
+        end += block
+        if end % (4 * block) == 0:
+            coef, s_new = scatter(end)
+            s = max(s, s_new) if s_new > 0 else s
+    return end if n - end >= block else n
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_quiet_approach_judged_a_stretch_at_a_time_is_judged_block_by_block(seed):
+    rng = np.random.default_rng(seed)
+    for k in range(300):
+        n = int(rng.integers(20, 3000))
+        y = rng.normal(size=n) * rng.uniform(0.1, 3)
+        start = int(rng.integers(0, n))
+        if k % 4 == 1:  # a contact: the force rising from somewhere
+            y[start:] += np.linspace(0, rng.uniform(1, 50), n - start) ** rng.uniform(1, 2)
+        elif k % 4 == 2:  # a tilted baseline
+            y += np.linspace(0, rng.uniform(-5, 5), n)
+        elif k % 4 == 3:  # a step, on a coarse lattice
+            y[start:] += rng.uniform(0.5, 3)
+            y = np.round(2 * y) / 2
+        assert quiet_length(y) == _quiet_length_block_by_block(y)
+
+
+def test_a_batch_places_each_curve_as_the_file_lists_it(small_map, tmp_path):
+    import h5py
+
+    from rig.analysis.batch import BatchRequest, analyze_chunk, plan
+
+    broken = tmp_path / "broken.h5"
+    broken.write_bytes(small_map.read_bytes())
+    with h5py.File(broken, "r+") as h5:
+        del h5["4"]["force"]  # curve 4 cannot be read; its row still says where it was taken
+    req = BatchRequest(model="hertz", indenter="paraboloid:R=5um", segment="approach")
+    curves = plan([str(broken)], req)
+    assert all(c.x_m is None for c in curves)  # the plan lists numbers only: the workers place them
+    rows = analyze_chunk(curves, req)
+    listed = {c.enum: c for c in list_curves(small_map)}
+    assert [r["curve"] for r in rows] == sorted(listed)
+    for r in rows:
+        c = listed[r["curve"]]
+        assert (r["x_m"], r["y_m"], r["grid_x"], r["grid_y"]) == (c.x_m, c.y_m, c.grid_x, c.grid_y)
+    assert [bool(r["error"]) for r in rows] == [c == 4 for c in sorted(listed)]
+    assert "force" in rows[4]["error"]
