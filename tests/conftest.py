@@ -35,6 +35,7 @@ CLOCK_MODULES = {
 }
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's, which reads the group from the marker
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if _on_the_clock(item):
@@ -116,6 +117,12 @@ def share_the_machine(request):
     if machine is None:
         yield
     elif _on_the_clock(request.node):
+        if request.config.getvalue("loadgroup") and not request.node.nodeid.endswith("@clock"):
+            # xdist's loadgroup names a group by a suffix to the node id; without it the clock
+            # tests are spread over both workers and wait on each other for most of the run
+            pytest.fail(f"pytest-xdist's --dist loadgroup did not group the clock tests (pytest "
+                        f"{pytest.__version__}: no @clock on {request.node.nodeid}); install the "
+                        "versions the test extra asks for: pip install '.[test]'")
         machine.take_alone()
         yield
     else:

@@ -9,7 +9,10 @@ afmformats' HDF5, with their truth):
 - throughput: a 64x64 map (4096 curves), Hertz with the contact point fitted, on every core,
   against nanite 4.2.3's serial loop over 200 of the same curves in the same run (nanite as its
   users run it: its preprocessing, hertz_para, weight_cp=0; a GPL benchmark-only peer): the
-  curves per second of each, and the issue's target, 10x nanite's;
+  curves per second of each, and the issue's target, 10x nanite's (its loop over 200 curves,
+  the opening of the map included, as the issue counts it; its fits alone and its whole-map
+  figure are printed beside it: nanite fits a curve faster than rig analyses one on a core,
+  and most of its time over 200 curves is opening the map);
 - Dask: the 16x16 map on a local Dask cluster of one worker, then two: the speed-up.
 """
 
@@ -66,14 +69,26 @@ def test_throughput_against_nanite(tmp_path):
     done = subprocess.run([sys.executable, str(loop), str(path), "200"], capture_output=True, text=True,
                           timeout=3600)
     assert done.returncode == 0, done.stderr
-    nanite_rate = float(done.stdout.split()[-1])
+    words = done.stdout.split()
+    nanite_rate = float(words[-1])
+    nanite_load_s, nanite_fit_s = float(words[2]), float(words[7])
     table = tmp_path / "t.csv"
+    # rig as its users run it: its own process, as the Dask comparison below runs it too
     t0 = time.perf_counter()
-    assert main(["analyze", str(path), *HERTZ, "--table", str(table)]) == 0
+    ran = subprocess.run([sys.executable, "-m", "rig", "analyze", str(path), *HERTZ, "--table", str(table)],
+                         capture_output=True, text=True, timeout=3600)
     wall = time.perf_counter() - t0
+    assert ran.returncode == 0, ran.stderr
     rig_rate = 4096 / wall
+    # nanite opens the whole map before its first fit (every curve's metadata); the issue's figure
+    # is its loop over 200 curves with that opening in, and what it would do over the whole map
+    # is said beside it, so that neither is mistaken for the other
+    whole = 4096 / (nanite_load_s + 4096 * nanite_fit_s / 200)
     print(f"\nrig: 4096 curves in {wall:.1f} s, {rig_rate:.1f} curves/s on every core; nanite: "
-          f"{nanite_rate:.1f} curves/s serially (200 curves); {rig_rate / nanite_rate:.2f}x")
+          f"{nanite_rate:.1f} curves/s serially over 200 curves, its opening of the map "
+          f"({nanite_load_s:.1f} s) included: {rig_rate / nanite_rate:.2f}x. nanite's fits alone: "
+          f"{200 / nanite_fit_s:.0f} curves/s; over the whole map, opening included, about "
+          f"{whole:.0f} curves/s: {rig_rate / whole:.2f}x")
     assert len(_rows(table)) == 4096
     assert rig_rate >= 10 * nanite_rate
 
