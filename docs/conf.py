@@ -1,0 +1,42 @@
+"""Sphinx configuration: Markdown pages (MyST), the reference pages generated from the code at
+every build (docs_build/reference.py), the Python API from the docstrings (autodoc)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent / "docs_build"))
+
+import reference  # noqa: E402 (the generators, beside the docs, not part of the package)
+
+project = "indentation-rig"
+author = "the indentation-rig authors"
+extensions = ["myst_parser", "sphinx.ext.autodoc"]
+source_suffix = {".md": "markdown"}
+root_doc = "index"
+exclude_patterns = ["_build"]
+html_theme = "furo"
+html_title = "indentation-rig"
+myst_heading_anchors = 4
+myst_enable_extensions = ["colon_fence"]
+autodoc_typehints = "description"
+autodoc_member_order = "bysource"
+nitpicky = False
+suppress_warnings: list[str] = []
+
+
+def _write_reference(app) -> None:
+    # written into the source tree before Sphinx reads it, as sphinx-apidoc does; never edited by
+    # hand (git ignores them)
+    for path, make in reference.PAGES.items():
+        out = HERE / path
+        out.parent.mkdir(parents=True, exist_ok=True)
+        text = make()
+        if not out.exists() or out.read_text() != text:
+            out.write_text(text)
+
+
+def setup(app) -> None:
+    app.connect("builder-inited", _write_reference)
