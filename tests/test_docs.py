@@ -22,6 +22,7 @@ DOCS = ROOT / "docs"
 def _reference():
     spec = importlib.util.spec_from_file_location("docs_reference", ROOT / "docs_build" / "reference.py")
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up
     spec.loader.exec_module(module)
     return module
 

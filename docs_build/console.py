@@ -1,0 +1,177 @@
+"""The console examples of the documentation's pages, run and compared with what the page shows.
+
+A page's ```console block holds commands (`$ ` lines; a line ending in `\\` goes on) each followed
+by the output the page shows. What is compared:
+
+- the text, word for word (runs of spaces are one space: a table's columns may shift);
+- the numbers, to 1 % (the last digits of a fit move with the machine's floating point), except
+  durations and rates of the machine (a number followed by `s`, `ms`, `/s`), which may be any;
+- dates, times of day and temporary paths are any;
+- `...` on a line of its own stands for any lines (none included), and inside a line for any text.
+
+A block runs in one shell, in a scratch folder beside which `../shared` is the project's (so the
+pages' paths work as written) and `protocols/` and `config/` are the project's own.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
+TIMING = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?(?=\s?(?:s|ms|/s)\b)")
+ANY = [
+    (re.compile(r"(?<!\d)\d{8}-\d{6}(?!\d)"), "<stamp>"),  # a log's name
+    (re.compile(r"\b\d{4}-\d{2}-\d{2}[T ]\d{2}:\d{2}:\d{2}(?:\.\d+)?(?:Z|[+-]\d{2}:?\d{2})?"), "<when>"),
+    (re.compile(r"/tmp/[^\s'\"),]+"), "<tmp>"),
+]
+RELATIVE = 0.01
+
+
+@dataclass
+class Example:
+    page: Path
+    line: int  # of the block's first line in the page
+    commands: list[tuple[str, list[str]]]  # (command, the output the page shows)
+
+
+def examples(page: Path) -> list[Example]:
+    """Every console block of a page."""
+    out = []
+    lines = page.read_text().splitlines()
+    i = 0
+    while i < len(lines):
+        if lines[i].strip() == "```console":
+            start, i = i + 1, i + 1
+            block = []
+            while i < len(lines) and lines[i].strip() != "```":
+                block.append(lines[i])
+                i += 1
+            out.append(Example(page, start + 1, _commands(block)))
+        i += 1
+    return out
+
+
+def _commands(block: list[str]) -> list[tuple[str, list[str]]]:
+    commands: list[tuple[str, list[str]]] = []
+    i = 0
+    while i < len(block):
+        line = block[i]
+        if line.startswith("$ "):
+            command = line[2:]
+            while command.endswith("\\") and i + 1 < len(block):
+                i += 1
+                command = command[:-1] + " " + block[i].strip()
+            commands.append((command, []))
+        elif commands:
+            commands[-1][1].append(line)
+        i += 1
+    return commands
+
+
+def run(example: Example, root: Path, scratch: Path,
+        timeout_s: float = 900) -> list[tuple[str, int, list[str]]]:
+    """Run a block's commands in one shell: (command, exit status, output lines) for each."""
+    work = scratch / "work"
+    work.mkdir(parents=True, exist_ok=True)
+    for name in ("protocols", "config"):
+        if not (work / name).exists():
+            (work / name).symlink_to(root / name)
+    shared = root.parent / "shared"
+    if shared.exists() and not (scratch / "shared").exists():
+        (scratch / "shared").symlink_to(shared)
+    marker = "=====8<===== rig docs"
+    script = []
+    for n, (command, _) in enumerate(example.commands):
+        script.append(f"printf '%s\\n' '{marker} command {n}'")
+        script.append(f"{command} 2>&1; printf '\\n%s %d\\n' '{marker} status' $?")
+    # `rig` as installed beside the Python running this, first on the path
+    path = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
+    env = dict(os.environ, PATH=path, COLUMNS="100", NO_COLOR="1", PYTHONUNBUFFERED="1")
+    done = subprocess.run(["bash", "-c", "\n".join(script)], cwd=work, env=env, capture_output=True,
+                          text=True, timeout=timeout_s)
+    found = {}
+    for m in re.finditer(rf"^{re.escape(marker)} command (\d+)\n(.*?)\n{re.escape(marker)} status (\d+)$",
+                         done.stdout, flags=re.S | re.M):
+        found[int(m.group(1))] = (int(m.group(3)), m.group(2).split("\n"))
+    return [(command, *found.get(n, (-1, [f"(no output: the shell ended first: {done.stderr.strip()})"])))
+            for n, (command, _) in enumerate(example.commands)]
+
+
+def _normal(line: str) -> str:
+    for pattern, token in ANY:
+        line = pattern.sub(token, line)
+    return " ".join(line.split())
+
+
+def _numbers_match(shown: str, got: str) -> bool:
+    a, b = float(shown), float(got)
+    if a == b:
+        return True
+    if not (math.isfinite(a) and math.isfinite(b)):
+        return False
+    # the page's last printed digit is as far as it can be held to, beside the relative part
+    digits = shown.lower().split("e")[0]
+    step = 10.0 ** -(len(digits.split(".")[1]) if "." in digits else 0)
+    if "e" in shown.lower():
+        step *= 10.0 ** int(shown.lower().split("e")[1])
+    return abs(a - b) <= max(RELATIVE * max(abs(a), abs(b)), step)
+
+
+def line_matches(shown: str, got: str) -> bool:
+    """Does an output line match the line a page shows?"""
+    shown, got = _normal(shown), _normal(got)
+    if shown == got:
+        return True
+    # the shown line as a pattern: its text literal, `...` any text, numbers captured
+    pattern, numbers, pos = [], [], 0
+    timing = {m.start() for m in TIMING.finditer(shown)}
+    for m in re.finditer(r"\.\.\.|" + NUMBER.pattern, shown):
+        pattern.append(re.escape(shown[pos:m.start()]))
+        if m.group() == "...":
+            pattern.append(".*?")
+        else:
+            pattern.append(f"({NUMBER.pattern})")
+            numbers.append((m.group(), m.start() in timing))
+        pos = m.end()
+    pattern.append(re.escape(shown[pos:]))
+    found = re.fullmatch("".join(pattern), got)
+    if not found:
+        return False
+    return all(is_timing or _numbers_match(value, found.group(k + 1))
+               for k, (value, is_timing) in enumerate(numbers))
+
+
+def mismatch(shown: list[str], got: list[str]) -> str | None:
+    """Where the output departs from what the page shows (None when it does not): `...` lines of
+    the page take any lines."""
+    # blank lines are layout, not output
+    shown = [s for s in shown if s.strip()]
+    got = [g for g in got if g.strip()]
+
+    def match(i: int, j: int) -> bool:
+        while i < len(shown):
+            if shown[i].strip() == "...":
+                return any(match(i + 1, k) for k in range(j, len(got) + 1))
+            if j >= len(got) or not line_matches(shown[i], got[j]):
+                return False
+            i, j = i + 1, j + 1
+        return j == len(got)
+
+    if match(0, 0):
+        return None
+    # the first shown line that nothing matches, for the message
+    j = 0
+    for i, s in enumerate(shown):
+        if s.strip() == "...":
+            continue
+        hit = next((k for k in range(j, len(got)) if line_matches(s, got[k])), None)
+        if hit is None:
+            return f"line {i + 1} of the shown output, {s!r}, is not in the output"
+        j = hit + 1
+    return "the output has lines the page does not show (add them, or `...`)"

@@ -1,0 +1,51 @@
+"""Every console example of the documentation runs and prints what its page shows (those on the
+real clock are in test_pages_clock.py); and the comparison itself: a word changed fails it."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.pages import ROOT, cases, check, console
+
+
+@pytest.mark.parametrize("example", cases(False))
+def test_the_page_shows_what_the_command_prints(example, tmp_path):
+    check(example, tmp_path)
+
+
+def test_one_word_changed_on_a_page_fails_it(tmp_path):
+    con = console()
+    example = next(ex for p in cases(False) for ex in p.values
+                   if ex.commands[0][0].startswith("rig check protocols/paper"))
+    command, shown = example.commands[0]
+    assert con.mismatch(shown, con.run(example, ROOT, tmp_path)[0][2]) is None
+    changed = [line.replace("relaxes", "rests") for line in shown]
+    assert changed != shown
+    example.commands[0] = (command, changed)
+    problem = con.mismatch(changed, con.run(example, ROOT, tmp_path / "again")[0][2])
+    assert problem is not None and "rests" in problem
+
+
+@pytest.mark.parametrize("shown, got, same", [
+    ("peak force 5.882 N", "peak force 5.882 N", True),
+    ("peak force 5.882 N", "peak force 5.90 N", True),  # within 1 %
+    ("peak force 5.882 N", "peak force 6.1 N", False),
+    ("peak force 5.882 N", "peak load 5.882 N", False),  # a word
+    ("trial completed: 1129 samples in 11.3 s", "trial completed: 1129 samples in 19.8 s", True),  # a time
+    ("curves at 83/s", "curves at 41/s", True),  # a rate of the machine
+    ("log: trials/20261122-033543_pig-07_demo.mcap", "log: trials/20270101-120000_pig-07_demo.mcap", True),
+    ("a   table   row 1.5", "a table row 1.5", True),  # columns shift
+    ("force ... N (untared)", "force -0.151 N (untared)", True),
+    ("(0 late, 0 missed ticks)", "(2 late, 0 missed ticks)", False),
+    ("max diff 0.00e+00 N/m", "max diff 0.00e+00 N/m", True),
+])
+def test_a_line_is_compared_in_its_words_and_to_a_percent_in_its_numbers(shown, got, same):
+    assert console().line_matches(shown, got) is same
+
+
+def test_an_elided_run_of_lines_takes_any_lines():
+    con = console()
+    assert con.mismatch(["a", "...", "d"], ["a", "b", "c", "d"]) is None
+    assert con.mismatch(["a", "...", "d"], ["a", "d"]) is None
+    assert con.mismatch(["a", "d"], ["a", "b", "d"]) is not None
+    assert "'e'" in con.mismatch(["a", "...", "e"], ["a", "b", "d"])
