@@ -10,7 +10,9 @@ by the output the page shows. What is compared:
 - `...` on a line of its own stands for any lines (none included), and inside a line for any text.
 
 A block runs in one shell, in a scratch folder beside which `../shared` is the project's (so the
-pages' paths work as written) and `protocols/` and `config/` are the project's own.
+pages' paths work as written) and `protocols/` and `config/` are the project's own. A code block
+of the page whose first line names a file (`# my_effects.py`, `# stiff.yaml`) is written there
+first, so the commands use the file the page shows.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ TIMING = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?(?=\s?(?:s|ms|
 ANY = [
     (re.compile(r"(?<!\d)\d{8}-\d{6}(?!\d)"), "<stamp>"),  # a log's name
     (re.compile(r"\b\d{4}-\d{2}-\d{2}[T ]\d{2}:\d{2}:\d{2}(?:\.\d+)?(?:Z|[+-]\d{2}:?\d{2})?"), "<when>"),
-    (re.compile(r"/tmp/[^\s'\"),]+"), "<tmp>"),
+    (re.compile(r"/tmp/[^/\s'\"),]+"), "<tmp>"),  # a scratch folder; what is in it still counts
 ]
 RELATIVE = 0.01
 
@@ -38,23 +40,30 @@ class Example:
     page: Path
     line: int  # of the block's first line in the page
     commands: list[tuple[str, list[str]]]  # (command, the output the page shows)
+    files: dict[str, str]  # the page's named code blocks: file name -> text
+
+
+FILE_NAME = re.compile(r"^#\s*([\w.-]+\.(?:py|yaml|yml|csv|txt))\s*$")
 
 
 def examples(page: Path) -> list[Example]:
-    """Every console block of a page."""
-    out = []
+    """Every console block of a page, each with the page's named code blocks."""
+    blocks: list[tuple[int, str, list[str]]] = []
     lines = page.read_text().splitlines()
     i = 0
     while i < len(lines):
-        if lines[i].strip() == "```console":
+        fence = lines[i].strip()
+        if fence.startswith("```") and len(fence) > 3:
             start, i = i + 1, i + 1
             block = []
             while i < len(lines) and lines[i].strip() != "```":
                 block.append(lines[i])
                 i += 1
-            out.append(Example(page, start + 1, _commands(block)))
+            blocks.append((start + 1, fence[3:].strip(), block))
         i += 1
-    return out
+    files = {m.group(1): "\n".join(b) + "\n" for _, _, b in blocks
+             if b and (m := FILE_NAME.match(b[0]))}
+    return [Example(page, start, _commands(block), files) for start, kind, block in blocks if kind == "console"]
 
 
 def _commands(block: list[str]) -> list[tuple[str, list[str]]]:
@@ -79,6 +88,8 @@ def run(example: Example, root: Path, scratch: Path,
     """Run a block's commands in one shell: (command, exit status, output lines) for each."""
     work = scratch / "work"
     work.mkdir(parents=True, exist_ok=True)
+    for name, text in example.files.items():
+        (work / name).write_text(text)
     for name in ("protocols", "config"):
         if not (work / name).exists():
             (work / name).symlink_to(root / name)
@@ -89,7 +100,8 @@ def run(example: Example, root: Path, scratch: Path,
     script = []
     for n, (command, _) in enumerate(example.commands):
         script.append(f"printf '%s\\n' '{marker} command {n}'")
-        script.append(f"{command} 2>&1; printf '\\n%s %d\\n' '{marker} status' $?")
+        # grouped, so that a redirection the page writes applies before the block's own
+        script.append(f"{{ {command}\n}} 2>&1; printf '\\n%s %d\\n' '{marker} status' $?")
     # `rig` as installed beside the Python running this, first on the path
     path = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
     env = dict(os.environ, PATH=path, COLUMNS="100", NO_COLOR="1", PYTHONUNBUFFERED="1")

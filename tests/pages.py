@@ -28,7 +28,7 @@ def console():
 # commands that reach the rig on the real clock (a trial at speed 1, the devices on the wire, the
 # daemon): their pages' blocks run with the machine to themselves, as the other clock tests do
 _CLOCK = re.compile(r"^rig (run|characterize|position|move|home|tare|reset-alarm|probe|daemon|start|stop|"
-                    r"estop|status|watch|sim|bench)\b")
+                    r"estop|status|watch|sim|bench)(?=\s|$)")
 
 
 def on_the_clock(example) -> bool:

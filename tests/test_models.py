@@ -265,11 +265,11 @@ def test_empty_log_is_a_clear_error(tmp_path):
         load_trial(p)
 
 
-def test_readme_plugin_example_loads_and_fits(paper_trials, tmp_path):
-    """The worked example in the README is real code that loads and fits."""
+def test_the_documented_plugin_example_loads_and_fits(paper_trials, tmp_path):
+    """The plugin example of the documentation is real code that loads and fits."""
     from rig.models.plugins import load_plugin
 
-    readme = (ROOT / "README.md").read_text()
+    readme = (ROOT / "docs" / "how-to" / "add-effect.md").read_text()
     block = readme.split("```python\n# my_effects.py\n", 1)[1].split("```", 1)[0]
     path = tmp_path / "my_effects.py"
     path.write_text(block)
