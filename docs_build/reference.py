@@ -176,13 +176,19 @@ def _sections(cls: type) -> list[tuple[str, type]]:
     return out
 
 
+def _doc(cls: type) -> list[str]:
+    """A dataclass's own docstring as a paragraph (not the signature dataclass writes for one
+    without)."""
+    if cls.__doc__ and not cls.__doc__.startswith(cls.__name__ + "("):
+        return [inspect.cleandoc(cls.__doc__), ""]
+    return []
+
+
 def _nested(cls: type, prefix: str, level: int) -> list[str]:
     lines = []
     for name, sub in _sections(cls):
         lines += [f"{'#' * level} `{prefix}{name}:`", ""]
-        if sub.__doc__ and not sub.__doc__.startswith(sub.__name__ + "("):
-            lines += [inspect.cleandoc(sub.__doc__), ""]
-        lines += _dataclass_table(sub)
+        lines += _doc(sub) + _dataclass_table(sub)
         lines += _nested(sub, f"{prefix}{name}.", min(level + 1, 4))
     return lines
 
@@ -217,9 +223,7 @@ def protocol_page() -> str:
     for cls in typing.get_args(p.Step):
         kind = next(f.default for f in dataclasses.fields(cls) if f.name == "kind")
         lines += [f"### `{kind}`", ""]
-        if cls.__doc__ and not cls.__doc__.startswith(cls.__name__ + "("):
-            lines += [inspect.cleandoc(cls.__doc__), ""]
-        lines += _dataclass_table(cls, skip=("line", "kind"))
+        lines += _doc(cls) + _dataclass_table(cls, skip=("line", "kind"))
     return "\n".join(lines)
 
 

@@ -17,12 +17,17 @@ GENERATED = DOCS / "reference"  # written by the build from the code; no example
 
 
 @functools.cache
-def console():
-    spec = importlib.util.spec_from_file_location("docs_console", ROOT / "docs_build" / "console.py")
+def docs_module(name: str):
+    """A module of docs_build/ (the site's build tools, beside the docs, not part of the package)."""
+    spec = importlib.util.spec_from_file_location(f"docs_{name}", ROOT / "docs_build" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # its dataclasses look their module up
     spec.loader.exec_module(module)
     return module
+
+
+def console():
+    return docs_module("console")
 
 
 # commands that reach the rig on the real clock (a trial at speed 1, the devices on the wire, the

@@ -14,17 +14,14 @@ from pathlib import Path
 import pytest
 
 import rig.specs.config as config
+from tests.pages import docs_module
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs"
 
 
 def _reference():
-    spec = importlib.util.spec_from_file_location("docs_reference", ROOT / "docs_build" / "reference.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    return docs_module("reference")
 
 
 def test_the_site_builds_without_a_warning(tmp_path):
