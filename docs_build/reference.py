@@ -237,7 +237,14 @@ def log_page() -> str:
              "Every trial is one MCAP file; each topic below is a channel with a JSON schema stored "
              "in the file (so Foxglove, the `mcap` tools and any MCAP reader open it). Generated "
              "from `rig.recording.messages`, the one definition the loop writes, the live view "
-             "sends and `rig replay` reads.", ""]
+             "sends and `rig replay` reads.", "",
+             "Metadata `trial` (specimen, operator, protocol, start time, software version, config "
+             "digest, clock) is written first and `outcome` last; the protocol and config files are "
+             "attached exactly as run. A writer thread does the encoding, compression and disk I/O, "
+             "and flushes and fsyncs about once a second, so a crash loses at most about a second. "
+             "A log without `outcome` was interrupted: `rig replay` reads it up to its last flush, "
+             "and the daemon rewrites it as a finished file marked `interrupted` when it next "
+             "starts.", ""]
     lines += ["| topic | schema | what it is |", "|---|---|---|"]
     lines += [f"| [`{m.topic}`](#{m.title.lower().replace('.', '')}) | `{m.title}` | {_cell(m.description)} |"
               for m in MESSAGES]
