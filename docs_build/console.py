@@ -5,7 +5,8 @@ by the output the page shows. What is compared:
 
 - the text, word for word (runs of spaces are one space: a table's columns may shift);
 - the numbers, to 1 % (the last digits of a fit move with the machine's floating point), except
-  durations and rates of the machine (a number followed by `s`, `ms`, `/s`), which may be any;
+  durations and rates of the machine (a number followed by `s`, `ms`, `/s`, and a duration's
+  share in percent just after it), which may be any;
 - dates, times of day and temporary paths are any;
 - `...` on a line of its own stands for any lines (none included), and inside a line for any text.
 
@@ -27,6 +28,8 @@ from pathlib import Path
 
 NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
 TIMING = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?(?=\s?(?:s|ms|/s)\b)")
+# a duration's share of a whole, as in "reading 1.09 s (23 %)"
+TIME_SHARE = re.compile(r"(?<=s \()\d+(?:\.\d*)?(?=\s?%\))")
 ANY = [
     (re.compile(r"(?<!\d)\d{8}-\d{6}(?!\d)"), "<stamp>"),  # a log's name
     (re.compile(r"\b\d{4}-\d{2}-\d{2}[T ]\d{2}:\d{2}:\d{2}(?:\.\d+)?(?:Z|[+-]\d{2}:?\d{2})?"), "<when>"),
@@ -142,7 +145,7 @@ def line_matches(shown: str, got: str) -> bool:
         return True
     # the shown line as a pattern: its text literal, `...` any text, numbers captured
     pattern, numbers, pos = [], [], 0
-    timing = {m.start() for m in TIMING.finditer(shown)}
+    timing = {m.start() for m in TIMING.finditer(shown)} | {m.start() for m in TIME_SHARE.finditer(shown)}
     for m in re.finditer(r"\.\.\.|" + NUMBER.pattern, shown):
         pattern.append(re.escape(shown[pos:m.start()]))
         if m.group() == "...":

@@ -33,6 +33,8 @@ def test_one_word_changed_on_a_page_fails_it(tmp_path):
     ("peak force 5.882 N", "peak load 5.882 N", False),  # a word
     ("trial completed: 1129 samples in 11.3 s", "trial completed: 1129 samples in 19.8 s", True),  # a time
     ("curves at 83/s", "curves at 41/s", True),  # a rate of the machine
+    ("reading 1.09 s (23 %), analysing 3.61 s (77 %)", "reading 0.871 s (25 %), analysing 2.68 s (75 %)", True),
+    ("error falls by 86.7 %", "error falls by 80.1 %", False),  # a percentage that is not the machine's
     ("log: trials/20261122-033543_pig-07_demo.mcap", "log: trials/20270101-120000_pig-07_demo.mcap", True),
     ("a   table   row 1.5", "a table row 1.5", True),  # columns shift
     ("force ... N (untared)", "force -0.151 N (untared)", True),
