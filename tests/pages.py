@@ -63,6 +63,6 @@ def check(example, tmp_path: Path) -> None:
         assert problem is None, (f"{where}: `{command}` (exit status {status}): {problem}\n"
                                  f"its output:\n" + "\n".join(lines))
         if status != 0:
-            assert any("error" in s for s in shown), (
-                f"{where}: `{command}` failed (exit status {status}) where the page shows no error:\n"
+            assert any("error" in s or "fault" in s for s in shown), (
+                f"{where}: `{command}` failed (exit status {status}) where the page shows no error or fault:\n"
                 + "\n".join(lines))
