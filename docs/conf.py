@@ -1,5 +1,5 @@
-"""Sphinx configuration: Markdown pages (MyST), the reference pages generated from the code at
-every build (docs_build/reference.py), the Python API from the docstrings (autodoc)."""
+"""Sphinx configuration: Markdown pages (MyST) and the reference pages generated from the code at
+every build (docs_build/reference.py)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import reference  # noqa: E402 (the generators, beside the docs, not part of the
 
 project = "indentation-rig"
 author = "the indentation-rig authors"
-extensions = ["myst_parser", "sphinx.ext.autodoc"]
+extensions = ["myst_parser"]
 source_suffix = {".md": "markdown"}
 root_doc = "index"
 exclude_patterns = ["_build"]
@@ -21,10 +21,6 @@ html_theme = "furo"
 html_title = "indentation-rig"
 myst_heading_anchors = 4
 myst_enable_extensions = ["colon_fence"]
-autodoc_typehints = "description"
-autodoc_member_order = "bysource"
-nitpicky = False
-suppress_warnings: list[str] = []
 
 
 def _write_reference(app) -> None:

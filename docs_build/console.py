@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
-TIMING = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?(?=\s?(?:s|ms|/s)\b)")
+TIMING = re.compile(NUMBER.pattern + r"(?=\s?(?:s|ms|/s)\b)")
 # a duration's share of a whole, as in "reading 1.09 s (23 %)"
 TIME_SHARE = re.compile(r"(?<=s \()\d+(?:\.\d*)?(?=\s?%\))")
 ANY = [

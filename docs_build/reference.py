@@ -1,4 +1,4 @@
-"""The reference pages, generated from the code at each build (an MkDocs hook): the command line
+"""The reference pages, generated from the code at each build (docs/conf.py writes them): the command line
 from `rig.cli.build_parser`, the rig config and the protocol steps from their dataclasses (the one
 schema source: fields, types, defaults, ranges and the comments beside them), the log's messages
 from `rig.recording.messages`, and the effects catalogue from `rig.models.catalogue`. Nothing

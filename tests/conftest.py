@@ -108,21 +108,21 @@ def _the_machine(config) -> _Machine | None:
     return _machine
 
 
+def _set_idle(idle: bool) -> None:
+    os.sched_setscheduler(0, os.SCHED_IDLE if idle else os.SCHED_OTHER, os.sched_param(0))
+
+
 def _idle_class() -> bool:
     """Can this worker move itself, and its children, to the idle scheduling class and back?"""
     try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        _set_idle(True)
+        _set_idle(False)
         return True
     except (AttributeError, OSError):
         return False
 
 
 _IDLE = None
-
-
-def _set_idle(idle: bool) -> None:
-    os.sched_setscheduler(0, os.SCHED_IDLE if idle else os.SCHED_OTHER, os.sched_param(0))
 
 
 @pytest.fixture(autouse=True)

@@ -9,15 +9,11 @@ import importlib.util
 import subprocess
 import sys
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import pytest
 
 import rig.specs.config as config
-from tests.pages import docs_module
-
-ROOT = Path(__file__).resolve().parent.parent
-DOCS = ROOT / "docs"
+from tests.pages import DOCS, docs_module
 
 
 def _reference():
