@@ -203,6 +203,20 @@ def paper_075_log(tmp_path_factory):
     return result
 
 
+# A calibration (a rate over five seeds, every named model on the longest records) runs whole
+# under the benchmark (tests/bench/test_bench_full.py runs these tests with RIG_TESTS_FULL=1);
+# the suite runs a part of it held to the same verdicts (the first seeds, the models that
+# decide), so that a regression still fails the suite without the whole calibration in every run.
+FULL = os.environ.get("RIG_TESTS_FULL") == "1"
+SUITE_SEEDS = 2
+
+
+def calibration_seeds(seeds: Iterable[int]) -> tuple[int, ...]:
+    """`seeds` under the benchmark, else the first SUITE_SEEDS of them."""
+    seeds = tuple(seeds)
+    return seeds if FULL else seeds[:SUITE_SEEDS]
+
+
 def per_seed(fn: Callable, seeds: Iterable, *args) -> list:
     """fn(seed, *args) for every seed, on every core: the seeds of a CPU-bound analysis test are
     independent and nothing here runs on the real clock. The workers are fresh processes (BLAS on
