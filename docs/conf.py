@@ -1,5 +1,5 @@
-"""Sphinx configuration: Markdown pages (MyST) and the reference pages generated from the code at
-every build (docs_build/reference.py)."""
+"""Sphinx configuration: Markdown pages (MyST), the reference pages generated from the code at
+every build (docs_build/reference.py) and the Python API from the docstrings (autodoc)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,11 @@ import reference  # noqa: E402 (the generators, beside the docs, not part of the
 
 project = "indentation-rig"
 author = "the indentation-rig authors"
-extensions = ["myst_parser"]
+extensions = ["myst_parser", "sphinx.ext.autodoc"]
+# the API page: signatures as written, type hints in them, members in the source's order
+autodoc_typehints = "signature"
+autodoc_member_order = "bysource"
+autodoc_default_options = {"members": False}
 source_suffix = {".md": "markdown"}
 root_doc = "index"
 exclude_patterns = ["_build"]

@@ -10,6 +10,9 @@ by the output the page shows. What is compared:
 - dates, times of day and temporary paths are any;
 - `...` on a line of its own stands for any lines (none included), and inside a line for any text.
 
+A ```python block that does not name a file is run as a script, and what it prints compared with
+the next block when that is a ```text block (with nothing, when it is not).
+
 A block runs in one shell, in a scratch folder beside which `../shared` is the project's (so the
 pages' paths work as written) and `protocols/` and `config/` are the project's own. A code block
 of the page whose first line names a file (`# my_effects.py`, `# stiff.yaml`) is written there
@@ -49,9 +52,23 @@ class Example:
 FILE_NAME = re.compile(r"^#\s*([\w.-]+\.(?:py|yaml|yml|csv|txt))\s*$")
 
 
-def examples(page: Path) -> list[Example]:
-    """Every console block of a page, each with the page's named code blocks."""
-    blocks: list[tuple[int, str, list[str]]] = []
+@dataclass
+class Block:
+    fence: int  # line of the opening fence in the page
+    close: int  # line of the closing fence
+    kind: str  # what follows the fence: console, python, yaml, text, sh, {toctree}, ...
+    text: list[str]
+
+    @property
+    def file(self) -> str | None:
+        """The file the block is, when its first line names one."""
+        m = FILE_NAME.match(self.text[0]) if self.text else None
+        return m.group(1) if m else None
+
+
+def blocks(page: Path) -> list[Block]:
+    """Every fenced block of a page, in order."""
+    out: list[Block] = []
     lines = page.read_text().splitlines()
     i = 0
     while i < len(lines):
@@ -62,11 +79,45 @@ def examples(page: Path) -> list[Example]:
             while i < len(lines) and lines[i].strip() != "```":
                 block.append(lines[i])
                 i += 1
-            blocks.append((start + 1, fence[3:].strip(), block))
+            out.append(Block(start, i + 1, fence[3:].strip(), block))
         i += 1
-    files = {m.group(1): "\n".join(b) + "\n" for _, _, b in blocks
-             if b and (m := FILE_NAME.match(b[0]))}
-    return [Example(page, start, _commands(block), files) for start, kind, block in blocks if kind == "console"]
+    return out
+
+
+def examples(page: Path) -> list[Example]:
+    """Every console block of a page, and every Python block that is not a named file (run as a
+    script: its output is the next block when that is a ```text block), each with the page's named
+    code blocks."""
+    found = blocks(page)
+    files = {b.file: "\n".join(b.text) + "\n" for b in found if b.file}
+    out = []
+    for k, b in enumerate(found):
+        if b.kind == "console":
+            out.append(Example(page, b.fence + 1, _commands(b.text), files))
+        elif b.kind == "python" and not b.file:
+            nxt = found[k + 1] if k + 1 < len(found) else None
+            script = f"example-{b.fence}.py"
+            shown = nxt.text if nxt is not None and nxt.kind == "text" else []
+            out.append(Example(page, b.fence + 1, [(f"python {script}", shown)],
+                               {**files, script: "\n".join(b.text) + "\n"}))
+    return out
+
+
+# what a page may show without running it: output (text), and the site's own directives
+NOT_CODE = ("text", "console")
+
+
+def unrun(page: Path) -> list[Block]:
+    """The code blocks of a page that no example runs: not a console block with a command, not a
+    Python script, not output, not a directive, and not a file that a console command of the page
+    uses."""
+    found = blocks(page)
+    commands = " ".join(c for ex in examples(page) for c, _ in ex.commands)
+    return [b for b in found
+            if (b.kind == "console" and not _commands(b.text))
+            or (b.kind not in NOT_CODE and not b.kind.startswith("{")
+            and not (b.kind == "python" and not b.file)
+            and not (b.file and b.file in commands))]
 
 
 def _commands(block: list[str]) -> list[tuple[str, list[str]]]:

@@ -14,6 +14,7 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs"
 GENERATED = DOCS / "reference"  # written by the build from the code; no examples to run
+README = ROOT / "README.md"  # its tour is run as the pages' examples are
 
 
 @functools.cache
@@ -43,12 +44,13 @@ def on_the_clock(example) -> bool:
 def cases(clock: bool) -> list:
     con = console()
     out = []
-    for page in sorted(DOCS.rglob("*.md")):
+    for page in [README, *sorted(DOCS.rglob("*.md"))]:
         if GENERATED in page.parents:
             continue
         for ex in con.examples(page):
             if on_the_clock(ex) == clock:
-                out.append(pytest.param(ex, id=f"{page.relative_to(DOCS)}:{ex.line}"))
+                name = page.relative_to(DOCS) if DOCS in page.parents else page.name
+                out.append(pytest.param(ex, id=f"{name}:{ex.line}"))
     return out
 
 
