@@ -9,7 +9,8 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "docs_build"))
 
-import reference  # noqa: E402 (the generators, beside the docs, not part of the package)
+import figures  # noqa: E402 (the generators, beside the docs, not part of the package)
+import reference  # noqa: E402
 
 project = "indentation-rig"
 author = "the indentation-rig authors"
@@ -38,5 +39,12 @@ def _write_reference(app) -> None:
             out.write_text(text)
 
 
+def _draw_figures(app) -> None:
+    # drawn by the tool at every build into docs/_generated/ (git ignores it), as the reference
+    # pages are written
+    figures.make(HERE / "_generated", HERE.parent)
+
+
 def setup(app) -> None:
     app.connect("builder-inited", _write_reference)
+    app.connect("builder-inited", _draw_figures)
