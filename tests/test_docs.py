@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import pytest
 
 import rig.specs.config as config
-from tests.pages import DOCS, docs_module
+from tests.pages import DOCS, README, ROOT, docs_module
 
 
 def _reference():
@@ -32,6 +32,10 @@ def test_the_site_builds_without_a_warning(tmp_path):
         assert (tmp_path / "html" / f"{page}.html").is_file(), page
     cli = (tmp_path / "html" / "reference" / "cli.html").read_text()
     assert "--speed" in cli and "rig analyze" in cli
+    # the figures the tool draws at the build, and the API from the docstrings
+    for figure in ("demo-trial.png", "map-E.png"):
+        assert (tmp_path / "html" / "_images" / figure).stat().st_size > 10_000, figure
+    assert "analyze_curves" in (tmp_path / "html" / "api.html").read_text()
 
 
 def test_an_option_added_to_the_parser_is_on_the_site(monkeypatch):
@@ -106,3 +110,22 @@ def test_every_field_of_the_schemas_is_on_the_site():
     for message in MESSAGES:
         assert message.topic in log_page
         assert [f.name for f in message.fields if f"| `{f.name}` |" not in log_page] == [], message.topic
+
+
+def test_the_readme_is_short_starts_with_the_two_commands_and_its_links_resolve():
+    import re
+
+    text = README.read_text()
+    lines = text.splitlines()
+    assert len(lines) < 200, f"the README has {len(lines)} lines: what it says in more belongs on the site"
+    # its first code block is the two set-up commands (.ci/run runs the second)
+    first = text.index("```")
+    assert text[first:].startswith("```sh\n")
+    block = text[first + len("```sh\n"):text.index("```", first + 3)].strip().splitlines()
+    assert block[0].startswith("python3 -m pip install . && python3 -m rig run ")
+    assert block[1] == "python3 -m pip install '.[test]' && python3 -m pytest -n 2 --dist loadgroup"
+    # every link into the project names a file that is there
+    targets = [t.split("#")[0] for t in re.findall(r"\]\(([^)\s]+)\)", text) if "://" not in t]
+    assert targets
+    missing = [t for t in targets if not (ROOT / t).exists()]
+    assert not missing, f"the README links to files that are not there: {missing}"
