@@ -223,6 +223,21 @@ def test_the_notebook_api_gives_a_dataframe_and_a_grid(tmp_path):
     assert list(back["E_Pa"]) == list(df["E_Pa"]) and list(back.columns) == list(df.columns)
 
 
+def test_a_script_without_the_main_guard_is_told_what_to_do(tmp_path):
+    """The workers re-import the script that started them: without `if __name__ == "__main__":`
+    they cannot start, and the error says so instead of a broken pool."""
+    pytest.importorskip("pandas", reason="the table extra (pandas) is not installed")
+    script = tmp_path / "no_guard.py"
+    script.write_text("from rig.analysis.each import analyze_curves\n"
+                      f"analyze_curves({str(MAP)!r}, indenter='paraboloid:R=10um', workers=2,\n"
+                      "               progress=False)\n")
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0
+    last = done.stderr.strip().splitlines()[-1]
+    assert last.startswith("rig.errors.RigError: the worker processes could not start"), last
+    assert 'if __name__ == "__main__":' in last
+
+
 def test_a_batch_report_draws_the_map_and_says_what_is_missing_where(tmp_path, capsys):
     rep = tmp_path / "rep"
     assert main(["analyze", str(MAP), *HERTZ, "--explain", "--report", str(rep), "--table",

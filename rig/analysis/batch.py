@@ -23,6 +23,7 @@ import os
 import time
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -325,10 +326,18 @@ def run(curves: list[Curve], req: BatchRequest, *, workers: int | None = None,
     # afmformats keeps a map's archive open to read its curves lazily
     ctx = multiprocessing.get_context("forkserver")
     with ProcessPoolExecutor(max_workers=min(workers, len(parts)), mp_context=ctx) as pool:
-        futures = [pool.submit(analyze_chunk, part, req) for part in parts]
+        futures = []
         try:
+            futures.extend(pool.submit(analyze_chunk, part, req) for part in parts)
             for f in as_completed(futures):
                 yield f.result()
+        except BrokenProcessPool as exc:
+            # analyze_chunk never raises: a worker that died is one that could not start, most
+            # often a script run without the main guard (each worker imports it again)
+            raise RigError("the worker processes could not start (a script that analyses curves in "
+                           "parallel must keep its own code under `if __name__ == \"__main__\":`, as "
+                           "Python's multiprocessing re-imports it in every worker; or pass workers=1)"
+                           ) from exc
         finally:
             for f in futures:
                 f.cancel()
