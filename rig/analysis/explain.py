@@ -32,7 +32,7 @@ from rig.analysis.uncertainty import delta_bic
 from rig.models.catalogue import instrument_effects
 from rig.models.core import Effect, Model
 
-MIN_DROP = 0.05  # calibrated: see README, `--explain` (tests/bench/calibrate_explain.py)
+MIN_DROP = 0.05  # calibrated: docs/explanation/verdict.md (tests/bench/calibrate_explain.py)
 SCREEN_SAMPLES = 2000  # per trial
 SCREEN_NFEV = 60  # iterations of a screen (each one a Jacobian)
 REFIT_NFEV = 20  # a leader's refit at full rate, from the screen's answer

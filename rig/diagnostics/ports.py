@@ -40,7 +40,7 @@ class PortInfo:
             out.append(f"latency timer {self.latency_timer_ms} ms (above {LATENCY_OK_MS} ms): every reply can "
                        f"wait that long in the adapter, against a {period_ms:g} ms loop period. Set it to 1: "
                        f"echo 1 | sudo tee /sys/bus/usb-serial/devices/{name}/latency_timer  (lasts until "
-                       "unplugged; a udev rule makes it stick, see the README)")
+                       "unplugged; a udev rule makes it stick: docs/how-to/new-drive.md)")
         return out
 
     def as_dict(self) -> dict:
