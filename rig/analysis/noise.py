@@ -29,6 +29,7 @@ import zlib
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 MIN_BASELINE = 200
 AT_REST = "the force at rest before contact"
@@ -124,8 +125,27 @@ def autocovariance(x: np.ndarray, lags: int) -> np.ndarray:
 
 def ar_fit(gamma: np.ndarray, n: int, max_order: int = MAX_ORDER) -> np.ndarray:
     """AR coefficients from an autocovariance (Levinson-Durbin, the Yule-Walker solution: always
-    stationary), the order chosen by BIC."""
-    return ar_fit_rows(np.asarray(gamma, dtype=float)[None, :], n, max_order)[0]
+    stationary), the order chosen by BIC as `ar_fit_rows` chooses it. One row's recursion in
+    plain floats: on arrays of one row each step cost numpy's call overhead a few times over."""
+    g = [float(v) for v in np.asarray(gamma, dtype=float)]
+    order = min(max_order, len(g) - 1, max(n // 10, 1))
+    if not g[0] > 0:
+        return np.zeros(0)
+    v = g[0]
+    log_n = math.log(n)
+    best, best_phi = n * math.log(v), []
+    phi: list[float] = []
+    for k in range(1, order + 1):
+        refl = (g[k] - sum(phi[j] * g[k - 1 - j] for j in range(k - 1))) / v
+        phi = [phi[j] - refl * phi[k - 2 - j] for j in range(k - 1)] + [refl]
+        v = v * (1.0 - refl * refl)
+        # an order counts while every variance up to it stays positive; the first lowest BIC wins
+        if not v > 0:
+            break
+        crit = n * math.log(v) + k * log_n
+        if crit < best:
+            best, best_phi = crit, phi
+    return np.array(best_phi, dtype=float)
 
 
 def ar_fit_rows(gamma: np.ndarray, n: int, max_order: int = MAX_ORDER) -> list[np.ndarray]:
@@ -213,18 +233,37 @@ def integral_scale(r: np.ndarray, max_lag: int = 3000) -> float:
 
 
 def integral_scales(r: np.ndarray, max_lag: int = 3000) -> np.ndarray:
-    """`integral_scale` of each row of `r`, in one transform."""
+    """`integral_scale` of each row of `r`: the first lags by direct products (a residual as
+    white as the noise drops below 0.05 within two or three), the rows that run on in one
+    transform."""
     n = r.shape[1]
     if n < 10:
         return np.ones(r.shape[0])
     lag = min(max_lag, n // 4)
-    acf = autocovariance(r, lag)
-    acf = acf / np.maximum(acf[:, :1], 1e-300)
+    x = r - r.mean(axis=1, keepdims=True)
+    head = np.column_stack([np.einsum("ij,ij->i", x[:, k:], x[:, :n - k])
+                            for k in range(min(lag, FIRST_LAGS) + 1)])
+    out = _scales_from(head / n, lag, n)
+    rest = np.isnan(out)
+    if rest.any():
+        out[rest] = _scales_from(autocovariance(r[rest], lag), lag, n)
+    return out
+
+
+FIRST_LAGS = 8  # the lags `integral_scales` takes directly
+
+
+def _scales_from(acov: np.ndarray, lag: int, n: int) -> np.ndarray:
+    """1 + 2 * the sum of each row's autocorrelation before its first drop below 0.05, from its
+    autocovariances at lags 0..lag or fewer; nan for a row that needs lags beyond those given."""
+    acf = acov / np.maximum(acov[:, :1], 1e-300)
     below = acf < 0.05
-    cut = np.where(below.any(axis=1), below.argmax(axis=1), lag)
-    csum = np.concatenate([np.zeros((len(r), 1)), np.cumsum(acf[:, 1:], axis=1)], axis=1)
-    s = csum[np.arange(len(r)), np.maximum(cut - 1, 0)]
-    return np.clip(1.0 + 2.0 * s, 1.0, n / 20.0)
+    dropped = below.any(axis=1)
+    cut = np.where(dropped, below.argmax(axis=1), acf.shape[1] - 1)
+    csum = np.concatenate([np.zeros((len(acf), 1)), np.cumsum(acf[:, 1:], axis=1)], axis=1)
+    s = csum[np.arange(len(acf)), np.maximum(cut - 1, 0)]
+    out = np.clip(1.0 + 2.0 * s, 1.0, n / 20.0)
+    return out if acf.shape[1] > lag else np.where(dropped, out, np.nan)
 
 
 # --- quantisation ----------------------------------------------------------------------------
@@ -333,8 +372,7 @@ def from_residual(residuals: list[np.ndarray]) -> Noise:
     longest = max(len(r) for r in residuals)
     K = int(np.clip(longest // 40, 8, SHORT_LAGS))
     lags = np.arange(1, K + 1)
-    D = np.array([np.mean(np.concatenate([(r[k:] - r[:-k]) ** 2 for r in residuals if len(r) > k]))
-                  for k in lags])
+    D = structure_function(residuals, K)
     far = lags >= K // 2
     A = np.column_stack([np.ones(far.sum()), lags[far].astype(float) ** 2])
     (_, b), *_ = np.linalg.lstsq(A, D[far], rcond=None)
@@ -348,6 +386,32 @@ def from_residual(residuals: list[np.ndarray]) -> Noise:
     std = math.sqrt(var)
     return Noise(std, integral_scale_ar(ar), source, ar, std, samples=n,
                  spread=math.sqrt(variance_scale(ar) / (2.0 * n)))
+
+
+def structure_function(residuals: list[np.ndarray], K: int) -> np.ndarray:
+    """D(k) = mean (r_(t+k) - r_t)^2 at k = 1..K over the pairs of every residual, the lags of a
+    residual taken as rows of one array (a loop over lags cost a curve more than a millisecond);
+    nan at a lag no residual is longer than."""
+    sums = np.zeros(K)
+    counts = np.zeros(K)
+    lags = np.arange(1, K + 1)
+    for r in residuals:
+        r = np.asarray(r, dtype=float)
+        m = len(r)
+        padded = np.concatenate([r, np.zeros(K)])
+        # a few lags at a time keep a long record's rows within some 8 MB
+        step = max(1, (1 << 20) // max(m, 1))
+        for k0 in range(1, K + 1, step):
+            k1 = min(k0 + step, K + 1)
+            d = sliding_window_view(padded, m)[k0:k1] - r
+            # a lag's pairs end where the residual does: those with the padding, in the last K
+            # columns alone, are left out
+            lo = max(m - K, 0)
+            d[:, lo:] = np.where(lags[k0 - 1:k1 - 1, None] + np.arange(lo, m) < m, d[:, lo:], 0.0)
+            sums[k0 - 1:k1 - 1] += np.einsum("ij,ij->i", d, d)
+        counts += np.maximum(m - lags, 0)
+    with np.errstate(invalid="ignore"):
+        return sums / counts
 
 
 def measure(baselines: list[np.ndarray | None], residuals: list[np.ndarray]) -> Noise:
