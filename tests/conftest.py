@@ -135,7 +135,10 @@ def share_the_machine(request):
     every process it starts), beside the clock tests: it takes a core only when no clock test's
     process wants one. Measured once on two cores: 1368 s for the suite against 1628 s, but a
     clock test failed (the daemon's soak over RTU in poll mode: the load cell silent for 103 ms,
-    limit 100 ms), so it is not the default."""
+    limit 100 ms), so it is not the default. The cause is the disk, not the processor: beside two
+    idle-class processes that only compute, the same soak passes and a 1 ms sleep overshoots by
+    4 ms at most; beside two that also write some 100 MB/s of files, its first position read
+    timed out within seconds in 3 runs of 3. The idle class shares the processor, not the disk."""
     global _IDLE
     machine = _the_machine(request.config)
     if machine is None:
