@@ -106,6 +106,8 @@ _NTMDT_ROW = re.compile(rf"^\s*{_NUM}\t{_NUM}\t{_NUM}\s*$")
 def in_time_order(t: np.ndarray, *columns: np.ndarray | None) -> tuple:
     """`t` and the columns sorted by time, a repeated time dropped (segments that restart or
     overlap); a None column stays None."""
+    if np.all(t[1:] > t[:-1]):  # most files: already in order, nothing to sort or drop
+        return (t.copy(), *(None if c is None else c.copy() for c in columns))
     order = np.argsort(t, kind="stable")
     keep = np.concatenate([[True], np.diff(t[order]) > 0])
     return (t[order][keep], *(None if c is None else c[order][keep] for c in columns))
@@ -804,7 +806,8 @@ def _segment_labels(seg: np.ndarray | None, modality: str, travel: np.ndarray, n
     """'approach', 'intermediate' or 'retract' per sample, from afmformats' segment numbers."""
     names = SEGMENT_NAMES.get(modality, ("approach", "retract"))
     n = len(travel)
-    if modality == "force-distance" and (seg is None or len(np.unique(seg)) == 1):
+    # one segment number throughout, told by its extremes (np.unique hashes every sample)
+    if modality == "force-distance" and (seg is None or (len(seg) > 0 and seg.min() == seg.max())):
         # one segment for an approach and a retract (Asylum .ibw): split at the deepest point
         deep = int(np.argmax(travel))
         notes.append(f"the file does not mark the approach and the retract: split at the deepest point "
