@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import importlib.util
 import re
+import shutil
 import sys
 from pathlib import Path
 
@@ -54,10 +55,18 @@ def cases(clock: bool) -> list:
     return out
 
 
+# programs a page uses that the project does not install, with the Debian package that has them
+PROGRAMS = {"socat": "socat"}
+
+
 def check(example, tmp_path: Path) -> None:
     con = console()
     if any("../shared/" in c for c, _ in example.commands) and not (ROOT.parent / "shared").is_dir():
         pytest.skip("the page reads ../shared/ (the real measurements), which is not beside the project")
+    for program, package in PROGRAMS.items():
+        if any(re.search(rf"\b{program}\b", c) for c, _ in example.commands) and shutil.which(program) is None:
+            pytest.skip(f"the page runs {program}, which is not installed (.ci/run installs it: "
+                        f"apt-get install {package})")
     results = con.run(example, ROOT, tmp_path)
     where = f"{example.page.relative_to(ROOT)}, the block at line {example.line}"
     for (command, shown), (_, status, lines) in zip(example.commands, results, strict=True):

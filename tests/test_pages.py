@@ -22,9 +22,6 @@ SHOWN_NOT_RUN = {
     ("daemon.md", "sudo cp config/rigd.service /etc/systemd/system/"):
         "installing the systemd unit needs root and systemd (tests/test_daemon.py checks the "
         "daemon's readiness and watchdog notifications on a socket of its own)",
-    ("daemon.md", "echo '{\"cmd\": \"status\"}' | socat - UNIX-CONNECT:/run/rig/rigd.sock"):
-        "the daemon's socket through socat, which the project does not install (the page's "
-        "console blocks reach the same socket with rig status)",
     ("dask-cluster.md", "python3 -m pip install '.[cluster,afm]'"): "installing the extras",
 }
 
