@@ -55,7 +55,6 @@ FILE_NAME = re.compile(r"^#\s*([\w.-]+\.(?:py|yaml|yml|csv|txt))\s*$")
 @dataclass
 class Block:
     fence: int  # line of the opening fence in the page
-    close: int  # line of the closing fence
     kind: str  # what follows the fence: console, python, yaml, text, sh, {toctree}, ...
     text: list[str]
 
@@ -79,7 +78,7 @@ def blocks(page: Path) -> list[Block]:
             while i < len(lines) and lines[i].strip() != "```":
                 block.append(lines[i])
                 i += 1
-            out.append(Block(start, i + 1, fence[3:].strip(), block))
+            out.append(Block(start, fence[3:].strip(), block))
         i += 1
     return out
 
@@ -103,7 +102,8 @@ def examples(page: Path) -> list[Example]:
     return out
 
 
-# what a page may show without running it: output (text), and the site's own directives
+# not code of their own: output (text), and console blocks, which run (one without a command
+# does not, and `unrun` says so); the site's directives ({toctree}) are told by their brace
 NOT_CODE = ("text", "console")
 
 

@@ -401,12 +401,12 @@ def structure_function(residuals: list[np.ndarray], K: int) -> np.ndarray:
         padded = np.concatenate([r, np.zeros(K)])
         # a few lags at a time keep a long record's rows within some 8 MB
         step = max(1, (1 << 20) // max(m, 1))
+        # a lag's pairs end where the residual does: those with the padding, in the last K
+        # columns alone, are left out
+        lo = max(m - K, 0)
         for k0 in range(1, K + 1, step):
             k1 = min(k0 + step, K + 1)
             d = sliding_window_view(padded, m)[k0:k1] - r
-            # a lag's pairs end where the residual does: those with the padding, in the last K
-            # columns alone, are left out
-            lo = max(m - K, 0)
             d[:, lo:] = np.where(lags[k0 - 1:k1 - 1, None] + np.arange(lo, m) < m, d[:, lo:], 0.0)
             sums[k0 - 1:k1 - 1] += np.einsum("ij,ij->i", d, d)
         counts += np.maximum(m - lags, 0)
