@@ -48,3 +48,7 @@ def _draw_figures(app) -> None:
 def setup(app) -> None:
     app.connect("builder-inited", _write_reference)
     app.connect("builder-inited", _draw_figures)
+
+# an unreachable host should cost the link check seconds, not minutes
+linkcheck_timeout = 10
+linkcheck_retries = 1
