@@ -35,15 +35,47 @@ CLOCK_MODULES = {
 }
 
 
+# The clock modules in two groups of about equal time, one a worker: two clock tests side by side
+# use about 0.9 of the two cores (a trial at speed 1 and its simulator mostly wait), so they run
+# together, and no analysis test runs beside either (`share_the_machine`). The groups are filled
+# greedily by each module's seconds as measured on two cores (a module not listed counts 10 s).
+CLOCK_SECONDS = {
+    "test_wire": 107, "test_daemon_workflow": 86, "test_pages_clock": 70, "test_probe": 42,
+    "test_control_path": 40, "test_daemon_characterize": 40, "test_logs": 37, "test_daemon": 37,
+    "test_soak": 35, "test_model_loop": 27, "test_cli": 25, "test_stop_anytime": 20,
+    "test_ownership": 20, "test_spy": 19, "test_preload": 18, "test_force_control": 17,
+    "test_paced_wire": 12, "test_trial": 11, "test_live": 11, "test_install": 5,
+}
+CLOCK_GROUPS = 2
+
+
+def _clock_groups() -> dict[str, str]:
+    load = [0.0] * CLOCK_GROUPS
+    groups = {}
+    for module in sorted(CLOCK_MODULES, key=lambda m: (-CLOCK_SECONDS.get(m, 10), m)):
+        g = load.index(min(load))
+        load[g] += CLOCK_SECONDS.get(module, 10)
+        groups[module] = f"clock{g}"
+    return groups
+
+
+_CLOCK_GROUP = _clock_groups()
+
+
+def _clock_group(item) -> str:
+    return _CLOCK_GROUP[item.module.__name__.rpartition(".")[2]]
+
+
 @pytest.hookimpl(tryfirst=True)  # before xdist's, which reads the group from the marker
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if _on_the_clock(item):
-            item.add_marker(pytest.mark.xdist_group("clock"))
+            item.add_marker(pytest.mark.xdist_group(_clock_group(item)))
     if hasattr(config, "workerinput"):
-        # the clock tests first, as one unit: they run back to back on one worker while the other
-        # waits once, instead of each module of them waiting for an analysis test in progress
-        items.sort(key=lambda item: not _on_the_clock(item))
+        # the clock tests first, in their groups: xdist hands the first work units out one a
+        # worker, so both workers start on the clock and the analysis tests wait once
+        items.sort(key=lambda item: (not _on_the_clock(item),
+                                     _clock_group(item) if _on_the_clock(item) else ""))
 
 
 def _on_the_clock(item) -> bool:
@@ -51,46 +83,51 @@ def _on_the_clock(item) -> bool:
 
 
 class _Machine:
-    """Two flock(2) locks shared by the workers of one run: the machine (a clock test holds it
-    alone, analysis tests together) and the intent to take it alone, which stops analysis tests
-    from starting while a clock test waits, so it never waits for more than the test in progress.
+    """Two flock(2) locks shared by the workers of one run, so that clock tests run beside clock
+    tests only and analysis tests beside analysis tests only.
+
+    `clock` is held shared by a worker for the whole of its run of clock tests; an analysis test
+    takes it exclusive for a moment before it starts, so it waits while any worker is on the
+    clock. `machine` is held shared by an analysis test while it runs; a clock test takes it
+    exclusive for a moment, so it waits for the analysis test in progress and no longer (a new
+    one cannot start: the clock test already holds `clock`).
 
     Measured without it: at nice 19 the computing worker still made two of four two-worker runs
     fail a clock test (a late tick in test_live, a second failed transaction in test_wire), the
-    pseudo-terminal's bytes queued behind it. With it, a clock test sees the machine as a serial
-    run gives it."""
+    pseudo-terminal's bytes queued behind it. With it, a clock test shares the machine only with
+    another clock test, which mostly waits as it does."""
 
     def __init__(self, run_id: str):
         import tempfile
 
         base = Path(tempfile.gettempdir()) / f"rig-pytest-{run_id}"
-        self.machine = open(f"{base}.machine", "a")  # noqa: SIM115 (held for the worker's life)
-        self.intent = open(f"{base}.intent", "a")  # noqa: SIM115
-        self.alone = False
+        self.clock = open(f"{base}.clock", "a")  # noqa: SIM115 (held for the worker's life)
+        self.machine = open(f"{base}.machine", "a")  # noqa: SIM115
+        self.on_clock = False
 
-    def take_alone(self) -> None:
+    def take_for_clock(self) -> None:
         import fcntl
 
-        if not self.alone:
-            fcntl.flock(self.intent, fcntl.LOCK_EX)
-            fcntl.flock(self.machine, fcntl.LOCK_EX)
-            self.alone = True
+        if not self.on_clock:
+            fcntl.flock(self.clock, fcntl.LOCK_SH)
+            fcntl.flock(self.machine, fcntl.LOCK_EX)  # the analysis test in progress ends
+            fcntl.flock(self.machine, fcntl.LOCK_UN)
+            self.on_clock = True
 
     def give_back(self) -> None:
         import fcntl
 
-        if self.alone:
-            fcntl.flock(self.machine, fcntl.LOCK_UN)
-            fcntl.flock(self.intent, fcntl.LOCK_UN)
-            self.alone = False
+        if self.on_clock:
+            fcntl.flock(self.clock, fcntl.LOCK_UN)
+            self.on_clock = False
 
     @contextlib.contextmanager
     def shared(self):
         import fcntl
 
-        fcntl.flock(self.intent, fcntl.LOCK_SH)
+        fcntl.flock(self.clock, fcntl.LOCK_EX)  # no worker is on the clock
         fcntl.flock(self.machine, fcntl.LOCK_SH)
-        fcntl.flock(self.intent, fcntl.LOCK_UN)
+        fcntl.flock(self.clock, fcntl.LOCK_UN)
         try:
             yield
         finally:
@@ -127,9 +164,9 @@ _IDLE = None
 
 @pytest.fixture(autouse=True)
 def share_the_machine(request):
-    """Under pytest-xdist, a clock test runs with the machine to itself: it waits for the other
-    worker's test in progress to end, and the other worker starts none until the clock tests
-    that follow one another on this worker are done (`pytest_runtest_teardown`).
+    """Under pytest-xdist, a clock test runs beside clock tests only: it waits for the other
+    worker's analysis test in progress to end, and no analysis test starts until the clock tests
+    that follow one another on every worker are done (`pytest_runtest_teardown`).
 
     RIG_TESTS_SHARE=idle instead runs every analysis test in Linux's idle scheduling class (with
     every process it starts), beside the clock tests: it takes a core only when no clock test's
@@ -147,7 +184,7 @@ def share_the_machine(request):
     if _IDLE is None:
         _IDLE = os.environ.get("RIG_TESTS_SHARE", "lock") == "idle" and _idle_class()
     clock = _on_the_clock(request.node)
-    if clock and request.config.getvalue("loadgroup") and not request.node.nodeid.endswith("@clock"):
+    if clock and request.config.getvalue("loadgroup") and "@clock" not in request.node.nodeid:
         # xdist's loadgroup names a group by a suffix to the node id; without it the clock
         # tests are spread over both workers and wait on each other for most of the run
         pytest.fail(f"pytest-xdist's --dist loadgroup did not group the clock tests (pytest "
@@ -157,7 +194,7 @@ def share_the_machine(request):
         _set_idle(not clock)
         yield
     elif clock:
-        machine.take_alone()
+        machine.take_for_clock()
         yield
     else:
         machine.give_back()
