@@ -21,6 +21,30 @@ ROOT = Path(__file__).resolve().parent.parent
 PROTOCOLS = ROOT / "protocols"
 
 
+def _in_memory_temp(free_bytes: int = 2 << 30) -> None:
+    """Temporary files (every tmp_path, and those of the processes the tests start) in memory,
+    where the machine has a tmpfs with room: a test's logs, tables and plots then never wait on
+    the disk, nor make a clock test beside it wait (`share_the_machine`). RIG_TESTS_TMP names
+    another directory; an empty one leaves the system's."""
+    import shutil
+    import tempfile
+
+    where = os.environ.get("RIG_TESTS_TMP", "/dev/shm")
+    try:
+        if not where or not os.access(where, os.W_OK) or shutil.disk_usage(where).free < free_bytes:
+            return
+    except OSError:
+        return
+    os.environ["TMPDIR"] = where
+    tempfile.tempdir = where
+    global _TEMP_IN_MEMORY
+    _TEMP_IN_MEMORY = True
+
+
+_TEMP_IN_MEMORY = False
+_in_memory_temp()
+
+
 # Modules whose tests run on the real clock (trials at speed 1, the daemon, the wire, soaks): they
 # wait more than they compute, and what they measure (late ticks, a reply's timeout) is the
 # machine's timing. Under pytest-xdist (`-n 2 --dist loadgroup`) they all go to one worker, one
@@ -35,47 +59,15 @@ CLOCK_MODULES = {
 }
 
 
-# The clock modules in two groups of about equal time, one a worker: two clock tests side by side
-# use about 0.9 of the two cores (a trial at speed 1 and its simulator mostly wait), so they run
-# together, and no analysis test runs beside either (`share_the_machine`). The groups are filled
-# greedily by each module's seconds as measured on two cores (a module not listed counts 10 s).
-CLOCK_SECONDS = {
-    "test_wire": 107, "test_daemon_workflow": 86, "test_pages_clock": 70, "test_probe": 42,
-    "test_control_path": 40, "test_daemon_characterize": 40, "test_logs": 37, "test_daemon": 37,
-    "test_soak": 35, "test_model_loop": 27, "test_cli": 25, "test_stop_anytime": 20,
-    "test_ownership": 20, "test_spy": 19, "test_preload": 18, "test_force_control": 17,
-    "test_paced_wire": 12, "test_trial": 11, "test_live": 11, "test_install": 5,
-}
-CLOCK_GROUPS = 2
-
-
-def _clock_groups() -> dict[str, str]:
-    load = [0.0] * CLOCK_GROUPS
-    groups = {}
-    for module in sorted(CLOCK_MODULES, key=lambda m: (-CLOCK_SECONDS.get(m, 10), m)):
-        g = load.index(min(load))
-        load[g] += CLOCK_SECONDS.get(module, 10)
-        groups[module] = f"clock{g}"
-    return groups
-
-
-_CLOCK_GROUP = _clock_groups()
-
-
-def _clock_group(item) -> str:
-    return _CLOCK_GROUP[item.module.__name__.rpartition(".")[2]]
-
-
 @pytest.hookimpl(tryfirst=True)  # before xdist's, which reads the group from the marker
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if _on_the_clock(item):
-            item.add_marker(pytest.mark.xdist_group(_clock_group(item)))
+            item.add_marker(pytest.mark.xdist_group("clock"))
     if hasattr(config, "workerinput"):
-        # the clock tests first, in their groups: xdist hands the first work units out one a
-        # worker, so both workers start on the clock and the analysis tests wait once
-        items.sort(key=lambda item: (not _on_the_clock(item),
-                                     _clock_group(item) if _on_the_clock(item) else ""))
+        # the clock tests first, as one unit: they run back to back on one worker while the other
+        # waits once, instead of each module of them waiting for an analysis test in progress
+        items.sort(key=lambda item: not _on_the_clock(item))
 
 
 def _on_the_clock(item) -> bool:
@@ -83,51 +75,46 @@ def _on_the_clock(item) -> bool:
 
 
 class _Machine:
-    """Two flock(2) locks shared by the workers of one run, so that clock tests run beside clock
-    tests only and analysis tests beside analysis tests only.
-
-    `clock` is held shared by a worker for the whole of its run of clock tests; an analysis test
-    takes it exclusive for a moment before it starts, so it waits while any worker is on the
-    clock. `machine` is held shared by an analysis test while it runs; a clock test takes it
-    exclusive for a moment, so it waits for the analysis test in progress and no longer (a new
-    one cannot start: the clock test already holds `clock`).
+    """Two flock(2) locks shared by the workers of one run: the machine (a clock test holds it
+    alone, analysis tests together) and the intent to take it alone, which stops analysis tests
+    from starting while a clock test waits, so it never waits for more than the test in progress.
 
     Measured without it: at nice 19 the computing worker still made two of four two-worker runs
     fail a clock test (a late tick in test_live, a second failed transaction in test_wire), the
-    pseudo-terminal's bytes queued behind it. With it, a clock test shares the machine only with
-    another clock test, which mostly waits as it does."""
+    pseudo-terminal's bytes queued behind it. With it, a clock test sees the machine as a serial
+    run gives it."""
 
     def __init__(self, run_id: str):
         import tempfile
 
         base = Path(tempfile.gettempdir()) / f"rig-pytest-{run_id}"
-        self.clock = open(f"{base}.clock", "a")  # noqa: SIM115 (held for the worker's life)
-        self.machine = open(f"{base}.machine", "a")  # noqa: SIM115
-        self.on_clock = False
+        self.machine = open(f"{base}.machine", "a")  # noqa: SIM115 (held for the worker's life)
+        self.intent = open(f"{base}.intent", "a")  # noqa: SIM115
+        self.alone = False
 
-    def take_for_clock(self) -> None:
+    def take_alone(self) -> None:
         import fcntl
 
-        if not self.on_clock:
-            fcntl.flock(self.clock, fcntl.LOCK_SH)
-            fcntl.flock(self.machine, fcntl.LOCK_EX)  # the analysis test in progress ends
-            fcntl.flock(self.machine, fcntl.LOCK_UN)
-            self.on_clock = True
+        if not self.alone:
+            fcntl.flock(self.intent, fcntl.LOCK_EX)
+            fcntl.flock(self.machine, fcntl.LOCK_EX)
+            self.alone = True
 
     def give_back(self) -> None:
         import fcntl
 
-        if self.on_clock:
-            fcntl.flock(self.clock, fcntl.LOCK_UN)
-            self.on_clock = False
+        if self.alone:
+            fcntl.flock(self.machine, fcntl.LOCK_UN)
+            fcntl.flock(self.intent, fcntl.LOCK_UN)
+            self.alone = False
 
     @contextlib.contextmanager
     def shared(self):
         import fcntl
 
-        fcntl.flock(self.clock, fcntl.LOCK_EX)  # no worker is on the clock
+        fcntl.flock(self.intent, fcntl.LOCK_SH)
         fcntl.flock(self.machine, fcntl.LOCK_SH)
-        fcntl.flock(self.clock, fcntl.LOCK_UN)
+        fcntl.flock(self.intent, fcntl.LOCK_UN)
         try:
             yield
         finally:
@@ -164,27 +151,32 @@ _IDLE = None
 
 @pytest.fixture(autouse=True)
 def share_the_machine(request):
-    """Under pytest-xdist, a clock test runs beside clock tests only: it waits for the other
-    worker's analysis test in progress to end, and no analysis test starts until the clock tests
-    that follow one another on every worker are done (`pytest_runtest_teardown`).
+    """Under pytest-xdist, the clock tests run one after another on one worker while the other
+    worker's analysis tests run in Linux's idle scheduling class (with every process they
+    start): an analysis test takes a core only when no clock test's process wants one.
 
-    RIG_TESTS_SHARE=idle instead runs every analysis test in Linux's idle scheduling class (with
-    every process it starts), beside the clock tests: it takes a core only when no clock test's
-    process wants one. Measured once on two cores: 1368 s for the suite against 1628 s, but a
-    clock test failed (the daemon's soak over RTU in poll mode: the load cell silent for 103 ms,
-    limit 100 ms), so it is not the default. The cause is the disk, not the processor: beside two
-    idle-class processes that only compute, the same soak passes and a 1 ms sleep overshoots by
-    4 ms at most; beside two that also write some 100 MB/s of files, its first position read
-    timed out within seconds in 3 runs of 3. The idle class shares the processor, not the disk."""
+    The idle class shares the processor, not the disk: beside two idle-class processes that
+    only compute, the daemon's soak over RTU passes and a 1 ms sleep overshoots by 4 ms at most;
+    beside two that also write some 100 MB/s of files, its first position read timed out
+    within seconds in 3 runs of 3. So it is the default only with the temporary files in memory
+    (`_in_memory_temp`), where a test's files never reach the disk. Otherwise, and with
+    RIG_TESTS_SHARE=lock, a clock test has the machine to itself: it waits for the other
+    worker's test in progress to end, and the other worker starts none until the clock tests
+    that follow one another on this worker are done (`pytest_runtest_teardown`); the other
+    core then idles for the clock tests' whole time (some 650 s of the suite's 1380 s).
+
+    Two clock tests side by side (both at the normal class) are not safe: the wire tests then
+    counted a failed transaction too many, and a trial missed ticks."""
     global _IDLE
     machine = _the_machine(request.config)
     if machine is None:
         yield
         return
     if _IDLE is None:
-        _IDLE = os.environ.get("RIG_TESTS_SHARE", "lock") == "idle" and _idle_class()
+        default = "idle" if _TEMP_IN_MEMORY else "lock"
+        _IDLE = os.environ.get("RIG_TESTS_SHARE", default) == "idle" and _idle_class()
     clock = _on_the_clock(request.node)
-    if clock and request.config.getvalue("loadgroup") and "@clock" not in request.node.nodeid:
+    if clock and request.config.getvalue("loadgroup") and not request.node.nodeid.endswith("@clock"):
         # xdist's loadgroup names a group by a suffix to the node id; without it the clock
         # tests are spread over both workers and wait on each other for most of the run
         pytest.fail(f"pytest-xdist's --dist loadgroup did not group the clock tests (pytest "
@@ -194,7 +186,7 @@ def share_the_machine(request):
         _set_idle(not clock)
         yield
     elif clock:
-        machine.take_for_clock()
+        machine.take_alone()
         yield
     else:
         machine.give_back()
