@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rig.analysis.line import fit_line, off_line
 from rig.analysis.noise import MIN_BASELINE, from_baseline, quiet_length
 from rig.errors import SpecError
 from rig.models.core import Motion
@@ -397,8 +398,8 @@ def _find_contact(t, pos, f, where):
     # last third may already carry the first touch
     i_fit = max(2 * i_load // 3, 1)
     pre = f[:i_fit]
-    f_base_fit = np.polyfit(t[:i_fit] - t[0], pre, 1) if i_fit >= 20 else (0.0, float(np.median(pre)))
-    trend = np.polyval(f_base_fit, t - t[0])
+    slope, at_start = fit_line(t[:i_fit] - t[0], pre) if i_fit >= 20 else (0.0, float(np.median(pre)))
+    trend = slope * (t - t[0]) + at_start
     resid = pre - trend[:i_fit]
     sigma = 1.4826 * float(np.median(np.abs(resid - np.median(resid)))) if i_fit >= 10 else 0.0
     lifted = (f - trend)[:k_peak + 1]
@@ -478,6 +479,8 @@ def _fmt_len(v: float) -> str:
 
 def _detrend(y: np.ndarray, degree: int = 1) -> np.ndarray:
     i = np.linspace(-1.0, 1.0, len(y))
+    if degree == 1:
+        return off_line(i, y)
     return y - np.polyval(np.polyfit(i, y, degree), i)
 
 

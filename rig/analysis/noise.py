@@ -31,6 +31,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from rig.analysis.line import fit_line, off_line
+
 MIN_BASELINE = 200
 AT_REST = "the force at rest before contact"
 SHORT_LAGS = 64  # the residual's structure is read up to this lag at most
@@ -78,8 +80,8 @@ def quiet_length(y: np.ndarray) -> int:
     i = np.arange(n, dtype=float)
 
     def scatter(end: int) -> tuple[np.ndarray, float]:
-        coef = np.polyfit(i[:end], y[:end], 1)
-        r = y[:end] - np.polyval(coef, i[:end])
+        coef = fit_line(i[:end], y[:end])
+        r = y[:end] - (coef[0] * i[:end] + coef[1])
         means = r[: end // block * block].reshape(-1, block).mean(axis=1)
         return coef, float(np.sqrt(np.mean(means ** 2)))
 
@@ -95,7 +97,7 @@ def quiet_length(y: np.ndarray) -> int:
         t_max = min(steps, inside)
         k = min(t_max + 1, inside)
         a = end + np.arange(k * block)
-        off = np.abs((y[a] - np.polyval(coef, i[a])).reshape(k, block).mean(axis=1)) > QUIET_SIGMAS * s
+        off = np.abs((y[a] - (coef[0] * i[a] + coef[1])).reshape(k, block).mean(axis=1)) > QUIET_SIGMAS * s
         # a block off the line may be the noise's own excursion; two in a row are the force rising
         # (a block with no whole block after it is judged alone)
         nxt = np.append(off[1:], True) if k == t_max else off[1:]
@@ -344,7 +346,7 @@ def _measure_baseline(b: np.ndarray) -> Noise:
     n = len(b)
     q = quantum(b)
     u = np.linspace(-1.0, 1.0, n)
-    detr = b - np.polyval(np.polyfit(u, b, 1), u)
+    detr = off_line(u, b)
     std = float(np.std(detr))
     gauss, origin = std, 0.0
     if q > 0.5 * std:
