@@ -131,3 +131,39 @@ def test_a_perfect_model_is_adequate_and_a_misfit_is_caught(kind, record):
     """Twelve seeds here (11 adequate, 10 caught at least); the forty of the specification, 38
     and 36, in tests/bench/test_bench_adequacy.py."""
     check(kind, record, range(12), 11, 10)
+
+
+def _shortcut(seed: int, kind: str) -> list[tuple[bool, bool, bool]]:
+    """For a perfect and a missing model's fit: whether the verdict came without simulating the
+    limits, whether the simulated limits then say the same, and whether they are at or above the
+    tolerances."""
+    from rig.analysis.adequacy import ADEQUATE_PHASE, ADEQUATE_RMSE, ADEQUATE_WHITE
+
+    model = build_model("hertz", registry={**CATALOGUE, CONTACT: contact_effect(parse_indenter(INDENTER)),
+                                           CONTACT_POINT.name: CONTACT_POINT})
+    out = []
+    for misfit in (0.0, 0.6, 1.5):
+        res = fit(model, [prepare(curve(kind, seed, misfit))])
+        adequate = res.adequate
+        skipped = "limits" not in res.__dict__
+        lim = res.limits
+        noise = max(res.noise_N, 1e-300)
+        by_limits = (res.overall.rmse_N / noise <= lim.rmse and res.whitened_L <= lim.white
+                     and all(s.rmse_N / noise <= lim.phase.get(ph, ADEQUATE_PHASE)
+                             for ph, s in res.phases.items() if s is not None))
+        floors = (lim.rmse >= ADEQUATE_RMSE and lim.white >= ADEQUATE_WHITE
+                  and all(v >= ADEQUATE_PHASE for v in lim.phase.values()))
+        out.append((skipped, by_limits == adequate, floors))
+    return out
+
+
+def test_a_verdict_within_the_tolerances_skips_the_simulation_and_is_the_same():
+    """A residual within the tolerances themselves passes whatever the simulated limits (they
+    only widen them), so the verdict is given without them: on curves of white, quantised and
+    filtered noise at four seeds, with and without a misfit, every verdict is the limits' own."""
+    kinds = ("short approach", "quantised 2 sigma", "first-order low-pass")
+    got = [row for kind in kinds for rows in per_seed(_shortcut, range(4), kind) for row in rows]
+    assert all(same for _, same, _ in got), got
+    assert all(floors for _, _, floors in got), got
+    # the shortcut is taken, and not always: some verdicts still need the simulated tail
+    assert 0 < sum(skipped for skipped, _, _ in got) < len(got), got

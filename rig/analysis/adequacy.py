@@ -164,10 +164,11 @@ def _reestimated(noise: Noise, sims: list[np.ndarray], rng) -> tuple[np.ndarray,
     if noise.samples and noise.source == AT_REST:
         nb = min(noise.samples, MAX_SIM_BASELINE)
         base = quantise(noise.level_N + simulate(noise, nb, draws, rng), noise)
-        # every draw less its straight line at once, then each one's spectrum
+        # every draw less its straight line at once (centred sums), then each one's spectrum
         u = np.linspace(-1.0, 1.0, nb)
-        A = np.column_stack([np.ones(nb), u])
-        detr = base - (A @ np.linalg.lstsq(A, base.T, rcond=None)[0]).T
+        u -= u.mean()
+        detr = base - base.mean(axis=1, keepdims=True)
+        detr -= np.outer(detr @ u / (u @ u), u)
         gamma = autocovariance(detr, min(MAX_ORDER, nb // 4))
         spectra = ar_fit_rows(gamma, nb)
         stds = np.sqrt(np.maximum(gamma[:, 0], 0.0))

@@ -135,9 +135,15 @@ class FitResult:
     def _failed(self) -> list[tuple[str, float, float]]:
         """The tests the residual fails: (what, its value, its limit), in the order they are told."""
         noise = max(self.noise_N, 1e-300)
+        ratio = self.overall.rmse_N / noise
+        if (ratio <= ADEQUATE_RMSE and self.whitened_L <= ADEQUATE_WHITE
+                and all(s.rmse_N / noise <= ADEQUATE_PHASE for s in self.phases.values() if s is not None)):
+            # within the tolerances themselves, which a perfect model's simulated tail only
+            # widens (`Limits` are never below them): passed, without simulating it (a sixth of
+            # a map's time a curve, where most curves pass)
+            return []
         lim = self.limits
         out = []
-        ratio = self.overall.rmse_N / noise
         if ratio > lim.rmse:
             out.append(("rmse", ratio, lim.rmse))
         worst = [(s.rmse_N / noise / lim.phase.get(ph, ADEQUATE_PHASE), ph, s.rmse_N / noise,
