@@ -21,30 +21,6 @@ ROOT = Path(__file__).resolve().parent.parent
 PROTOCOLS = ROOT / "protocols"
 
 
-def _in_memory_temp(free_bytes: int = 2 << 30) -> None:
-    """Temporary files (every tmp_path, and those of the processes the tests start) in memory,
-    where the machine has a tmpfs with room: a test's logs, tables and plots then never wait on
-    the disk, nor make a clock test beside it wait (`share_the_machine`). RIG_TESTS_TMP names
-    another directory; an empty one leaves the system's."""
-    import shutil
-    import tempfile
-
-    where = os.environ.get("RIG_TESTS_TMP", "/dev/shm")
-    try:
-        if not where or not os.access(where, os.W_OK) or shutil.disk_usage(where).free < free_bytes:
-            return
-    except OSError:
-        return
-    os.environ["TMPDIR"] = where
-    tempfile.tempdir = where
-    global _TEMP_IN_MEMORY
-    _TEMP_IN_MEMORY = True
-
-
-_TEMP_IN_MEMORY = False
-_in_memory_temp()
-
-
 # Modules whose tests run on the real clock (trials at speed 1, the daemon, the wire, soaks): they
 # wait more than they compute, and what they measure (late ticks, a reply's timeout) is the
 # machine's timing. Under pytest-xdist (`-n 2 --dist loadgroup`) they all go to one worker, one
@@ -151,30 +127,25 @@ _IDLE = None
 
 @pytest.fixture(autouse=True)
 def share_the_machine(request):
-    """Under pytest-xdist, the clock tests run one after another on one worker while the other
-    worker's analysis tests run in Linux's idle scheduling class (with every process they
-    start): an analysis test takes a core only when no clock test's process wants one.
-
-    The idle class shares the processor, not the disk: beside two idle-class processes that
-    only compute, the daemon's soak over RTU passes and a 1 ms sleep overshoots by 4 ms at most;
-    beside two that also write some 100 MB/s of files, its first position read timed out
-    within seconds in 3 runs of 3. So it is the default only with the temporary files in memory
-    (`_in_memory_temp`), where a test's files never reach the disk. Otherwise, and with
-    RIG_TESTS_SHARE=lock, a clock test has the machine to itself: it waits for the other
+    """Under pytest-xdist, a clock test runs with the machine to itself: it waits for the other
     worker's test in progress to end, and the other worker starts none until the clock tests
-    that follow one another on this worker are done (`pytest_runtest_teardown`); the other
-    core then idles for the clock tests' whole time (some 650 s of the suite's 1380 s).
+    that follow one another on this worker are done (`pytest_runtest_teardown`).
 
-    Two clock tests side by side (both at the normal class) are not safe: the wire tests then
-    counted a failed transaction too many, and a trial missed ticks."""
+    RIG_TESTS_SHARE=idle instead runs every analysis test in Linux's idle scheduling class (with
+    every process it starts), beside the clock tests: it takes a core only when no clock test's
+    process wants one. Measured once on two cores: 1368 s for the suite against 1628 s, but a
+    clock test failed (the daemon's soak over RTU in poll mode: the load cell silent for 103 ms,
+    limit 100 ms), so it is not the default. The cause is the disk, not the processor: beside two
+    idle-class processes that only compute, the same soak passes and a 1 ms sleep overshoots by
+    4 ms at most; beside two that also write some 100 MB/s of files, its first position read
+    timed out within seconds in 3 runs of 3. The idle class shares the processor, not the disk."""
     global _IDLE
     machine = _the_machine(request.config)
     if machine is None:
         yield
         return
     if _IDLE is None:
-        default = "idle" if _TEMP_IN_MEMORY else "lock"
-        _IDLE = os.environ.get("RIG_TESTS_SHARE", default) == "idle" and _idle_class()
+        _IDLE = os.environ.get("RIG_TESTS_SHARE", "lock") == "idle" and _idle_class()
     clock = _on_the_clock(request.node)
     if clock and request.config.getvalue("loadgroup") and not request.node.nodeid.endswith("@clock"):
         # xdist's loadgroup names a group by a suffix to the node id; without it the clock

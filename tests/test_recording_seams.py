@@ -1,15 +1,18 @@
 """Logs where processes meet: a name taken exclusively, a log being written left alone by
-recovery, a close that does not finish in time reported as such."""
+recovery, a close that does not finish in time reported as such, a trial killed halfway."""
 
 from __future__ import annotations
 
+import json
 import os
+import signal
 import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from mcap.writer import Writer
 
@@ -21,7 +24,7 @@ from rig.recording.recorder import Recorder, TrialInfo
 from rig.recording.recovery import LogInUse, find_unfinished, list_trials, recover
 from rig.specs.config import RigConfig
 from rig.specs.protocol import parse_protocol
-from tests.conftest import ROOT, run_sim
+from tests.conftest import PROTOCOLS, ROOT, run_sim
 
 SHORT = """name: short
 steps:
@@ -146,3 +149,37 @@ def test_recorder_holds_its_log_locked_until_closed(tmp_path):
     rec.close()
     assert not is_being_written(rec.path)
     assert os.path.getsize(rec.path) > 0
+
+
+def test_sigkill_halfway_keeps_all_but_the_last_second(tmp_path):
+    """A trial killed with SIGKILL leaves a log `rig replay` reads, holding every sample up
+    to at least the last second before the kill."""
+    out = tmp_path / "logs"
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "run", str(PROTOCOLS / "demo.yaml"),
+                             "--out", str(out), "--quiet"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not (out.exists() and list(out.iterdir())):
+            time.sleep(0.05)
+        time.sleep(5.0)  # halfway through the ~11 s demo
+        kill_ns = time.time_ns()
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait(10)
+    assert proc.returncode == -signal.SIGKILL
+    (path,) = list(out.iterdir())
+    log = read_log(path)
+    assert not log.complete
+    assert log.n > 300
+    # wall time of the last sample kept, from its tick's position in the trial
+    start_ns = int(np.datetime64(log.trial["start_time"].replace("+00:00", ""), "ns").astype(np.int64))
+    last_ns = start_ns + int(log.samples["t_s"][-1] * 1e9)
+    assert kill_ns - last_ns <= 1.0e9 + 0.2e9, (kill_ns - last_ns) / 1e9
+    assert np.array_equal(log.samples["seq"], np.arange(log.n))
+    # and the command-line replay reads it
+    rep = subprocess.run([sys.executable, "-m", "rig.cli", "replay", str(path), "--json"],
+                         capture_output=True, text=True, timeout=60)
+    assert rep.returncode == 0, rep.stderr
+    summary = json.loads(rep.stdout)
+    assert summary["complete"] is False and summary["samples"] == log.n
