@@ -13,7 +13,6 @@ from the protocol steps; otherwise from the motion itself.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -546,23 +545,11 @@ def savgol_slope(x: np.ndarray, w: int, dt: float) -> np.ndarray:
     j = np.arange(-h, h + 1, dtype=float)
     out = np.empty(len(x))
     out[h:len(x) - h] = np.convolve(x, j[::-1] / (float(j @ j) * dt), mode="valid")
-    first, last = _edge_slopes(w)
-    out[:h] = first @ x[:w] / dt
-    out[len(x) - h:] = last @ x[-w:] / dt
-    return out
-
-
-@functools.lru_cache(maxsize=64)
-def _edge_slopes(w: int) -> tuple[np.ndarray, np.ndarray]:
-    """The linear maps from a window's `w` samples to the slopes of their least-squares quadratic
-    at the window's first and last w // 2 samples (per sample): fixed by w alone."""
-    h = w // 2
     k = np.arange(w, dtype=float)
-    fit = np.linalg.pinv(np.vander(k, 3))  # rows: c2, c1, c0 from the samples
-    slope = lambda at: np.outer(2.0 * at, fit[0]) + fit[1]  # noqa: E731
-    first, last = slope(k[:h]), slope(k[w - h:])
-    first.flags.writeable = last.flags.writeable = False
-    return first, last
+    for edge, first, at in ((x[:w], 0, k[:h]), (x[-w:], len(x) - h, k[w - h:])):
+        c2, c1, _ = np.polyfit(k, edge, 2)
+        out[first:first + h] = (2.0 * c2 * at + c1) / dt
+    return out
 
 
 def _drop_short_runs(mask: np.ndarray, k: int, value: bool) -> np.ndarray:
