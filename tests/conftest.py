@@ -138,7 +138,11 @@ def share_the_machine(request):
     limit 100 ms), so it is not the default. The cause is the disk, not the processor: beside two
     idle-class processes that only compute, the same soak passes and a 1 ms sleep overshoots by
     4 ms at most; beside two that also write some 100 MB/s of files, its first position read
-    timed out within seconds in 3 runs of 3. The idle class shares the processor, not the disk."""
+    timed out within seconds in 3 runs of 3. The idle class shares the processor, not the disk.
+    With every temporary file in memory (a tmpfs) it still failed a suite run in two (a live-view
+    trial faulted; a 4 ms reply counted a failed transaction), and two clock tests side by side,
+    one a worker, failed too (a failed transaction too many, missed ticks): the clock tests run
+    one at a time, alone."""
     global _IDLE
     machine = _the_machine(request.config)
     if machine is None:
