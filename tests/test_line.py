@@ -24,3 +24,13 @@ def test_the_line_is_polyfits(seed, n):
 def test_a_line_over_one_x_is_flat_through_the_mean():
     assert fit_line(np.full(4, 2.0), np.array([1.0, 2.0, 3.0, 6.0])) == (0.0, 3.0)
     np.testing.assert_array_equal(off_line(np.full(3, 2.0), np.array([1.0, 2.0, 3.0])), [-1.0, 0.0, 1.0])
+
+
+def test_each_row_is_taken_off_its_own_line():
+    rng = np.random.default_rng(7)
+    x = np.linspace(-1.0, 1.0, 500)
+    rows = rng.normal(size=(6, 500)) + rng.normal(size=(6, 1)) * x + rng.normal(size=(6, 1))
+    got = off_line(x, rows)
+    for row, out in zip(rows, got, strict=True):
+        # to rounding: the rows' products go through one matrix product, a row's through a dot
+        np.testing.assert_allclose(out, off_line(x, row), rtol=0, atol=1e-14 * np.abs(row).max())

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rig.analysis.draws import Draws
+from rig.analysis.line import off_line
 from rig.analysis.noise import (
     AT_REST,
     MAX_ORDER,
@@ -164,11 +165,8 @@ def _reestimated(noise: Noise, sims: list[np.ndarray], rng) -> tuple[np.ndarray,
     if noise.samples and noise.source == AT_REST:
         nb = min(noise.samples, MAX_SIM_BASELINE)
         base = quantise(noise.level_N + simulate(noise, nb, draws, rng), noise)
-        # every draw less its straight line at once (centred sums), then each one's spectrum
-        u = np.linspace(-1.0, 1.0, nb)
-        u -= u.mean()
-        detr = base - base.mean(axis=1, keepdims=True)
-        detr -= np.outer(detr @ u / (u @ u), u)
+        # every draw less its straight line at once, then each one's spectrum
+        detr = off_line(np.linspace(-1.0, 1.0, nb), base)
         gamma = autocovariance(detr, min(MAX_ORDER, nb // 4))
         spectra = ar_fit_rows(gamma, nb)
         stds = np.sqrt(np.maximum(gamma[:, 0], 0.0))

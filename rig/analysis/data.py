@@ -449,7 +449,8 @@ def _end_of_pull(f: np.ndarray, end: int, baseline) -> int:
     base = np.asarray(baseline, dtype=float)
     if end >= len(f) or len(base) < MIN_BASELINE:
         return end
-    sigma = 1.4826 * float(np.median(np.abs(_detrend(base) - np.median(_detrend(base)))))
+    detr = _detrend(base)
+    sigma = 1.4826 * float(np.median(np.abs(detr - np.median(detr))))
     tail = f[end:]
     if sigma <= 0 or float(np.min(tail)) > -PULL_SIGMA * sigma or np.sum(tail < -3.0 * sigma) < PULL_RUN:
         return end
@@ -477,11 +478,8 @@ def _fmt_len(v: float) -> str:
     return f"{v / k:.4g} {u}"
 
 
-def _detrend(y: np.ndarray, degree: int = 1) -> np.ndarray:
-    i = np.linspace(-1.0, 1.0, len(y))
-    if degree == 1:
-        return off_line(i, y)
-    return y - np.polyval(np.polyfit(i, y, degree), i)
+def _detrend(y: np.ndarray) -> np.ndarray:
+    return off_line(np.linspace(-1.0, 1.0, len(y)), y)
 
 
 def _uniform(t, x, f, kinds):

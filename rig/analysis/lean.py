@@ -21,6 +21,7 @@ from rig.models.core import Model, Motion
 __all__ = ["predictor"]
 
 Predict = Callable[[dict, Motion], np.ndarray]
+CHECKED = 64  # samples or so of each record the lean prediction is checked on
 
 
 def predictor(model: Model, motions: list[Motion], at: dict[str, float]) -> Predict:
@@ -43,9 +44,6 @@ def predictor(model: Model, motions: list[Motion], at: dict[str, float]) -> Pred
                 if not np.array_equal(lean(values, part), model.predict(values, part), equal_nan=True):
                     return model.predict
     return lean
-
-
-CHECKED = 64
 
 
 def _lean(model: Model) -> Predict | None:

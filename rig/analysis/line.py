@@ -15,20 +15,22 @@ __all__ = ["fit_line", "off_line"]
 def fit_line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     """Slope and intercept of the least-squares line through (x, y), as `np.polyfit(x, y, 1)`
     orders them; a flat line through the mean when x does not vary."""
-    x_mean, y_mean, _, _, slope = _centred(x, y)
+    x = np.asarray(x, dtype=float)
+    y = np.asarray(y, dtype=float)
+    x_mean, y_mean = float(x.mean()), float(y.mean())
+    dx = x - x_mean
+    sxx = float(dx @ dx)
+    slope = float(dx @ (y - y_mean)) / sxx if sxx > 0 else 0.0
     return slope, y_mean - slope * x_mean
 
 
 def off_line(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """y less its least-squares line in x."""
-    _, _, dx, dy, slope = _centred(x, y)
-    return dy - slope * dx
-
-
-def _centred(x: np.ndarray, y: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray, float]:
+    """y less its least-squares line in x; each row of a 2-D y less its own, all at once."""
     x = np.asarray(x, dtype=float)
     y = np.asarray(y, dtype=float)
-    x_mean, y_mean = float(x.mean()), float(y.mean())
-    dx, dy = x - x_mean, y - y_mean
+    dx = x - float(x.mean())
+    dy = y - y.mean(axis=-1, keepdims=True)
     sxx = float(dx @ dx)
-    return x_mean, y_mean, dx, dy, (float(dx @ dy) / sxx if sxx > 0 else 0.0)
+    if not sxx > 0:
+        return dy
+    return dy - ((dy @ dx) / sxx)[..., None] * dx
