@@ -69,8 +69,12 @@ class SliderMotion:
         # discrete form of v^2 = 2 a d, so the last step lands without a velocity jump).
         a_dt = self.accel_mm_s2 * dt
         v_brake = math.sqrt(2.0 * self.accel_mm_s2 * abs(d) + 0.25 * a_dt * a_dt) - 0.5 * a_dt
-        v_des = math.copysign(min(self.speed_mm_s, v_brake), d)
-        v += max(-a_dt, min(a_dt, v_des - v))
+        speed = self.speed_mm_s
+        v_des = math.copysign(v_brake if v_brake < speed else speed, d)
+        # the change is clipped to one sub-step's acceleration (`min`'s and `max`'s own rules)
+        dv = v_des - v
+        dv = dv if dv < a_dt else a_dt
+        v += dv if dv > -a_dt else -a_dt
         step = v * dt
         if abs(step) >= abs(d) or abs(d) < 1e-9:
             self.position_mm = self.target_mm
@@ -127,9 +131,11 @@ class SimRig:
         """Integrate forward to `t_s` (never backwards)."""
         n_target = math.floor(t_s / self.dt + 1e-9)
         with self.lock:
-            while self.n < n_target:
-                self._substep()
-                self.n += 1
+            substep = self._substep
+            for n in range(self.n, n_target):
+                self.n = n  # the sub-step in progress (a drift grows with it)
+                substep()
+            self.n = max(self.n, n_target)
 
     def _substep(self) -> None:
         p, dt = self.params, self.dt
@@ -145,19 +151,20 @@ class SimRig:
             probe_mm = self._probe_through_frame(probe_mm, fx.compliance.k_frame_N_per_m)
         self.probe_velocity_mm_s = (probe_mm - self._probe_mm) / dt
         self._probe_mm = probe_mm
-        x, f1, f2, total, state = self._tissue_at(probe_mm)
+        x, f1, f2, total, peak, frac_N, material = self._tissue_at(probe_mm)
         if self._material is not None:
-            self._material.commit(state["material"])
+            self._material.commit(material)
         if x == 0.0 and self.indentation_m > 0.0:  # a loading ends: the probe left the surface
             self._loadings += 1
             self._soften()
-            state["peak_rate_m_s"] = 0.0
+            peak = 0.0
         self.indentation_m = x
         self.f1_N, self.f2_N, self.tissue_force_N = f1, f2, total
-        self.peak_tissue_force_N = max(self.peak_tissue_force_N, total)
-        self._peak_rate_m_s = state["peak_rate_m_s"]
-        if state["frac_N"] is not None:
-            self._frac_N = state["frac_N"]
+        if total > self.peak_tissue_force_N:
+            self.peak_tissue_force_N = total
+        self._peak_rate_m_s = peak
+        if frac_N is not None:
+            self._frac_N = frac_N
         # What the load cell behind the probe carries.
         sensed = self.tissue_force_N
         if fx.friction:
@@ -187,12 +194,17 @@ class SimRig:
         if pc:
             self._stiffness = 1.0 - pc.softening * (1.0 - math.exp(-self._loadings / pc.trials))
 
-    def _tissue_at(self, probe_mm: float) -> tuple[float, float, float, float, dict]:
+    def _tissue_at(self, probe_mm: float) -> tuple:
         """Indentation, the relaxing and parallel branches, the total tissue force, and the
-        state to keep, after this sub-step if the probe ends it at `probe_mm` (the state is
-        not changed: the frame's solve tries several probe positions)."""
+        state to keep (the fastest indentation rate of this contact, the power-law branch's
+        modes, the material's state), after this sub-step if the probe ends it at `probe_mm`
+        (nothing is changed: the frame's solve tries several probe positions).
+
+        Called some 200,000 times a simulated minute, so written for the interpreter: `a if c
+        else b` where `max` would be called (the same number, `max`'s own rule, NaN included)."""
         tp, dt, fx = self.params.tissue, self.dt, self.params.effects
-        x = max(probe_mm - self._surface_mm, 0.0) / 1000.0
+        d = probe_mm - self._surface_mm
+        x = (0.0 if 0.0 > d else d) / 1000.0
         xdot = (x - self.indentation_m) / dt
         material = None
         if self._material is not None:  # a modulus under the indenter, in place of the lumped drive
@@ -206,18 +218,21 @@ class SimRig:
         a1, peak = self._a1, self._peak_rate_m_s
         if fx.speed_relaxation and x > 0.0:
             sr = fx.speed_relaxation
-            peak = max(peak, xdot)
+            peak = xdot if xdot > peak else peak
             ref = sr.ref_speed_mm_s / 1000.0
-            tau = tp.tau1_s * (ref / max(peak, 1e-3 * ref)) ** sr.exponent
+            slowest = 1e-3 * ref
+            tau = tp.tau1_s * (ref / (slowest if slowest > peak else peak)) ** sr.exponent
             a1 = math.exp(-dt / tau)
         # Exact discretisation of f + tau1 df/dt = drive over one sub-step (drive held).
         # The tissue cannot pull on the probe: when it would, the surface separates and the
         # branch recovers freely instead of storing tension. The material relaxes in its own
         # modulus: no lag after it.
-        f1 = max(drive + (self.f1_N - drive) * a1, 0.0) if material is None else max(drive, 0.0)
+        f1 = drive + (self.f1_N - drive) * a1 if material is None else drive
+        f1 = 0.0 if 0.0 > f1 else f1
         f2 = 0.0
-        if fx.relaxation2:
-            f2 = max(self.f2_N * self._a2 + fx.relaxation2.k_N_per_m * (xdot * dt), 0.0) if x > 0.0 else 0.0
+        if fx.relaxation2 and x > 0.0:
+            f2 = self.f2_N * self._a2 + fx.relaxation2.k_N_per_m * (xdot * dt)
+            f2 = 0.0 if 0.0 > f2 else f2
         frac_N, frac = None, 0.0
         if self._frac_modes is not None:
             decay, gain = self._frac_modes
@@ -225,8 +240,11 @@ class SimRig:
             # rest of the tissue, only the sum on the probe cannot pull
             frac_N = self._frac_N * decay + gain * xdot if x > 0.0 else np.zeros_like(decay)
             frac = float(frac_N.sum())
-        total = max(f1 + f2 + frac, 0.0) if x > 0.0 else 0.0
-        return x, f1, f2, total, {"peak_rate_m_s": peak, "frac_N": frac_N, "material": material}
+        total = 0.0
+        if x > 0.0:
+            total = f1 + f2 + frac
+            total = 0.0 if 0.0 > total else total
+        return x, f1, f2, total, peak, frac_N, material
 
     def _probe_through_frame(self, slider_mm: float, k_frame_N_per_m: float) -> float:
         """The probe position p with p = slider - f(p) / k_frame: the tissue force grows with
