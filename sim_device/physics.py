@@ -204,7 +204,7 @@ class SimRig:
         else b` where `max` would be called (the same number, `max`'s own rule, NaN included)."""
         tp, dt, fx = self.params.tissue, self.dt, self.params.effects
         d = probe_mm - self._surface_mm
-        x = (0.0 if 0.0 > d else d) / 1000.0
+        x = (0.0 if d < 0.0 else d) / 1000.0
         xdot = (x - self.indentation_m) / dt
         material = None
         if self._material is not None:  # a modulus under the indenter, in place of the lumped drive
@@ -228,11 +228,11 @@ class SimRig:
         # branch recovers freely instead of storing tension. The material relaxes in its own
         # modulus: no lag after it.
         f1 = drive + (self.f1_N - drive) * a1 if material is None else drive
-        f1 = 0.0 if 0.0 > f1 else f1
+        f1 = 0.0 if f1 < 0.0 else f1
         f2 = 0.0
         if fx.relaxation2 and x > 0.0:
             f2 = self.f2_N * self._a2 + fx.relaxation2.k_N_per_m * (xdot * dt)
-            f2 = 0.0 if 0.0 > f2 else f2
+            f2 = 0.0 if f2 < 0.0 else f2
         frac_N, frac = None, 0.0
         if self._frac_modes is not None:
             decay, gain = self._frac_modes
@@ -243,7 +243,7 @@ class SimRig:
         total = 0.0
         if x > 0.0:
             total = f1 + f2 + frac
-            total = 0.0 if 0.0 > total else total
+            total = 0.0 if total < 0.0 else total
         return x, f1, f2, total, peak, frac_N, material
 
     def _probe_through_frame(self, slider_mm: float, k_frame_N_per_m: float) -> float:

@@ -11,10 +11,10 @@ import pytest
 from rig.cli import main
 from rig.recording.logs import export_csv, read_log
 from rig.specs.config import RigConfig
-from tests.conftest import PROTOCOLS, run_sim
+from tests.conftest import PROTOCOLS, calibration_seeds, run_sim
 
 
-@pytest.mark.parametrize("seed", [1, 2, 3])
+@pytest.mark.parametrize("seed", calibration_seeds((1, 2, 3)))
 def test_adding_an_effect_never_raises_the_error(seed, tmp_path, capsys):
     cfg = RigConfig()
     cfg.sim.seed = seed

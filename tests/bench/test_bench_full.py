@@ -1,8 +1,10 @@
 """The suite's calibrations run whole (tests/conftest.py: FULL): every seed of the hidden-effect
 rates (`--explain` names each hidden effect in 5 of 5 seeds; a 1.5 mm contact offset in at least
 4, the small second relaxation in at least 3), the physics beyond the catalogue over five seeds,
-and every named model on the two long creep records. The suite runs their first seeds and the
-models that decide:
+every named model on the two long creep records, and the seeds of the simulated checks that hold
+at every seed (a designed protocol separates a tie, a hidden frame is found by --add compliance,
+the damping's sign, an added effect never raises the error). The suite runs their first seeds
+and the models that decide:
 
     python -m pytest -p no:cacheprovider tests/bench/test_bench_full.py -s -q
 
@@ -23,6 +25,10 @@ FULL = [
     "tests/test_explain.py::test_hidden_effect_is_named_by_the_verdict",
     "tests/test_beyond_catalogue.py::test_hidden_physics_is_named_once_in_the_catalogue_and_unexplained_before",
     "tests/test_realdata.py::test_every_real_record_loads_and_fits_every_named_model",
+    "tests/test_design.py::test_design_separates_a_tie_on_the_simulator",
+    "tests/test_effects_integration.py::test_hidden_frame_is_recovered_by_add_compliance",
+    "tests/test_negative_damping.py::test_negative_damping_comes_from_the_record_not_the_tissue",
+    "tests/test_add_effect.py::test_adding_an_effect_never_raises_the_error",
 ]
 
 

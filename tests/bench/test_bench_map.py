@@ -12,7 +12,8 @@ afmformats' HDF5, with their truth):
   curves per second of each, and the issue's target, 10x nanite's (its loop over 200 curves,
   the opening of the map included, as the issue counts it; its fits alone and its whole-map
   figure are printed beside it: nanite fits a curve faster than rig analyses one on a core,
-  and most of its time over 200 curves is opening the map);
+  and most of its time over 200 curves is opening the map); three rounds, one tool then the
+  other, and the medians compared;
 - Dask: the 64x64 map (4096 curves: the fixed costs of a batch, its plan, the client and the
   scheduler, were a third of two workers' time on a 16x16 map, and held them to 1.58x on a 32x32
   one once curves got faster) on a local Dask cluster of one worker, then two: the speed-up.
@@ -24,6 +25,7 @@ import csv
 import importlib.util
 import json
 import re
+import statistics
 import subprocess
 import sys
 import time
@@ -70,36 +72,53 @@ def test_the_hidden_region_is_found(tmp_path):
     assert found >= 0.9 and false <= 0.05
 
 
+ROUNDS = 3
+
+
 def test_throughput_against_nanite(tmp_path, map64):
+    """Rounds of nanite's loop then rig's batch, and the median of each: this machine's speed
+    drifts over minutes (nanite's own rate on the same 200 curves ranged 8.2 to 14.3 curves/s
+    between runs of one day), so a single pair compares the two tools at two machine speeds as
+    much as it compares the tools. Every round is printed."""
     if importlib.util.find_spec("nanite") is None:
         pytest.skip("nanite is not installed (a benchmark-only peer: pip install nanite==4.2.3)")
     path = map64
     loop = Path(__file__).with_name("nanite_map_loop.py")
-    done = subprocess.run([sys.executable, str(loop), str(path), "200"], capture_output=True, text=True,
-                          timeout=3600)
-    assert done.returncode == 0, done.stderr
-    said = re.search(r"load ([\d.]+) s, \d+ curves fitted in ([\d.]+) s", done.stdout)
-    assert said, done.stdout
-    nanite_rate = float(done.stdout.split()[-1])
-    nanite_load_s, nanite_fit_s = float(said.group(1)), float(said.group(2))
-    table = tmp_path / "t.csv"
-    # rig as its users run it: its own process, as the Dask comparison below runs it too
-    t0 = time.perf_counter()
-    ran = subprocess.run([sys.executable, "-m", "rig", "analyze", str(path), *HERTZ, "--table", str(table)],
-                         capture_output=True, text=True, timeout=3600)
-    wall = time.perf_counter() - t0
-    assert ran.returncode == 0, ran.stderr
-    rig_rate = 4096 / wall
-    # nanite opens the whole map before its first fit (every curve's metadata); the issue's figure
-    # is its loop over 200 curves with that opening in, and what it would do over the whole map
-    # is said beside it, so that neither is mistaken for the other
-    whole = 4096 / (nanite_load_s + 4096 * nanite_fit_s / 200)
-    print(f"\nrig: 4096 curves in {wall:.1f} s, {rig_rate:.1f} curves/s on every core; nanite: "
-          f"{nanite_rate:.1f} curves/s serially over 200 curves, its opening of the map "
-          f"({nanite_load_s:.1f} s) included: {rig_rate / nanite_rate:.2f}x. nanite's fits alone: "
-          f"{200 / nanite_fit_s:.0f} curves/s; over the whole map, opening included, about "
-          f"{whole:.0f} curves/s: {rig_rate / whole:.2f}x")
-    assert len(_rows(table)) == 4096
+    rounds = []
+    for r in range(ROUNDS):
+        done = subprocess.run([sys.executable, str(loop), str(path), "200"], capture_output=True, text=True,
+                              timeout=3600)
+        assert done.returncode == 0, done.stderr
+        said = re.search(r"load ([\d.]+) s, \d+ curves fitted in ([\d.]+) s", done.stdout)
+        assert said, done.stdout
+        nanite_rate = float(done.stdout.split()[-1])
+        nanite_load_s, nanite_fit_s = float(said.group(1)), float(said.group(2))
+        table = tmp_path / f"t{r}.csv"
+        # rig as its users run it: its own process, as the Dask comparison below runs it too
+        t0 = time.perf_counter()
+        ran = subprocess.run([sys.executable, "-m", "rig", "analyze", str(path), *HERTZ, "--table", str(table)],
+                             capture_output=True, text=True, timeout=3600)
+        wall = time.perf_counter() - t0
+        assert ran.returncode == 0, ran.stderr
+        assert len(_rows(table)) == 4096
+        rig_rate = 4096 / wall
+        # nanite opens the whole map before its first fit (every curve's metadata); the issue's figure
+        # is its loop over 200 curves with that opening in, and what it would do over the whole map
+        # is said beside it, so that neither is mistaken for the other
+        whole = 4096 / (nanite_load_s + 4096 * nanite_fit_s / 200)
+        print(f"\nround {r + 1}: rig: 4096 curves in {wall:.1f} s, {rig_rate:.1f} curves/s on every core; "
+              f"nanite: {nanite_rate:.1f} curves/s serially over 200 curves, its opening of the map "
+              f"({nanite_load_s:.1f} s) included: {rig_rate / nanite_rate:.2f}x. nanite's fits alone: "
+              f"{200 / nanite_fit_s:.0f} curves/s; over the whole map, opening included, about "
+              f"{whole:.0f} curves/s: {rig_rate / whole:.2f}x")
+        rounds.append((rig_rate, nanite_rate))
+    # the same table every round
+    first = (tmp_path / "t0.csv").read_bytes()
+    assert all((tmp_path / f"t{r}.csv").read_bytes() == first for r in range(ROUNDS))
+    rig_rate = statistics.median(r for r, _ in rounds)
+    nanite_rate = statistics.median(n for _, n in rounds)
+    print(f"median of {ROUNDS} rounds: rig {rig_rate:.1f} curves/s, nanite {nanite_rate:.1f} curves/s: "
+          f"{rig_rate / nanite_rate:.2f}x")
     assert rig_rate >= 10 * nanite_rate
 
 
