@@ -232,6 +232,7 @@ class TcpBridge:
         self.line = Line(None, latency_s) if latency_s > 0 else None
         self._writer = PacedWriter("tcp-paced") if self.line is not None else None
         self._listener = socket.create_server(("127.0.0.1", listen_port))
+        self.port = self._listener.getsockname()[1]  # the kernel's choice when listen_port is 0
         self._listener.settimeout(0.05)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -590,7 +591,10 @@ class WireSim:
         self.origin_s = time.monotonic()
         self.drive = SimDrive(self.rig, PROFILES[profile], self.params, self.origin_s)
         self.want = {"tcp": tcp, "rtu": rtu, "loadcell": loadcell}
-        self.tcp_port = tcp_port or (free_tcp_port() if tcp else 0)
+        # 0: the port the kernel gives the listener when it binds. A port found free beforehand
+        # can be taken before the bind (by the inner server's own pick, or a connection's
+        # ephemeral port): seen once in a suite run as "Address already in use"
+        self.tcp_port = tcp_port
         self.baudrate = baudrate or self.params.drive.baudrate
         self.rtu_link = rtu_link  # a stable path (symlink) to the RTU port, kept across vanish/restore
         self.bridge: RtuBridge | None = None
@@ -638,12 +642,13 @@ class WireSim:
         servers = []
         rtu_path = tcp = None
         if self.want["tcp"]:
-            inner_port = free_tcp_port()
-            server = ModbusTcpServer(device(self.drive.action), address=("127.0.0.1", inner_port))
+            server = ModbusTcpServer(device(self.drive.action), address=("127.0.0.1", 0))
             await server.serve_forever(background=True)
             servers.append(server)
+            inner_port = server.transport.sockets[0].getsockname()[1]
             self.tcp_bridge = TcpBridge(self.params.faults, self.tcp_port, inner_port,
                                         self.params.tcp_latency_ms / 1000.0)
+            self.tcp_port = self.tcp_bridge.port
             tcp = f"127.0.0.1:{self.tcp_port}"
         if self.want["rtu"]:
             self.bridge = RtuBridge(self.params.faults, self.rtu_link, drive_line(self.params, self.baudrate))
