@@ -8,7 +8,7 @@ and the models that decide:
 
     python -m pytest -p no:cacheprovider tests/bench/test_bench_full.py -s -q
 
-About 15 minutes on two cores.
+About 17 minutes on two cores.
 """
 
 from __future__ import annotations
