@@ -133,9 +133,8 @@ class SimRig:
         with self.lock:
             substep = self._substep
             for n in range(self.n, n_target):
-                self.n = n  # the sub-step in progress (a drift grows with it)
                 substep()
-            self.n = max(self.n, n_target)
+                self.n = n + 1
 
     def _substep(self) -> None:
         p, dt = self.params, self.dt
@@ -194,7 +193,8 @@ class SimRig:
         if pc:
             self._stiffness = 1.0 - pc.softening * (1.0 - math.exp(-self._loadings / pc.trials))
 
-    def _tissue_at(self, probe_mm: float) -> tuple:
+    def _tissue_at(self, probe_mm: float) -> tuple[float, float, float, float, float, np.ndarray | None,
+                                                   dict | None]:
         """Indentation, the relaxing and parallel branches, the total tissue force, and the
         state to keep (the fastest indentation rate of this contact, the power-law branch's
         modes, the material's state), after this sub-step if the probe ends it at `probe_mm`
