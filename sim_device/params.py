@@ -100,6 +100,14 @@ class FaultParams:
     loadcell_silent: bool = False  # the load cell stops sending
     garbage_lines: int = field(default=0, **_pos(ge=0))  # the next N load-cell lines are garbage
     loadcell_disconnect: bool = False  # the load cell's port goes away
+    # the cell keeps sending its last value on fresh lines (an indicator stuck on HOLD, a relay
+    # repeating its last line): every reading looks fresh and none moves
+    loadcell_frozen: bool = False
+    # the cell's noise vanishes: it reports a smooth value, the tissue's force at the moment of the
+    # fault (a saturated or disconnected bridge amplifier reads steady and plausible)
+    loadcell_noiseless: bool = False
+    # the specimen's elastic stiffness scaled from now on (it tears, or the probe reaches bone)
+    stiffness_scale: float = field(default=1.0, **_pos(gt=0))
     ignore_moves: bool = False  # moves are acknowledged but never start (motor not excited)
     ignore_stops: int = field(default=0, **_pos(ge=0))  # the next N STOPs are acknowledged, not acted on
 

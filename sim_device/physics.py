@@ -118,6 +118,9 @@ class SimRig:
         self._peak_rate_m_s = 0.0  # fastest indentation speed of the current contact
         self._loadings = fx.preconditioning.done if fx.preconditioning else 0
         self._stiffness = 1.0
+        self._last_read_N = 0.0  # the load cell's last conversion, which a frozen cell repeats
+        self._stuck_N: float | None = None  # a faulty cell's value (None: the cell is sound)
+        self._stuck_t_s = 0.0
         self._soften()
         self._frac_modes = fractional_modes(fx.fractional, self.dt) if fx.fractional else None
         self._material = Material(tp.material, self.dt) if tp.material else None
@@ -209,9 +212,10 @@ class SimRig:
         material = None
         if self._material is not None:  # a modulus under the indenter, in place of the lumped drive
             drive, material = self._material.trial(x)
-            drive *= self._stiffness
+            drive *= self._stiffness * self.params.faults.stiffness_scale
         elif x > 0.0:
-            drive = self._stiffness * ((tp.k1_N_per_m3 * x + tp.k2_N_per_m2) * x + tp.k3_N_per_m) * x \
+            scale = self._stiffness * self.params.faults.stiffness_scale
+            drive = scale * ((tp.k1_N_per_m3 * x + tp.k2_N_per_m2) * x + tp.k3_N_per_m) * x \
                 + tp.tau2_N_s_per_m2 * x * xdot
         else:
             drive = 0.0
@@ -279,15 +283,33 @@ class SimRig:
         return p
 
     def read_force_N(self) -> float:
-        """One load-cell conversion: the bridge force plus Gaussian noise, quantised."""
-        lc = self.params.loadcell
+        """One load-cell conversion: the bridge force plus Gaussian noise, quantised; or what a
+        faulty cell reports (`FaultParams.loadcell_frozen`, `loadcell_noiseless`)."""
+        lc, faults = self.params.loadcell, self.params.faults
         with self.lock:
+            if faults.loadcell_frozen or faults.loadcell_noiseless:
+                return self._faulty_reading(faults.loadcell_frozen, lc.resolution_N)
+            self._stuck_N = None
             value = self.sensor_force_N + (self.rng.normal(0.0, lc.noise_N) if lc.noise_N else 0.0)
             if lc.lowpass_Hz > 0:
                 value = self._lowpass(value, lc.lowpass_Hz)
         if lc.resolution_N:
             value = round(value / lc.resolution_N) * lc.resolution_N
+        self._last_read_N = value
         return value
+
+    def _faulty_reading(self, frozen: bool, resolution_N: float) -> float:
+        """Frozen: the last reading again, on every line. Noiseless: no noise, and the bridge's
+        output drifts towards the force only with a 20 s time constant (a saturated or
+        disconnected amplifier reads steady and plausible, not zero)."""
+        if self._stuck_N is None:
+            self._stuck_N, self._stuck_t_s = self._last_read_N, self.t_s
+        if not frozen:
+            a = math.exp(-max(self.t_s - self._stuck_t_s, 0.0) / 20.0)
+            self._stuck_N = a * self._stuck_N + (1.0 - a) * self.sensor_force_N
+            self._stuck_t_s = self.t_s
+        value = self._stuck_N
+        return round(value / resolution_N) * resolution_N if resolution_N else value
 
     def _lowpass(self, value: float, cutoff_Hz: float) -> float:
         """First-order low-pass over the time since the last conversion (y + tau dy/dt = u)."""

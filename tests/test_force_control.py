@@ -111,8 +111,8 @@ def test_force_holds_over_modbus_rtu_at_100_hz(tissue, tmp_path):
     assert m["creep_mm"] > 0.05, m
 
 
-def _stopped(tmp_path, mode: StopMode, at_s: float = 4.0):
-    """A trial stopped by `mode` during its hold at 1.5 N."""
+def _stopped(tmp_path, mode: StopMode, into_hold_s: float = 1.0):
+    """A trial stopped by `mode` during its hold at 1.5 N, `into_hold_s` after the hold began."""
     cfg = _config("tissue", 3)
     proto = parse_protocol(_protocol(1.5, hold_s=5.0), "<test>")
     clock = VirtualClock(0)
@@ -123,7 +123,7 @@ def _stopped(tmp_path, mode: StopMode, at_s: float = 4.0):
 
     def stopper(snap):
         seen.setdefault(snap.step_kind, snap.t_s)
-        if snap.t_s >= at_s and not fired.is_set():
+        if snap.t_s >= seen.get("hold_force", float("inf")) + into_hold_s and not fired.is_set():
             fired.set()
             seen["kind_at_stop"] = snap.step_kind
             trial.request_stop(mode, user="tester")

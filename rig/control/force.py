@@ -68,6 +68,14 @@ class ForceLoop:
         self.target_mm = None
         self.integral_Ns = 0.0
 
+    def seek(self, position_mm: float, speed_mm_s: float) -> ForceCommand:
+        """Out of contact: stream positions into the specimen at `speed_mm_s` (an approach's
+        pace), whatever the error; the loop's integral waits for contact."""
+        self.integral_Ns = 0.0
+        lead = 2 * speed_mm_s * self.period_s + self.min_lead_mm
+        self.target_mm = position_mm + lead
+        return ForceCommand(self.target_mm, speed_mm_s, 0.0, True)
+
     def command(self, setpoint_N: float, force_N: float, stiffness_N_per_m: float,
                 position_mm: float, setpoint_rate_N_s: float = 0.0,
                 speed_cap_mm_s: float | None = None) -> ForceCommand:

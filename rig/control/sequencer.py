@@ -37,9 +37,15 @@ class Track:
     setpoint_N: float
     limit_mm: float
     rate_N_s: float = 0.0  # how fast the setpoint moves (a ramp's), fed forward
+    seeking: bool = False  # out of contact: seek the surface at the seek speed, the loop idle
 
 
 Command = Move | Stop | Track
+
+# A force ramp ends once the force is within this share of its target after its planned end, or
+# RAMP_GRACE_S later at most (then the lag is said: `rig.control.forcestats`)
+RAMP_REACHED_SHARE = 0.05
+RAMP_GRACE_S = 1.0
 
 
 class Sequencer:
@@ -67,7 +73,17 @@ class Sequencer:
         self._force_from: float | None = None  # the force when a force ramp started
         self._last_force = 0.0
         self._last_pos = start_mm
+        self._in_contact = True
         self.setpoint_N: float | None = None  # the force step's setpoint this tick
+        # A force step's clock starts at contact: one begun in air first seeks the surface, and
+        # a ramp timed from the step's start would end before the force had begun to rise
+        self.force_t0: float | None = None
+        self.force_seek_s = 0.0  # how long the current force step sought the surface
+        self.force_lag_s = 0.0  # how long past its planned end the current force ramp ran
+        # (seek_s, lag_s) of the force step the last `tick` ended, for its report; else None
+        self.ended_force: tuple[float, float] | None = None
+        self._left_after: list[float] = []  # planned time of the steps after each index
+        self._plan_left()
 
     # -------------------------------------------------------------- state
     @property
@@ -100,6 +116,7 @@ class Sequencer:
         self._speed = 0.0
         self._abort_pending = True
         self.done = False
+        self._plan_left()
 
     def position_cmd_mm(self, t: float) -> float:
         """The ideal commanded position (trapezoidal profile of the current move)."""
@@ -109,41 +126,59 @@ class Sequencer:
                              t - self.step_t0) - self.zero_mm
 
     def time_left_s(self, t: float) -> float:
-        """Planned time still to run (holds at their longest)."""
-        left = 0.0
+        """Planned time still to run (holds at their longest; a force step from its contact):
+        the current step's rest plus the planned time of the steps after it, summed once when
+        the trial starts (constant work a tick, whatever the protocol's length; a later zero
+        moves positions, not the time between them)."""
+        left = self._left_after[self.index + 1] if self.index + 1 < len(self._left_after) else 0.0
         if self.index < 0:
-            left += max(self.tare_s - t, 0.0)
-        pos = self._target_mm
-        for i, (_, step) in enumerate(self.steps):
-            if i < self.index:
-                continue
-            if isinstance(step, RampForce):  # from the setpoint it starts at, as far as known now
-                start = self._force_from if i == self.index and self._force_from is not None else (
-                    self.setpoint_N or 0.0)
-                span = abs(step.to_N - start) / step.rate_N_s
-                left += max(span - (t - self.step_t0 if i == self.index else 0.0), 0.0)
-                continue
-            if i == self.index:
-                elapsed = t - self.step_t0
-                if isinstance(step, Hold | HoldForce):
-                    left += max(step.longest_s - elapsed, 0.0)
-                else:
-                    left += max(move_time(self._from_mm, self._target_mm, self._speed,
-                                           self._step_accel) - elapsed, 0.0)
-                continue
-            if isinstance(step, Hold | HoldForce):
-                left += step.longest_s
+            return left + max(self.tare_s - t, 0.0)
+        if self.index >= len(self.steps):
+            return 0.0
+        step = self.step
+        elapsed = t - self.step_t0
+        if isinstance(step, RampForce):
+            start = self._force_from if self._force_from is not None else (self.setpoint_N or 0.0)
+            elapsed = t - self.force_t0 if self.force_t0 is not None else 0.0
+            return left + max(abs(step.to_N - start) / step.rate_N_s - elapsed, 0.0)
+        if isinstance(step, HoldForce):
+            elapsed = t - self.force_t0 if self.force_t0 is not None else 0.0
+            return left + max(step.longest_s - elapsed, 0.0)
+        if isinstance(step, Hold):
+            return left + max(step.longest_s - elapsed, 0.0)
+        return left + max(move_time(self._from_mm, self._target_mm, self._speed, self._step_accel)
+                          - elapsed, 0.0)
+
+    def _plan_left(self) -> None:
+        """`_left_after[i]`: the planned time of steps i and after, from the frames as they stand."""
+        durations: list[float] = []
+        pos, force = self._target_mm, self.setpoint_N or 0.0
+        for _, step in self.steps:
+            if isinstance(step, RampForce):
+                durations.append(abs(step.to_N - force) / step.rate_N_s)
+                force = step.to_N
+            elif isinstance(step, Hold | HoldForce):
+                durations.append(step.longest_s)
+                force = step.force_N if isinstance(step, HoldForce) else force
             else:
                 target = self._resolve_target(step)
-                left += move_time(pos, target, step.speed_mm_s, self.accel)
+                durations.append(move_time(pos, target, step.speed_mm_s, self.accel))
                 pos = target
-        return left
+        left = [0.0] * (len(durations) + 1)
+        for i in range(len(durations) - 1, -1, -1):
+            left[i] = left[i + 1] + durations[i]
+        self._left_after = left
 
     # -------------------------------------------------------------- ticking
-    def tick(self, t: float, position_mm: float, force_N: float, moving: bool | None) -> list[Command]:
-        """Advance on this tick's measurements; returns commands to carry out now."""
+    def tick(self, t: float, position_mm: float, force_N: float, moving: bool | None,
+             in_contact: bool = True) -> list[Command]:
+        """Advance on this tick's measurements; returns commands to carry out now. `in_contact`:
+        the probe touches the specimen, as the loop judges it from the force and the cell's noise
+        (a force step's clock starts there)."""
         self._last_force = force_N
         self._last_pos = position_mm
+        self._in_contact = in_contact
+        self.ended_force = None
         if self.done:
             return []
         if self._abort_pending:
@@ -170,25 +205,37 @@ class Sequencer:
         return []
 
     def _tick_force(self, step: RampForce | HoldForce, t: float, force_N: float) -> list[Command]:
-        elapsed = t - self.step_t0
+        limit = self.zero_mm + step.max_mm
+        if self.force_t0 is None:
+            if not self._in_contact:  # in air: seek the surface; the step's clock has not started
+                self.force_seek_s = t - self.step_t0
+                if isinstance(step, HoldForce):
+                    self.setpoint_N = step.force_N
+                elif self.setpoint_N is None:  # a ramp's setpoint waits at the force in air
+                    self.setpoint_N = max(force_N, 0.0)
+                return [Track(self.setpoint_N, limit, 0.0, seeking=True)]
+            self.force_t0 = t
+        elapsed = t - self.force_t0
         if isinstance(step, HoldForce):
             if elapsed >= step.duration_s - 0.5 / self.rate:
                 return self._next(t)
             self.setpoint_N = step.force_N
-        else:
-            if self._force_from is None:
-                self._force_from = force_N
-            span = abs(step.to_N - self._force_from)
-            if elapsed >= span / step.rate_N_s:
-                self.setpoint_N = step.to_N
+            return [Track(self.setpoint_N, limit, 0.0)]
+        if self._force_from is None:
+            # from the force at contact, or where a force step before it left the setpoint
+            self._force_from = force_N if self.setpoint_N is None or self.force_seek_s > 0 else self.setpoint_N
+        span_s = abs(step.to_N - self._force_from) / step.rate_N_s
+        if elapsed >= span_s:
+            self.setpoint_N = step.to_N
+            reached = abs(force_N - step.to_N) <= RAMP_REACHED_SHARE * step.to_N or (
+                (force_N > step.to_N) == (step.to_N > self._force_from))
+            if reached or elapsed >= span_s + RAMP_GRACE_S:
+                self.force_lag_s = elapsed - span_s
                 return self._next(t)
-            gone = math.copysign(step.rate_N_s * elapsed, step.to_N - self._force_from)
-            self.setpoint_N = self._force_from + gone
-        limit = self.zero_mm + step.max_mm
-        rate = 0.0
-        if isinstance(step, RampForce):
-            rate = math.copysign(step.rate_N_s, step.to_N - self._force_from)
-        return [Track(self.setpoint_N, limit, rate)]
+            return [Track(self.setpoint_N, limit, 0.0)]
+        gone = math.copysign(step.rate_N_s * elapsed, step.to_N - self._force_from)
+        self.setpoint_N = self._force_from + gone
+        return [Track(self.setpoint_N, limit, math.copysign(step.rate_N_s, step.to_N - self._force_from))]
 
     def follow(self, target_mm: float) -> None:
         """Where the force loop sent the slider: the next position step moves on from there."""
@@ -237,6 +284,8 @@ class Sequencer:
 
     def _next(self, t: float) -> list[Command]:
         after_force = isinstance(self.step, FORCE_STEPS)
+        self.ended_force = (self.force_seek_s, self.force_lag_s) if after_force else None
+        self.force_lag_s = 0.0
         if after_force:
             # the force loop streamed its positions a tick or two ahead of the slider: the next
             # step starts where the slider is, not where the stream had got to
@@ -248,6 +297,9 @@ class Sequencer:
         self._approach_stopping = False
         self._arrived = 0
         self._force_from = None
+        # a force step handed over from another starts its clock at once: the probe is in contact
+        self.force_t0 = t if after_force and self._in_contact else None
+        self.force_seek_s = 0.0
         if self.index >= len(self.steps):
             self.done = True
             self._speed = 0.0

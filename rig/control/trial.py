@@ -23,6 +23,7 @@ missed, never silently dropped.
 from __future__ import annotations
 
 import gc
+import math
 import socket
 import sys
 import threading
@@ -37,9 +38,11 @@ from rig import __version__
 from rig.clock import Clock, RealClock
 from rig.control.estimator import StiffnessRLS
 from rig.control.force import STIFFNESS_FLOOR_SHARE, ForceLoop
+from rig.control.forcestats import StepFigures, StepMeter
 from rig.control.movewatch import MoveWatch
 from rig.control.safety import Fault, SpeedMeter, TickState, check, check_move
-from rig.control.sequencer import Move, Sequencer, Stop, Track
+from rig.control.sensorwatch import CellNoise, CellWatch, Contact, MotionAnswer, answer_limit_mm
+from rig.control.sequencer import RAMP_GRACE_S, Move, Sequencer, Stop, Track
 from rig.control.stopping import Ending, StopMode
 from rig.control.zero import Zero, known_zero
 from rig.drivers.base import LinkStats, LoadCell, Slider, SliderStatus
@@ -50,9 +53,13 @@ from rig.realtime import Realtime, RealtimeState
 from rig.recording.messages import EVENT, HEALTH, SAMPLE
 from rig.recording.recorder import Recorder, TrialInfo
 from rig.specs.config import RigConfig
-from rig.specs.protocol import FORCE_STEPS, Approach, Protocol, check_limits
+from rig.specs.protocol import FORCE_STEPS, Approach, Protocol, RampForce, check_limits
 
-SEEK_SPEED_SHARE = 0.05  # of the speed limit: a force step out of contact seeks the surface this fast
+# A force step's depth budget: from the surface, the depth at which the stiffness read when the
+# force first reached BUDGET_AT_SHARE of the step's setpoint would carry the force limit. A
+# specimen that stiffens reaches the limit before it (the per-tick limit stops it); one that
+# tears or a cell that lies stops there
+BUDGET_AT_SHARE = 0.5
 DRIVE_FOLLOW_S = 1.0  # a drive that has not moved this long while the force loop asked its fastest: a fault
 DRIVE_STUCK_MM = 0.05  # "not moved": a few encoder steps
 SETPOINT_MISS = 0.05  # a force step that ends further than this from its setpoint is said
@@ -80,6 +87,7 @@ class Snapshot:
     fault: str = ""
     force_model_N: float | None = None  # the loaded model's force, when one runs in the loop
     preload_N: float = 0.0  # force the probe carried at the tare: force_N + preload_N is absolute
+    force_steps: tuple = ()  # the figures of each force step ended so far (`StepFigures.as_dict`)
 
 
 @dataclass
@@ -119,8 +127,21 @@ class _Loop:
     x_prev_m: float = 0.0
     last_step: int = -2
     health_mark: int = 0
-    stiffness_N_per_m: float = 0.0  # the estimator's last reading: the force loop's gain
-    in_contact: bool = False  # the estimator's last reading: the probe pushes on the specimen
+    stiffness_N_per_m: float = 0.0  # the force loop's gain: the stiffness from the surface found
+    in_contact: bool = False  # the probe pushes on the specimen (`sensorwatch.Contact`)
+    noise: CellNoise | None = None  # the load cell's noise, once the tare has measured it
+    tare_values: list = field(default_factory=list)  # the tare's new readings
+    last_reading_t: float | None = None  # the timestamp of the last new reading
+    cell_watch: CellWatch | None = None
+    contact: Contact | None = None
+    loop_rls: StiffnessRLS | None = None  # the stiffness referenced to the surface, for the gain
+    x_contact_prev_m: float = 0.0
+    motion: MotionAnswer | None = None
+    meter: StepMeter | None = None  # the force step being measured
+    budget_mm: float | None = None  # the force segment's depth budget (absolute), once known
+    carry_peak_N: float = -math.inf  # a force ramp's peak, carried into the hold it hands over to
+    at_budget: bool = False
+    figures: list = field(default_factory=list)  # StepFigures of the force steps ended
     force_error_N: float | None = None  # a force step's setpoint less the force, this tick
     force_step: int = -1  # the force step being followed (its index), -1 none
     force_recent: list = field(default_factory=list)  # (t, force, setpoint) over the step's last 0.5 s
@@ -151,6 +172,7 @@ class _Tick:
     force: float
     checked: float
     status_read: bool = False  # status and alarm were read on this tick (fresh or not)
+    new_reading: bool = False  # the load cell's reading is one not seen on an earlier tick
 
 
 class StopTicket:
@@ -559,6 +581,9 @@ class Trial:
         speed = L.speedometer.update(pr)
         raw = reading.force_N if reading else 0.0
         age = reading.age_s if reading else None
+        new_reading = reading is not None and (L.last_reading_t is None or reading.t_s > L.last_reading_t)
+        if new_reading:
+            L.last_reading_t = reading.t_s
         if cell is None:  # no load cell: the model's estimate stands in, and is what is checked
             raw, age = force_model, 0.0
         self._last_age = age
@@ -566,6 +591,8 @@ class Trial:
             L.tare_sum += raw  # taring: zero the load cell on the mean of the first tare_s
             L.tare_n += 1
             L.tare_N = L.tare_sum / L.tare_n
+            if new_reading:  # the cell's own noise, for the contact and frozen-cell checks
+                L.tare_values.append(raw)
         force = raw - L.tare_N  # logged and sequenced relative to the tare, as analysis expects
         if cell is None:
             checked = force * (1.0 + lim.model_force_margin)
@@ -573,8 +600,10 @@ class Trial:
             checked = force
         else:  # the force the tissue carries, preload included (never less than the tared one)
             checked = max(raw - L.zero_N, force)
+        if L.contact is not None:
+            L.in_contact = L.contact.update(force, pos)
         return _Tick(now, t, t_log, lateness, reading, pr, pos, x_rel_mm, force_model, moving, speed, raw, age,
-                     force, checked, status_read)
+                     force, checked, status_read, new_reading)
 
     def _status_due(self, L: _Loop) -> bool:
         """Status and alarm every `status_every` ticks; a tick on which the force loop's move is
@@ -596,6 +625,10 @@ class Trial:
         found = check(TickState(k.checked, k.pos, k.speed, k.age, status.alarm_code if status.alarm else 0,
                                 bool(k.reading and k.reading.over_range), k.raw,
                                 "measured" if self.loadcell is not None else "estimated", L.preload_N), lim)
+        if found is None and L.cell_watch is not None and k.new_reading:
+            why = L.cell_watch.update(k.reading.t_s, k.raw)
+            if why is not None:
+                found = Fault("loadcell_frozen", why)
         if found is None and rec.failure:
             found = Fault("recording", rec.failure)
         if found is None and seq.fault:
@@ -614,6 +647,7 @@ class Trial:
                                  f"'{self.proto.name}' ({self.log_path.name}), assumed out of contact")
                 L.zero_N = L.tare_N
             L.preload_N = self.preload_N = L.tare_N - L.zero_N
+            self._cell_known(rec, L, k)
             max_pre = lim.max_preload_share * lim.max_force_N
             if abs(L.preload_N) > max_pre:
                 found = Fault("preload", (
@@ -626,6 +660,31 @@ class Trial:
             self._fault(rec, L, found, k)
         if tare_done:
             self._tare_logged(rec, k.t, L.tare_N, L.tare_n, L.zero_N, L.preload_N)
+
+    def _cell_known(self, rec: Recorder, L: _Loop, k: _Tick) -> None:
+        """The tare is done: the cell's noise is measured, and with it the contact threshold and
+        the frozen-cell checks (`rig.control.sensorwatch`)."""
+        noise = L.noise = CellNoise.from_readings(L.tare_values, self.config.estimator.noise_N)
+        L.tare_values = []
+        L.cell_watch = CellWatch(noise)
+        L.contact = Contact.for_noise(noise, k.pos)
+        L.motion = MotionAnswer(noise.effective_sigma_N)
+        est = self.config.estimator
+        L.loop_rls = StiffnessRLS(rate_Hz=self.rate, law=est.law, memory_s=est.memory_s,
+                                  smoothing_s=est.smoothing_s, lambda_min=est.lambda_min,
+                                  lambda_max=est.lambda_max, noise_N=noise.effective_sigma_N,
+                                  initial_std_N_per_m=est.initial_std_N_per_m, contact_mm=0.0, contact_N=0.0)
+        data = {"sigma_N": noise.sigma_N, "diff_sigma_N": noise.diff_sigma_N,
+                "repeat_share": noise.repeat_share, "step_N": noise.step_N, "readings": noise.readings,
+                "contact_threshold_N": L.contact.threshold_N, "frozen_run": noise.frozen_run,
+                "quiet": noise.quiet}
+        msg = (f"{noise.describe()}: contact above {L.contact.threshold_N:.3g} N; frozen after "
+               f"{noise.frozen_run + 1} identical readings")
+        if noise.quiet:
+            msg = (f"{noise.describe()}: contact above {L.contact.threshold_N:.3g} N; too quiet to tell a "
+                   "frozen reading by its repeats: under force control only the force's answer to the "
+                   "motion and the depth budget guard against a frozen cell")
+        self._event(rec, k.t, "load_cell_noise", msg, data)
 
     def _operator(self, rec: Recorder, L: _Loop, k: _Tick) -> None:
         """The operator's stop requests (an estop may follow an abort that is returning)."""
@@ -685,7 +744,11 @@ class Trial:
         seq_moving = True if L.watch is not None else k.moving
         was = L.force_step
         tracking = False
-        for cmd in seq.tick(t, k.pos, k.force, seq_moving) if k.pr.fresh else ():
+        in_contact = L.in_contact if L.contact is not None else True
+        commands = seq.tick(t, k.pos, k.force, seq_moving, in_contact) if k.pr.fresh else ()
+        if was >= 0 and seq.index != was:  # reported before the next step's first command
+            self._force_step_ended(rec, L, t, was)
+        for cmd in commands:
             if isinstance(cmd, Track):
                 tracking = True
                 if not self._track(rec, L, k, cmd):
@@ -702,8 +765,6 @@ class Trial:
             elif isinstance(cmd, Stop):
                 L.watch = None
                 self._send_stop(L, t)
-        if was >= 0 and seq.index != was:
-            self._force_step_ended(rec, L, t, was)
         if not tracking and seq.setpoint_N is None:
             L.force_loop.release()  # a position step (or the end) took over
         if seq.index != L.last_step and seq.index >= 0 and not seq.done:
@@ -714,26 +775,70 @@ class Trial:
         L.last_step = seq.index
 
     def _track(self, rec: Recorder, L: _Loop, k: _Tick, cmd: Track) -> bool:
-        """A force step's tick: the force loop's next position, limited to the step's deepest,
-        checked against the limits before it is sent (False: refused, and faulted). Out of
-        contact the loop may only seek the surface at SEEK_SPEED_SHARE of the speed limit, as an
-        approach would; a drive that does not follow the loop's stream is a fault."""
-        if L.force_step != L.seq.index:
-            L.force_step, L.force_recent, L.at_depth_limit, L.saturated_since = L.seq.index, [], False, None
-            L.sent_target = None
-        cap = None if L.in_contact else SEEK_SPEED_SHARE * self.limits.max_speed_mm_s
-        fc = L.force_loop.command(cmd.setpoint_N, k.force, L.stiffness_N_per_m, k.pos, cmd.rate_N_s, cap)
-        target = min(fc.target_mm, cmd.limit_mm)
-        L.force_error_N = fc.error_N
+        """A force step's tick: the force loop's next position, limited to the step's deepest and
+        its depth budget, checked against the limits before it is sent (False: refused, and
+        faulted). Out of contact the slider seeks the surface at `force.seek_speed_share` of the
+        speed limit, as an approach would, and the loop waits; in contact the force must answer
+        the loop's motion (`sensorwatch.MotionAnswer`); a drive that does not follow is a fault."""
+        seq, lim, fcfg = L.seq, self.limits, self.config.force
+        if L.force_step != seq.index:
+            L.force_step, L.force_recent, L.at_depth_limit, L.saturated_since = seq.index, [], False, None
+            L.sent_target, L.meter = None, None
+            if L.motion is not None:
+                L.motion.reset()
+        sigma = L.noise.effective_sigma_N if L.noise is not None else self.config.estimator.noise_N
+        if cmd.seeking:
+            fc = L.force_loop.seek(k.pos, fcfg.seek_speed_share * lim.max_speed_mm_s)
+            if L.motion is not None:
+                L.motion.reset()
+        else:
+            if L.meter is None:
+                L.meter = StepMeter(seq.index, seq.kind, k.t, sigma, L.carry_peak_N, seq.force_seek_s)
+            fc = L.force_loop.command(cmd.setpoint_N, k.force, L.stiffness_N_per_m, k.pos, cmd.rate_N_s)
+            L.meter.update(k.t, k.force, cmd.setpoint_N)
+            target_N = seq.step.to_N if isinstance(seq.step, RampForce) else seq.step.force_N
+            depth_mm = k.pos - L.contact.surface_mm if L.contact is not None else 0.0
+            if L.budget_mm is None and depth_mm > 0 and k.force >= BUDGET_AT_SHARE * target_N:
+                # the stiffness from the surface to here, read once the force is well above the noise
+                L.budget_mm = L.contact.surface_mm + depth_mm * lim.max_force_N / k.force
+            if L.motion is not None:
+                why = L.motion.update(k.pos, k.force, fc.error_N,
+                                      answer_limit_mm(sigma, L.stiffness_N_per_m, fcfg.answer_mm))
+                if why is not None:
+                    self._fault(rec, L, Fault("loadcell_frozen", why), k)
+                    return False
+        deepest = cmd.limit_mm if L.budget_mm is None else min(cmd.limit_mm, L.budget_mm)
+        target = min(fc.target_mm, deepest)
+        L.force_error_N = cmd.setpoint_N - k.force
         L.force_recent = [r for r in L.force_recent if r[0] > k.t - 0.5] + [(k.t, k.force, cmd.setpoint_N)]
-        if target < fc.target_mm and not L.at_depth_limit:
-            L.at_depth_limit = True
-            msg = (f"step {L.seq.index} ({L.seq.kind}): the force loop reached the step's max_mm "
-                   f"({cmd.limit_mm - L.seq.zero_mm:.4g} mm) at {k.force:.4g} N, short of its setpoint "
-                   f"{cmd.setpoint_N:.4g} N: held there")
-            self._event(rec, k.t, "force_limit_depth", msg, {"step": L.seq.index, "force_N": k.force,
-                                                            "setpoint_N": cmd.setpoint_N})
-            self.notices.append(msg)
+        if target < fc.target_mm:
+            if cmd.seeking and k.pos >= deepest - self.config.slider.position_tolerance_mm:
+                what = "max_mm" if deepest == cmd.limit_mm else "depth budget"
+                self._fault(rec, L, Fault("protocol", (
+                    f"step {seq.index} ({seq.kind}) reached its {what} ({deepest - seq.zero_mm:.4g} mm) "
+                    f"without contact: the force stayed below {L.contact.threshold_N:.3g} N "
+                    "(four sigma of the load cell's noise)" if L.contact is not None else
+                    f"step {seq.index} ({seq.kind}) reached its {what} without contact")), k)
+                return False
+            if deepest == cmd.limit_mm and not L.at_depth_limit:
+                L.at_depth_limit = True
+                msg = (f"step {seq.index} ({seq.kind}): the force loop reached the step's max_mm "
+                       f"({cmd.limit_mm - seq.zero_mm:.4g} mm) at {k.force:.4g} N, short of its setpoint "
+                       f"{cmd.setpoint_N:.4g} N: held there")
+                self._event(rec, k.t, "force_limit_depth", msg, {"step": seq.index, "force_N": k.force,
+                                                                "setpoint_N": cmd.setpoint_N})
+                self.notices.append(msg)
+            elif deepest < cmd.limit_mm and not L.at_budget:
+                L.at_budget = True
+                msg = (f"step {seq.index} ({seq.kind}): the force loop reached its depth budget "
+                       f"({deepest - L.contact.surface_mm:.4g} mm below the surface, where the stiffness "
+                       f"it measured would carry the force limit {lim.max_force_N:g} N) at {k.force:.4g} N, "
+                       f"short of its setpoint {cmd.setpoint_N:.4g} N: held there (the specimen softened, "
+                       "or the load cell reads low)")
+                self._event(rec, k.t, "force_depth_budget", msg, {"step": seq.index, "force_N": k.force,
+                                                                 "setpoint_N": cmd.setpoint_N,
+                                                                 "budget_mm": deepest - L.contact.surface_mm})
+                self.notices.append(msg)
         if fc.saturated and target >= fc.target_mm:
             if L.saturated_since is None:
                 L.saturated_since = (k.t, k.pos)
@@ -760,15 +865,25 @@ class Trial:
             L.sent_target, L.sent_seq = target, self._seq
             L.ending.on_move()
         L.watch = None  # a stream of small moves: the limits are checked every tick instead
-        L.seq.follow(target)
+        seq.follow(target)
         return True
 
     def _force_step_ended(self, rec: Recorder, L: _Loop, t: float, index: int) -> None:
-        """A force step that ended away from its setpoint (its last 0.5 s off by more than
-        SETPOINT_MISS) is said: an event in the log and a notice for the operator. A ramp that
-        hands over to another force step is on its way, not ended."""
+        """A force step's figures (overshoot, settling, the hold's RMS error, a ramp's lag) as a
+        `force_step` event, said to the operator when beyond `force:`'s warnings; and a force
+        step that ended away from its setpoint (its last 0.5 s off by more than SETPOINT_MISS)
+        is said too. A ramp that hands over to another force step is on its way, not ended."""
         L.force_step = -1
-        if not L.force_recent or isinstance(L.seq.step, FORCE_STEPS):
+        handed_over = isinstance(L.seq.step, FORCE_STEPS)
+        if not handed_over:  # the force segment ends: the next one finds its own budget
+            L.budget_mm, L.at_budget = None, False
+        meter, L.meter = L.meter, None
+        if meter is not None:
+            seek_s, lag_s = L.seq.ended_force or (0.0, 0.0)
+            meter.lag_s, meter.seek_s = lag_s, seek_s
+            L.carry_peak_N = meter.peak_N if handed_over else -math.inf
+            self._force_figures(rec, L, t, meter.figures())
+        if not L.force_recent or handed_over:
             return
         force = float(np.mean([r[1] for r in L.force_recent]))
         setpoint = L.force_recent[-1][2]
@@ -779,12 +894,45 @@ class Trial:
                         {"step": index, "force_N": force, "setpoint_N": setpoint})
             self.notices.append(msg)
 
+    def _force_figures(self, rec: Recorder, L: _Loop, t: float, fig: StepFigures) -> None:
+        fcfg = self.config.force
+        L.figures.append(fig)
+        self._event(rec, t, "force_step", fig.describe(), fig.as_dict())
+        self.snapshot = replace(self.snapshot, force_steps=(*self.snapshot.force_steps[-9:], fig.as_dict()))
+        said = []
+        if fig.kind == "hold_force" and fig.overshoot_share > fcfg.overshoot_warn_share:
+            said.append(f"overshot its setpoint by {100 * fig.overshoot_share:.1f} % (more than "
+                        f"{100 * fcfg.overshoot_warn_share:g} %, force.overshoot_warn_share)")
+        if fig.rms_over_noise is not None and fig.rms_over_noise > fcfg.rms_warn_sigma:
+            said.append(f"held it with an RMS error of {fig.rms_error_N:.3g} N, {fig.rms_over_noise:.1f} sigma "
+                        f"of the load cell's noise (more than {fcfg.rms_warn_sigma:g}, force.rms_warn_sigma)")
+        if fig.kind == "ramp_force" and fig.lag_s >= RAMP_GRACE_S - 0.5 * self.period:
+            said.append(f"ended {fig.lag_s:.2f} s after its planned end at {fig.end_force_N:.4g} N, short of "
+                        f"its target {fig.setpoint_N:.4g} N")
+        if said:
+            msg = f"step {fig.index} ({fig.kind} {fig.setpoint_N:.4g} N) " + "; ".join(said)
+            self._event(rec, t, "force_step_warning", msg, fig.as_dict())
+            self.notices.append(msg)
+
     def _estimate(self, L: _Loop, k: _Tick):
-        """The online stiffness (RLS) on the previous tick's position and this tick's force."""
+        """The online stiffness (RLS) on the previous tick's position and this tick's force, as
+        logged (from the working zero); and the force loop's gain, the same estimator on the
+        position from the surface the force found (`sensorwatch.Contact`): counted from the
+        trial's start, 10 mm above the surface, the stiffness read 30x low and the gain 30x high.
+        The larger of that and the force over the depth from the surface: right at contact, with
+        the estimator not yet settled, the gain is then the lower, not the higher."""
         est = self.rls.update(L.x_prev_m, k.force)
         L.x_prev_m = (k.pos - L.seq.zero_mm) / 1000.0
-        L.stiffness_N_per_m = est.stiffness_N_per_m
-        L.in_contact = bool(est.updated)
+        if L.contact is None:  # no load cell (or still taring): the logged estimate, as it stands
+            L.stiffness_N_per_m = est.stiffness_N_per_m
+            if self.loadcell is None:
+                L.in_contact = bool(est.updated)
+            return est
+        x_c = (k.pos - L.contact.surface_mm) / 1000.0 if L.in_contact else 0.0
+        loop = L.loop_rls.update(L.x_contact_prev_m, k.force)
+        L.x_contact_prev_m = x_c
+        chord = k.force / x_c if x_c > 0 else 0.0
+        L.stiffness_N_per_m = max(loop.stiffness_N_per_m, chord) if L.in_contact else 0.0
         return est
 
     def _record(self, rec: Recorder, L: _Loop, k: _Tick, est) -> None:

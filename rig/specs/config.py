@@ -34,28 +34,46 @@ class LoopConfig:
     realtime_priority: int = field(default=50, metadata={"ge": 1, "le": 99})
 
 
+# Bounds on the limits that are checks: a value past them would switch the check off without a
+# word (a stale limit of an hour never fires). Each is well beyond any rig's need.
+MAX_STALE_MS = 1000.0
+MAX_PROTOCOL_STEPS_CEILING = 1_000_000
+
+
 @dataclass
 class LimitsConfig:
     max_force_N: float = field(default=20.0, metadata={"gt": 0})
     travel_mm: tuple[float, float] = (-5.0, 45.0)
     max_speed_mm_s: float = field(default=10.0, metadata={"gt": 0})
-    loadcell_stale_ms: float = field(default=100.0, metadata={"gt": 0})
+    loadcell_stale_ms: float = field(default=100.0, metadata={
+        "gt": 0, "le": MAX_STALE_MS,
+        "why": f"the load cell's stale check cannot be switched off ({MAX_STALE_MS:g} ms at most)"})
     # Measured speed above max_speed_mm_s * overspeed_factor is a fault (runaway drive).
-    overspeed_factor: float = field(default=1.5, metadata={"ge": 1})
+    overspeed_factor: float = field(default=1.5, metadata={
+        "ge": 1, "le": 4, "why": "the overspeed check cannot be switched off"})
     # Every move has a deadline: planned time x factor + slack. It must show motion within
     # move_start_s and may not run past its target by more than overshoot_mm.
-    move_deadline_factor: float = field(default=1.25, metadata={"ge": 1})
-    move_deadline_slack_s: float = field(default=0.5, metadata={"gt": 0})
-    move_start_s: float = field(default=0.3, metadata={"gt": 0})
-    overshoot_mm: float = field(default=0.1, metadata={"gt": 0})
+    move_deadline_factor: float = field(default=1.25, metadata={
+        "ge": 1, "le": 10, "why": "a move's deadline cannot be switched off"})
+    move_deadline_slack_s: float = field(default=0.5, metadata={
+        "gt": 0, "le": 60, "why": "a move's deadline cannot be switched off"})
+    move_start_s: float = field(default=0.3, metadata={
+        "gt": 0, "le": 5, "why": "a drive that takes a move and does not move must be caught"})
+    overshoot_mm: float = field(default=0.1, metadata={
+        "gt": 0, "le": 5, "why": "a drive that runs past its target must be caught"})
     # After a STOP, the drive must report standing still within this; STOP is re-sent meanwhile.
-    stop_confirm_s: float = field(default=2.0, metadata={"gt": 0})
+    stop_confirm_s: float = field(default=2.0, metadata={
+        "gt": 0, "le": 10, "why": "an unconfirmed STOP must be reported"})
     # Without a load cell the force limit applies to the model's estimate times (1 + margin).
     model_force_margin: float = field(default=0.25, metadata={"ge": 0})
     # A trial tared in contact starts with a preload (its tare minus the load cell's free-air
     # zero); the limit counts it. A preload above this share of max_force_N is refused before
     # anything moves: the probe is pressed in, retract it first.
     max_preload_share: float = field(default=0.5, metadata={"ge": 0, "le": 1})
+    # The most steps a protocol may execute: len(steps) x repeat, plus a rest between repeats.
+    # The loop, its status and the checks before a trial walk them; a protocol beyond this is
+    # refused before anything moves (`repeat: 100000000` would take minutes and gigabytes).
+    max_protocol_steps: int = field(default=10_000, metadata={"ge": 1, "le": MAX_PROTOCOL_STEPS_CEILING})
 
     def __post_init__(self) -> None:
         lo, hi = self.travel_mm
@@ -80,6 +98,25 @@ class EstimatorConfig:
     def __post_init__(self) -> None:
         if self.lambda_min > self.lambda_max:
             raise ValueError("lambda_min must not exceed lambda_max")
+
+
+@dataclass
+class ForceControlConfig:
+    """Force-controlled steps (`ramp_force`, `hold_force`): how far the force loop trusts its
+    load cell, and what it reports of each step (`rig.control.sensorwatch`, `rig.control.force`)."""
+
+    # Out of contact a force step seeks the surface at this share of the speed limit (an
+    # approach's pace); the loop takes over once the force shows contact.
+    seek_speed_share: float = field(default=0.05, metadata={"gt": 0, "le": 0.5})
+    # In contact, the slider may travel at most this far with the force unchanged (the default
+    # is five times the travel that should change it by four sigma at the measured stiffness,
+    # capped here): further is a frozen or disconnected load cell, a fault.
+    answer_mm: float = field(default=5.0, metadata={"gt": 0, "le": 10})
+    # A force step that overshoots its setpoint by more than this share, or whose hold's RMS
+    # error (past its first second) is above this many sigma of the load cell's noise, is said:
+    # an event in the log and a notice for the operator.
+    overshoot_warn_share: float = field(default=0.05, metadata={"gt": 0, "le": 1})
+    rms_warn_sigma: float = field(default=2.0, metadata={"gt": 0})
 
 
 @dataclass
@@ -172,6 +209,7 @@ class RigConfig:
     loop: LoopConfig = field(default_factory=LoopConfig)
     limits: LimitsConfig = field(default_factory=LimitsConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    force: ForceControlConfig = field(default_factory=ForceControlConfig)
     slider: SliderConfig = field(default_factory=SliderConfig)
     loadcell: LoadCellConfig = field(default_factory=LoadCellConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
