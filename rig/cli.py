@@ -150,7 +150,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from rig.control.estimator import excitation_order
     from rig.specs.config import load_config
     from rig.specs.protocol import load_protocol, plan
 
@@ -159,32 +158,40 @@ def cmd_check(args: argparse.Namespace) -> int:
     p = plan(proto, config)
     limits = proto.effective_limits(config.limits)
     resolution = 1.0 / config.sim.slider.steps_per_mm
-    order = excitation_order(p.position_mm, resolution)
+    # from the plan's pieces, never its samples: a long protocol is not sampled to be checked
+    order = p.excitation_order(resolution)
     info = {
         "protocol": proto.name,
         "file": proto.source_path,
         "valid": True,
         "steps": [s.kind for _, s in proto.run_steps()],
+        "executed_steps": proto.executed_steps,
         "duration_s": round(p.duration_s, 2),
         "duration_is_upper_bound": p.upper_bound,
         "depths_mm": p.depths_mm,
+        "depths_from": "first contact" if p.depths_from_contact else "start",
         "speeds_mm_s": p.speeds_mm_s,
-        "max_position_mm": float(max(p.position_mm)),
+        "max_position_mm": p.max_position_mm,
         "limits": {"max_force_N": limits.max_force_N, "max_speed_mm_s": limits.max_speed_mm_s,
-                   "travel_mm": list(limits.travel_mm)},
+                   "travel_mm": list(limits.travel_mm),
+                   "max_protocol_steps": config.limits.max_protocol_steps},
         "excitation_order": order,
     }
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
     bound = "up to " if p.upper_bound else ""
+    repeats = ""
+    if proto.repeat > 1:
+        rest = f", {proto.rest_s:g} s rest between" if proto.rest_s > 0 else ""
+        repeats = f"  (x{proto.repeat}{rest}: {proto.executed_steps} steps)"
+    speeds = [s.speed_mm_s for s in proto.steps if hasattr(s, "speed_mm_s")]  # the same every repeat
     print(f"{proto.source_path}: OK  '{proto.name}'")
     if proto.description:
         print(f"  {proto.description}")
-    print(f"  steps     {' -> '.join(info['steps'])}" + (f"  (x{proto.repeat})" if proto.repeat > 1 else ""))
+    print(f"  steps     {' -> '.join(s.kind for s in proto.steps)}{repeats}")
     print(f"  duration  {bound}{p.duration_s:.1f} s (including {config.loop.tare_s:g} s tare)")
-    print(f"  depths    {', '.join(f'{d:g}' for d in p.depths_mm) or '-'} mm   "
-          f"speeds {', '.join(f'{v:g}' for v in p.speeds_mm_s) or '-'} mm/s")
+    print(f"  depths    {_depths_text(p)}   speeds {', '.join(f'{v:g}' for v in speeds) or '-'} mm/s")
     print(f"  limits    force {limits.max_force_N:g} N, speed {limits.max_speed_mm_s:g} mm/s, "
           f"travel [{limits.travel_mm[0]:g}, {limits.travel_mm[1]:g}] mm")
     note = {0: "no motion: nothing is identifiable",
@@ -192,6 +199,24 @@ def cmd_check(args: argparse.Namespace) -> int:
         order, "rich enough for a model with more than one input lag")
     print(f"  excitation order {order} ({note})")
     return 0
+
+
+def _depths_text(p) -> str:
+    """The ramps' depths as the plan has them: one repeat's when every repeat goes as deep (from
+    its own contact, or the start), else all of them, from the first contact: an approach that
+    starts in contact re-zeroes there, and the next repeat goes deeper."""
+    per_repeat = p.depths_by_repeat
+    if not p.depths_mm:
+        return "-"
+    if all(d == per_repeat[0] for d in per_repeat):
+        each = f" in each of {len(per_repeat)} repeats" if len(per_repeat) > 1 else ""
+        return f"{', '.join(f'{d:g}' for d in per_repeat[0])} mm{each}"
+    shown = [f"{d:g}" for d in p.depths_mm]
+    if len(shown) > 12:  # the first and the last: the drift shows, not ten thousand numbers
+        shown = [*shown[:6], "...", *shown[-3:]]
+    where = "first contact" if p.depths_from_contact else "start"
+    return (f"{', '.join(shown)} mm from the {where} (an approach that starts in contact re-zeroes "
+            f"there: each repeat goes deeper)")
 
 
 def cmd_position(args: argparse.Namespace) -> int:

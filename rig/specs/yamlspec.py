@@ -9,9 +9,12 @@ using the dataclass fields (and their `metadata`) as the schema.
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
 import types
 import typing
 from dataclasses import dataclass
+from decimal import Decimal
 from pathlib import Path
 from typing import Any
 
@@ -183,7 +186,7 @@ class MapView:
             return default
         value = self.node.value[key].value
         if isinstance(value, bool) or not isinstance(value, int | float):
-            raise self.error(key, f"expected a number, got {_describe(value)}")
+            raise self.error(key, f"expected a number, got {_describe(value)}{exponent_hint(value)}")
         value = float(value)
         _check_range(self, key, value, gt=gt, ge=ge, le=le)
         return value
@@ -193,7 +196,8 @@ class MapView:
             return default
         value = self.node.value[key].value
         if isinstance(value, bool) or not isinstance(value, int):
-            raise self.error(key, f"expected an integer, got {_describe(value)}")
+            raise self.error(key, f"expected an integer, got {_describe(value)}"
+                                  f"{exponent_hint(value, integer=True)}")
         _check_range(self, key, value, ge=ge)
         return value
 
@@ -209,10 +213,16 @@ class MapView:
 
 
 def range_problem(value: float, gt: float | None = None, ge: float | None = None,
-                  le: float | None = None) -> str | None:
-    """What is wrong with `value` against the bounds, or None."""
+                  le: float | None = None, *, finite: bool = True) -> str | None:
+    """What is wrong with `value` against the bounds, or None.
+
+    NaN is never a value; infinity only where a field says it accepts it (`finite=False`): a
+    limit of .inf switches a check off without a word, and a duration of .inf never ends.
+    """
     if value != value:  # NaN
-        return "must be a number, not NaN"
+        return "must be a number, not NaN (.nan)"
+    if finite and math.isinf(value):
+        return f"must be a finite number, not {'-' if value < 0 else ''}.inf"
     if gt is not None and not value > gt:
         return f"must be greater than {gt:g}, got {value:g}"
     if ge is not None and not value >= ge:
@@ -227,6 +237,39 @@ def _check_range(view: MapView, key: str, value: float, *, gt: float | None = No
     problem = range_problem(value, gt, ge, le)
     if problem:
         raise view.error(key, problem)
+
+
+# YAML 1.1 (PyYAML's) reads a float only with a dot in the mantissa and a sign in the exponent:
+# 1e12, 1.5e3 and 1.0e12 are text there. The error says how to write the number instead.
+_EXPONENT_TEXT = re.compile(r"[-+]?(?:[0-9][0-9_]*)?(?:\.[0-9_]*)?[eE][-+]?[0-9]+")
+
+
+def exponent_hint(value: Any, *, integer: bool = False) -> str:
+    """For text that is a number in exponent notation YAML 1.1 does not read as one: how to
+    write it (' (YAML reads 1e12 as text: write 1.0e+12 or 1000000000000)'); else ''. Where an
+    integer is expected only its digits will do."""
+    if not isinstance(value, str) or not _EXPONENT_TEXT.fullmatch(value.strip()):
+        return ""
+    text = value.strip().replace("_", "")
+    try:
+        number = float(text)
+    except ValueError:
+        return ""
+    mantissa, exponent = re.split("[eE]", text)
+    if not math.isfinite(number) or not any(c.isdigit() for c in mantissa):
+        return ""
+    sign, digits = (mantissa[0], mantissa[1:]) if mantissa[0] in "+-" else ("", mantissa)
+    whole, _, fraction = digits.partition(".")
+    mantissa = f"{sign}{whole or '0'}.{fraction or '0'}"
+    if exponent[0] not in "+-":
+        exponent = "+" + exponent
+    plain = format(Decimal(repr(number)), "f")  # positional: repr would give 1e-20 back
+    plain = plain.removesuffix(".0") if number == int(number) else plain
+    if integer:
+        fits = number == int(number) and len(plain) <= 24
+        return f" (YAML reads {value.strip()} as text: write {plain})" if fits else ""
+    also = f" or {plain}" if len(plain) <= 24 else ""
+    return f" (YAML reads {value.strip()} as text: write {mantissa}e{exponent}{also})"
 
 
 def _describe(value: Any) -> str:
@@ -248,7 +291,9 @@ def _describe(value: Any) -> str:
 def bind(cls: type, node: Marked | None, path: str, where: str = "") -> Any:
     """Build dataclass `cls` from a mapping node; absent fields keep their defaults.
 
-    Field metadata understood: `gt`, `ge`, `le` (numeric bounds), `choices` (allowed strings).
+    Field metadata understood: `gt`, `ge`, `le` (numeric bounds), `choices` (allowed strings),
+    `infinite_ok` (the field accepts .inf; no field does today), `why` (appended to a bound's
+    message: what the bound protects).
     """
     if node is None:
         return cls()
@@ -306,13 +351,15 @@ def _scalar(tp: Any, child: Marked, path: str, field: str, meta: typing.Mapping)
         return value
     if tp in (int, float):
         if isinstance(value, bool) or not isinstance(value, int | float):
-            raise fail(f"expected {_TYPE_NAMES[tp]}, got {_describe(value)}")
+            raise fail(f"expected {_TYPE_NAMES[tp]}, got {_describe(value)}"
+                       f"{exponent_hint(value, integer=tp is int)}")
         if tp is int and not isinstance(value, int):
             raise fail(f"expected an integer, got {value!r}")
         value = tp(value)
-        problem = range_problem(value, meta.get("gt"), meta.get("ge"), meta.get("le"))
+        problem = range_problem(value, meta.get("gt"), meta.get("ge"), meta.get("le"),
+                                finite=not meta.get("infinite_ok", False))
         if problem:
-            raise fail(problem)
+            raise fail(problem + (f": {meta['why']}" if "why" in meta else ""))
         return value
     if tp is str:
         if not isinstance(value, str):
