@@ -45,6 +45,8 @@ class LimitsConfig:
     max_force_N: float = field(default=20.0, metadata={"gt": 0})
     travel_mm: tuple[float, float] = (-5.0, 45.0)
     max_speed_mm_s: float = field(default=10.0, metadata={"gt": 0})
+    # No new load-cell reading for this long is a fault; at most a second, so that no config
+    # switches the check off.
     loadcell_stale_ms: float = field(default=100.0, metadata={
         "gt": 0, "le": MAX_STALE_MS,
         "why": f"the load cell's stale check cannot be switched off ({MAX_STALE_MS:g} ms at most)"})

@@ -118,7 +118,7 @@ class Protocol:
     limits: ProtocolLimits = field(default_factory=ProtocolLimits)
     source_path: str = "<memory>"
     source_text: str = ""
-    repeat_line: int = 0  # where `repeat` is written, for the errors that name it
+    repeat_line: int = field(default=0, repr=False)  # where `repeat` is written, for its errors
 
     @property
     def executed_steps(self) -> int:
