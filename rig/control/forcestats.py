@@ -46,8 +46,10 @@ class StepFigures:
         parts.append(f"settled in {self.settle_s:.2f} s" if self.settle_s is not None else "never settled")
         if self.rms_error_N is not None:
             parts.append(f"RMS error {self.rms_error_N:.3g} N ({self.rms_over_noise:.2f} sigma)")
-        if self.lag_s > 0:
-            parts.append(f"reached its target {self.lag_s:.2f} s after its planned end")
+        if self.lag_s > 0 and self.kind == "ramp_force":
+            short = self.end_force_N < (1.0 - SETTLE_BAND_SHARE) * self.setpoint_N
+            parts.append(f"ended {self.lag_s:.2f} s after its planned end, short of its target" if short
+                         else f"reached its target {self.lag_s:.2f} s after its planned end")
         if self.seek_s > 0:
             parts.append(f"sought the surface for {self.seek_s:.2f} s")
         return ", ".join(parts)

@@ -72,7 +72,7 @@ class CellNoise:
 
     @property
     def frozen_run(self) -> int:
-        p = max(self.repeat_share, 1e-3)
+        p = min(max(self.repeat_share, 1e-3), QUIET_SHARE)  # a quiet cell's is never used
         return min(max(math.ceil(math.log(FROZEN_P) / math.log(p)), FROZEN_MIN_RUN), FROZEN_MAX_RUN)
 
     @property

@@ -46,6 +46,7 @@ Command = Move | Stop | Track
 # RAMP_GRACE_S later at most (then the lag is said: `rig.control.forcestats`)
 RAMP_REACHED_SHARE = 0.05
 RAMP_GRACE_S = 1.0
+RAMP_REACHED_TICKS = 5  # judged on the force averaged over this many ticks, not on one noisy reading
 
 
 class Sequencer:
@@ -74,6 +75,7 @@ class Sequencer:
         self._last_force = 0.0
         self._last_pos = start_mm
         self._in_contact = True
+        self._recent_force: deque[float] = deque(maxlen=RAMP_REACHED_TICKS)
         self.setpoint_N: float | None = None  # the force step's setpoint this tick
         # A force step's clock starts at contact: one begun in air first seeks the surface, and
         # a ramp timed from the step's start would end before the force had begun to rise
@@ -179,6 +181,7 @@ class Sequencer:
         self._last_pos = position_mm
         self._in_contact = in_contact
         self.ended_force = None
+        self._recent_force.append(force_N)
         if self.done:
             return []
         if self._abort_pending:
@@ -227,8 +230,9 @@ class Sequencer:
         span_s = abs(step.to_N - self._force_from) / step.rate_N_s
         if elapsed >= span_s:
             self.setpoint_N = step.to_N
-            reached = abs(force_N - step.to_N) <= RAMP_REACHED_SHARE * step.to_N or (
-                (force_N > step.to_N) == (step.to_N > self._force_from))
+            force = sum(self._recent_force) / len(self._recent_force)
+            reached = abs(force - step.to_N) <= RAMP_REACHED_SHARE * step.to_N or (
+                (force > step.to_N) == (step.to_N > self._force_from))
             if reached or elapsed >= span_s + RAMP_GRACE_S:
                 self.force_lag_s = elapsed - span_s
                 return self._next(t)

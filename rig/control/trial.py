@@ -964,7 +964,7 @@ class Trial:
             steps_total=len(seq.steps), time_left_s=seq.time_left_s(t), force_N=k.force,
             position_mm=k.x_rel_mm, stiffness_N_per_m=est.stiffness_N_per_m,
             log_path=str(self.log_path), fault=self.snapshot.fault, force_model_N=k.force_model,
-            preload_N=L.preload_N)
+            preload_N=L.preload_N, force_steps=self.snapshot.force_steps)
         if self.on_tick is not None:
             self.on_tick(self.snapshot)
 

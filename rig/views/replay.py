@@ -115,6 +115,10 @@ def summarize(log: TrialLog) -> dict:
         },
         "peak_force_N": float(np.max(s["force_N"])),
     }
+    # force control: each force step's figures, and what the operator was told of them
+    out["force_steps"] = [{"message": e["message"], **e.get("data", {})} for e in log.events
+                          if e.get("kind") == "force_step"]
+    out["notices"] = [e["message"] for e in log.events if e.get("kind") in NOTICE_EVENTS]
     if log.read_error and not log.complete:
         out["truncated"] = log.read_error
     if config is None:
@@ -177,6 +181,10 @@ def _missed(s: dict, rate_Hz: float) -> int:
     return int(np.sum(np.maximum(np.diff(slots) - 1, 0)))
 
 
+# the events a completed trial's operator is told of (`TrialResult.notices`)
+NOTICE_EVENTS = ("force_step_warning", "setpoint_missed", "force_limit_depth", "force_depth_budget")
+
+
 def format_summary(d: dict) -> str:
     e = d["estimator"]
     lines = [
@@ -193,6 +201,10 @@ def format_summary(d: dict) -> str:
         lines.append(f"FAULT      t={f['t_s']:.2f} s: {f['message']}")
     for w in d.get("warnings", ()):
         lines.append(f"WARNING    {w}")
+    for i, f in enumerate(d.get("force_steps", ())):
+        lines.append(f"{'force steps' if i == 0 else '':11}{f['message']}")
+    for n in d.get("notices", ()):
+        lines.append(f"NOTICE     {n}")
     if e["error_mean_N"] is not None:
         lines.append(f"estimator  error mean {e['error_mean_N']:+.4f} N, std {e['error_std_N']:.4f} N, "
                      f"max |e| {e['error_max_abs_N']:.3f} N over {e['contact_samples']} contact samples")
