@@ -316,4 +316,4 @@ def test_every_force_step_is_reported_in_the_log_the_snapshot_and_replay(tmp_pat
     hold = figs[1]
     assert 0 < hold["rms_over_noise"] < 1.5 and math.isfinite(hold["overshoot_share"])
     text = format_summary(summarize(read_log(trial.log_path)))
-    assert "force steps" in text and "hold_force 1.5 N" in text and "RMS error" in text, text
+    assert "force step" in text and "hold_force 1.5 N" in text and "RMS error" in text, text

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 CROSSOVER_RAD_S = 8.0
 INTEGRAL_RATIO = 1.0  # w_i / w_c
+INTEGRAL_BAND_SHARE = 0.1  # of the setpoint: the integral grows only on an error within it
 # the stiffness the loop assumes at least: a reading near zero (out of contact, or before the
 # estimator has settled) would make the gain unbounded; this bounds the first move's speed
 STIFFNESS_FLOOR_SHARE = 1e-3  # of (force limit / travel span), in N/m
@@ -110,6 +111,10 @@ class ForceLoop:
         # drive's pace (a soft gel asked for 0.075 N/s needed 8 mm/s) overshot its hold by 5 %
         held_back = clamped != self.target_mm
         self.target_mm = clamped
-        if not (saturated or held_back) or (e > 0) != (self.integral_Ns > 0):
+        # the integral is for the small, slow error a relaxing specimen leaves (conditional
+        # integration): a large one (a ramp the specimen lagged, a step) is the proportional
+        # term's, and integrated it carried the catch-up past the setpoint
+        near = abs(e) <= INTEGRAL_BAND_SHARE * abs(setpoint_N)
+        if (near and not (saturated or held_back)) or (e > 0) != (self.integral_Ns > 0):
             self.integral_Ns += e * self.period_s
         return ForceCommand(self.target_mm, max(abs(v_mm_s), 1e-6), e, saturated)

@@ -82,8 +82,9 @@ class Sequencer:
         self.force_t0: float | None = None
         self.force_seek_s = 0.0  # how long the current force step sought the surface
         self.force_lag_s = 0.0  # how long past its planned end the current force ramp ran
-        # (seek_s, lag_s) of the force step the last `tick` ended, for its report; else None
-        self.ended_force: tuple[float, float] | None = None
+        self.force_reached = True  # the current force ramp reached its target (not ended by the grace)
+        # (seek_s, lag_s, reached) of the force step the last `tick` ended, for its report; else None
+        self.ended_force: tuple[float, float, bool] | None = None
         self._left_after: list[float] = []  # planned time of the steps after each index
         self._plan_left()
 
@@ -235,6 +236,7 @@ class Sequencer:
                 (force > step.to_N) == (step.to_N > self._force_from))
             if reached or elapsed >= span_s + RAMP_GRACE_S:
                 self.force_lag_s = elapsed - span_s
+                self.force_reached = reached
                 return self._next(t)
             return [Track(self.setpoint_N, limit, 0.0)]
         gone = math.copysign(step.rate_N_s * elapsed, step.to_N - self._force_from)
@@ -288,8 +290,8 @@ class Sequencer:
 
     def _next(self, t: float) -> list[Command]:
         after_force = isinstance(self.step, FORCE_STEPS)
-        self.ended_force = (self.force_seek_s, self.force_lag_s) if after_force else None
-        self.force_lag_s = 0.0
+        self.ended_force = (self.force_seek_s, self.force_lag_s, self.force_reached) if after_force else None
+        self.force_lag_s, self.force_reached = 0.0, True
         if after_force:
             # the force loop streamed its positions a tick or two ahead of the slider: the next
             # step starts where the slider is, not where the stream had got to

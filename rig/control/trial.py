@@ -42,7 +42,7 @@ from rig.control.forcestats import StepFigures, StepMeter
 from rig.control.movewatch import MoveWatch
 from rig.control.safety import Fault, SpeedMeter, TickState, check, check_move
 from rig.control.sensorwatch import CellNoise, CellWatch, Contact, MotionAnswer, answer_limit_mm
-from rig.control.sequencer import RAMP_GRACE_S, Move, Sequencer, Stop, Track
+from rig.control.sequencer import Move, Sequencer, Stop, Track
 from rig.control.stopping import Ending, StopMode
 from rig.control.zero import Zero, known_zero
 from rig.drivers.base import LinkStats, LoadCell, Slider, SliderStatus
@@ -879,8 +879,7 @@ class Trial:
             L.budget_mm, L.at_budget = None, False
         meter, L.meter = L.meter, None
         if meter is not None:
-            seek_s, lag_s = L.seq.ended_force or (0.0, 0.0)
-            meter.lag_s, meter.seek_s = lag_s, seek_s
+            meter.seek_s, meter.lag_s, meter.reached = L.seq.ended_force or (0.0, 0.0, True)
             L.carry_peak_N = meter.peak_N if handed_over else -math.inf
             self._force_figures(rec, L, t, meter.figures())
         if not L.force_recent or handed_over:
@@ -906,7 +905,7 @@ class Trial:
         if fig.rms_over_noise is not None and fig.rms_over_noise > fcfg.rms_warn_sigma:
             said.append(f"held it with an RMS error of {fig.rms_error_N:.3g} N, {fig.rms_over_noise:.1f} sigma "
                         f"of the load cell's noise (more than {fcfg.rms_warn_sigma:g}, force.rms_warn_sigma)")
-        if fig.kind == "ramp_force" and fig.lag_s >= RAMP_GRACE_S - 0.5 * self.period:
+        if fig.kind == "ramp_force" and not fig.reached:
             said.append(f"ended {fig.lag_s:.2f} s after its planned end at {fig.end_force_N:.4g} N, short of "
                         f"its target {fig.setpoint_N:.4g} N")
         if said:

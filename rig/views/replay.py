@@ -202,7 +202,7 @@ def format_summary(d: dict) -> str:
     for w in d.get("warnings", ()):
         lines.append(f"WARNING    {w}")
     for i, f in enumerate(d.get("force_steps", ())):
-        lines.append(f"{'force steps' if i == 0 else '':11}{f['message']}")
+        lines.append(f"{'force step' if i == 0 else '':11}{f['message']}")
     for n in d.get("notices", ()):
         lines.append(f"NOTICE     {n}")
     if e["error_mean_N"] is not None:
