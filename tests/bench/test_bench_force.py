@@ -46,3 +46,39 @@ def test_force_holds_over_rtu_five_seeds(tissue, tmp_path):
         _check(m)
     late = {seed: r.late_ticks + r.missed_ticks for seed, (r, _) in runs.items()}
     assert not any(late.values()), f"late or missed ticks by seed: {late}"
+
+
+def test_force_first_on_specimens_1000x_apart_three_seeds(tmp_path):
+    """Specimens 0.1x-100x the default's stiffness, the surface 0, 4 and 10 mm below the start,
+    with and without an approach, force steps first, three seeds (72 trials, virtual time):
+    prints a row per trial and holds every one to overshoot <= 5 % and hold RMS <= 1.5 sigma
+    (tests/test_force_safety.py runs two seeds):
+
+        python -m pytest -p no:cacheprovider tests/bench/test_bench_force.py -s -q -k 1000x
+    """
+    from tests.test_force_safety import SPECIMENS, force_first, hold_figures, specimen_config
+
+    print(f"\n{'specimen':8} {'surface':>7} {'approach':8} {'seed':4} {'outcome':9} {'overshoot':>9} "
+          f"{'RMS/sigma':>9} {'ramp lag':>8} {'seek':>6}")
+    bad = []
+    for name, (_, _, target) in SPECIMENS.items():
+        for surface in (0.0, 4.0, 10.0):
+            for approach in (False, True):
+                for seed in (1, 2, 3):
+                    out = tmp_path / f"{name}-{surface}-{approach}-{seed}.mcap"
+                    result = run_trial(parse_protocol(force_first(target, approach), "<bench>"),
+                                       specimen_config(name, seed, surface),
+                                       RunOptions(speed=0, progress=False, log_path=out))
+                    row = f"{name:8} {surface:7g} {approach!s:8} {seed:4} {result.outcome:9}"
+                    if result.outcome != "completed":
+                        bad.append((name, surface, approach, seed, result.fault))
+                        print(f"{row} {result.fault}")
+                        continue
+                    log = read_log(result.log_path)
+                    m = hold_figures(log, target)
+                    ramp = next(e["data"] for e in log.events if e["kind"] == "force_step")
+                    print(f"{row} {100 * m['overshoot']:8.2f}% {m['rms_over_noise']:9.2f} "
+                          f"{ramp['lag_s']:7.2f}s {ramp['seek_s']:5.1f}s")
+                    if m["overshoot"] > 0.05 or m["rms_over_noise"] > 1.5 or ramp["lag_s"] > 1.0 + 0.011:
+                        bad.append((name, surface, approach, seed, m, ramp["lag_s"]))
+    assert not bad, bad
