@@ -365,8 +365,9 @@ def cmd_stop(args: argparse.Namespace) -> int:
     from rig.service.client import request
 
     mode = "hold" if args.hold else "abort"
-    _reply(request(_socket(args), {"cmd": "stop", "mode": mode}))
-    print("stopping and staying in place" if args.hold else "stopping, then returning to the start position")
+    reply = _reply(request(_socket(args), {"cmd": "stop", "mode": mode}))
+    # what the daemon did (a trial stopped, a start cancelled, a campaign ended between trials)
+    print(reply.get("message") or f"the daemon took the stop ({mode}) and said nothing more")
     return 0
 
 

@@ -1,10 +1,15 @@
 """`rig start --characterize`: a campaign on the daemon's devices, over real wires. Status and
 watch show where it is, a second start is refused while it runs, `rig stop` ends it in a trial
-or between two, and the journal ends complete either way."""
+or between two, and the journal ends complete either way; a campaign cut short by a killed
+daemon is recovered, listed and ended in its journal at the next start."""
 
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -12,7 +17,9 @@ from rig.sim.params import SimParams
 from rig.sim.server import WireSim
 
 from rig.recording.logs import read_log
+from rig.recording.recovery import end_journal, find_open_journals
 from rig.service.client import stream
+from tests.conftest import ROOT
 from tests.test_daemon import DaemonProc
 
 FIRST = ("name: first look\nsteps:\n  - ramp: {to_mm: 6, speed_mm_s: 3}\n  - hold: {duration_s: 3}\n"
@@ -96,3 +103,115 @@ def test_a_stop_between_trials_ends_the_campaign_before_the_next(tmp_path):
             assert d.wait_idle()["last"]["outcome"] == "completed"
         finally:
             d.stop()
+
+
+# ------------------------------------------------------------------ a campaign cut short
+def _running(d: DaemonProc, sim: WireSim, past_mm: float = 2.0) -> None:
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        if d.req({"cmd": "status"})["state"] == "running" and sim.rig.slider.position_mm > past_mm:
+            return
+        time.sleep(0.02)
+    raise AssertionError("the campaign's first trial did not get going")
+
+
+def test_a_campaign_killed_mid_trial_is_recovered_listed_and_ended_in_its_journal(tmp_path):
+    """After `kill -9` mid-campaign nothing was recovered (recovery and listing looked only at
+    the top folder), the journal had no end, and status forgot the campaign."""
+    with WireSim(SimParams(), rtu=False) as sim:
+        d = DaemonProc(tmp_path, sim)
+        try:
+            r = _start(d, max_trials=2, rest_s=1.0)
+            assert r["ok"], r
+            _running(d, sim)
+            os.kill(d.proc.pid, signal.SIGKILL)
+            d.proc.wait(10)
+            killed = time.monotonic()
+            while sim.rig.slider.moving and time.monotonic() - killed < 3:  # the drive's comm timeout
+                with sim.rig.lock:
+                    sim.drive.sync()
+                time.sleep(0.005)
+            sim.params.faults.alarm_code = 0  # the technician resets the drive alarm
+            folder = Path(r["out"])
+            journal = next(folder.glob("characterize-liver-9-*.jsonl"))
+            log = folder / "liver-9-trial1.mcap"
+            assert _journal(str(journal))[-1]["event"] == "trial"  # what the kill left
+            d.log.close()
+            d.start()  # the restart recovers
+            st = d.req({"cmd": "status"})
+            assert st["recovered"] == [str(log), str(journal)], st
+            camp = st["campaign"]
+            assert camp["status"] == "interrupted" and camp["specimen"] == "liver-9" and camp["trials"] == 1
+            assert "during trial 1" in camp["reason"] and camp["journal"] == str(journal), camp
+            end = _journal(str(journal))[-1]
+            assert end["event"] == "end" and end["status"] == "interrupted" and end["recovered"], end
+            assert end["summary"]["trials"][0]["outcome"] == "interrupted"
+            trial = read_log(log)
+            assert trial.complete and trial.outcome == "interrupted"
+            listed = d.req({"cmd": "logs"})["trials"]
+            assert [(e["path"], e["outcome"], e["recovered"], e["campaign"]) for e in listed] == \
+                [(str(log), "interrupted", True, folder.name)]
+            out = subprocess.run([sys.executable, "-m", "rig", "logs", "--dir", str(d.out)],
+                                 capture_output=True, text=True, timeout=30)
+            assert log.name in out.stdout and "interrupted (recovered)" in out.stdout, out.stdout
+            text = subprocess.run([sys.executable, "-m", "rig", "status", "--socket", str(d.sock)],
+                                  capture_output=True, text=True, timeout=30).stdout
+            assert "campaign  specimen liver-9" in text and "ended: interrupted" in text, text
+            # a second restart finds nothing more to do
+            d.stop()
+            d.start()
+            assert d.req({"cmd": "status"})["recovered"] == []
+            assert [e["event"] for e in _journal(str(journal))].count("end") == 1
+        finally:
+            d.stop()
+
+
+HOLD_OPEN = """
+import sys
+from rig.recording.recorder import Recorder
+rec = Recorder(sys.argv[1], flush_s=0.05)
+rec.put("/rig/event", 0, {"t_s": 0.0, "kind": "k", "message": "m"})
+rec.wait_idle()
+print("writing", flush=True)
+sys.stdin.readline()
+"""
+
+
+def _journal_lines(path: Path, *events: dict, torn: str = "") -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("".join(json.dumps({"t": 1.8e9, **e}) + "\n" for e in events) + torn)
+
+
+def test_recovery_ends_only_the_journals_a_crash_left_open(tmp_path):
+    """Built as a crash leaves it: a journal cut mid-line between trials, one ended properly, and
+    one whose campaign another process is still running (its trial's log is being written)."""
+    out = tmp_path / "trials"
+    start = {"event": "start", "specimen": "kidney-2"}
+    cut = out / "characterize-kidney-2" / "characterize-kidney-2-20260101-120000.jsonl"
+    _journal_lines(cut, start, {"event": "trial", "n": 1, "protocol": "p1", "why": "w"},
+                   {"event": "ran", "n": 1, "outcome": "completed", "log": "x.mcap"}, torn='{"t": 1.8e9, "eve')
+    done = out / "characterize-ok" / "characterize-ok-20260101-120000.jsonl"
+    _journal_lines(done, {**start, "specimen": "ok"}, {"event": "end", "status": "done"})
+    live = out / "characterize-live" / "characterize-live-20260101-120000.jsonl"
+    _journal_lines(live, {**start, "specimen": "live"}, {"event": "trial", "n": 1})
+    done_before = done.read_bytes()
+    writer = subprocess.Popen([sys.executable, "-c", HOLD_OPEN, str(live.parent / "live-trial1.mcap")],
+                              cwd=ROOT, text=True, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    try:
+        assert writer.stdout.readline().strip() == "writing"
+        in_use: list[Path] = []
+        assert find_open_journals(out, in_use=in_use) == [cut] and in_use == [live]
+        ended = end_journal(cut)
+    finally:
+        writer.kill()
+        writer.wait(10)
+    assert ended.specimen == "kidney-2" and ended.trials == 1
+    assert "after trial 1, between trials" in ended.reason
+    lines = cut.read_text().splitlines()
+    assert lines[-2] == '{"t": 1.8e9, "eve'  # the torn line stays as it was, on a line of its own
+    end = json.loads(lines[-1])
+    assert end["event"] == "end" and end["status"] == "interrupted"
+    assert end["summary"]["trials"] == [{"n": 1, "protocol": "p1", "why": "w", "outcome": "completed",
+                                         "log": "x.mcap"}]
+    assert done.read_bytes() == done_before
+    assert find_open_journals(out) == [live]  # its writer is gone now: the next daemon ends it

@@ -1,4 +1,10 @@
-"""Logs left unfinished by a crash: find them, make them readable in full, list all trials.
+"""Logs left unfinished by a crash: find them, make them readable in full, list all trials;
+and campaigns left without an end: end their journals.
+
+A log folder holds the trials' logs and, one level down, a folder per campaign
+(`characterize-SPECIMEN/`: its trials' logs and its journal). Listing, finding and recovering
+look at both; a folder that is a symlink is not followed (recovery rewrites what it finds, and
+the folders it rewrites are the log folder's own).
 
 A crashed writer leaves an MCAP file without summary or footer. `recover` copies every
 record that can still be read into a new, finished file with an `outcome` record
@@ -7,6 +13,11 @@ marked `interrupted`, checks the copy, and only then replaces the original.
 A log without a footer may also be one a live process is writing right now (a trial of
 another daemon or of `rig run` in the same folder): its recorder holds an flock on it, and
 such a file is never touched here.
+
+A campaign's journal (JSON lines, `rig.service.characterize`) ends with an `end` event. One
+without it was left by a process that died mid-campaign: `end_journal` appends an `end` whose
+status is `interrupted`, saying how far the campaign got. A journal is left alone while a live
+process holds a lock on it or writes a log in its folder (a campaign still under way).
 """
 
 from __future__ import annotations
@@ -38,11 +49,12 @@ class TrialEntry:
     outcome: str
     recovered: bool
     requested_by: str = ""
+    campaign: str = ""  # the campaign's folder (characterize-SPECIMEN) for a campaign's trial
 
     def as_dict(self) -> dict:
         return {"path": str(self.path), "start_time": self.start_time, "specimen": self.specimen,
                 "protocol": self.protocol, "duration_s": self.duration_s, "outcome": self.outcome,
-                "recovered": self.recovered, "requested_by": self.requested_by}
+                "recovered": self.recovered, "requested_by": self.requested_by, "campaign": self.campaign}
 
 
 def is_finished(path: Path) -> bool:
@@ -59,14 +71,29 @@ def is_finished(path: Path) -> bool:
         return False
 
 
-def find_unfinished(out_dir: str | Path, *, in_use: list[Path] | None = None) -> list[Path]:
-    """Logs left unfinished by a writer that is gone. Those a live process is still writing
-    are left out (and appended to `in_use` when given, so the caller can say so)."""
+CAMPAIGN_FOLDERS = "characterize-*"  # a campaign's logs and journal, inside the log folder
+JOURNALS = "characterize-*.jsonl"
+
+
+def log_folders(out_dir: str | Path) -> list[Path]:
+    """The log folder and its campaigns' folders (real directories only, not symlinks)."""
     out = Path(out_dir)
     if not out.is_dir():
         return []
+    return [out, *sorted(p for p in out.glob(CAMPAIGN_FOLDERS) if p.is_dir() and not p.is_symlink())]
+
+
+def log_files(out_dir: str | Path) -> list[Path]:
+    """Every trial log in the log folder and its campaigns' folders."""
+    return [p for folder in log_folders(out_dir) for p in sorted(folder.glob("*.mcap"))]
+
+
+def find_unfinished(out_dir: str | Path, *, in_use: list[Path] | None = None) -> list[Path]:
+    """Logs left unfinished by a writer that is gone, in the log folder and its campaigns'
+    folders. Those a live process is still writing are left out (and appended to `in_use`
+    when given, so the caller can say so)."""
     found = []
-    for p in sorted(out.glob("*.mcap")):
+    for p in log_files(out_dir):
         if is_finished(p):
             continue
         if is_being_written(p):
@@ -156,10 +183,11 @@ def _start_ns(text: str) -> int:
 
 
 def list_trials(out_dir: str | Path) -> list[TrialEntry]:
-    """Every log in `out_dir`, newest first, from metadata (finished files are not scanned)."""
+    """Every log in `out_dir` and its campaigns' folders, newest first, from metadata (finished
+    files are not scanned)."""
     out = Path(out_dir)
     entries = []
-    for path in out.glob("*.mcap") if out.is_dir() else []:
+    for path in log_files(out):
         meta = _metadata(path)
         trial, outcome = meta.get("trial", {}), meta.get("outcome")
         duration = float(outcome["duration_s"]) if outcome and outcome.get("duration_s") else None
@@ -169,7 +197,8 @@ def list_trials(out_dir: str | Path) -> list[TrialEntry]:
             outcome=outcome.get("outcome", "?") if outcome else
             "running" if is_being_written(path) else "interrupted",
             recovered=bool(outcome and outcome.get("recovered") == "true"),
-            requested_by=trial.get("requested_by", "")))
+            requested_by=trial.get("requested_by", ""),
+            campaign=path.parent.name if path.parent != out else ""))
     entries.sort(key=lambda e: (e.start_time, str(e.path)), reverse=True)
     return entries
 
@@ -185,3 +214,94 @@ def _metadata(path: Path) -> dict[str, dict[str, str]]:
         return read_log(path).metadata
     except RigError:
         return {}
+
+
+# ---------------------------------------------------------------- campaigns' journals
+@dataclass
+class EndedCampaign:
+    """A campaign journal found without an end, and the end written for it."""
+
+    journal: Path
+    specimen: str
+    started_t: float | None  # time.time() of its start event
+    trials: int  # trials begun
+    reason: str
+
+
+def find_open_journals(out_dir: str | Path, *, in_use: list[Path] | None = None) -> list[Path]:
+    """Campaign journals in the log folder's campaign folders whose last event is not `end`.
+    A journal that a live process holds locked, or whose folder holds a log being written (the
+    campaign is under way in another process), is left out (and appended to `in_use`)."""
+    found = []
+    for folder in log_folders(out_dir)[1:]:
+        for path in sorted(folder.glob(JOURNALS)):
+            if path.is_symlink() or not path.is_file() or _journal_ended(path):
+                continue
+            if is_being_written(path) or any(is_being_written(p) for p in folder.glob("*.mcap")):
+                if in_use is not None:
+                    in_use.append(path)
+                continue
+            found.append(path)
+    return found
+
+
+def _events(path: Path) -> list[dict]:
+    """The journal's events; a line cut short by the crash (or otherwise unreadable) is skipped."""
+    events = []
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for line in fh:
+            with contextlib.suppress(ValueError):
+                event = json.loads(line)
+                if isinstance(event, dict):
+                    events.append(event)
+    return events
+
+
+def _journal_ended(path: Path) -> bool:
+    events = _events(path)
+    return bool(events) and events[-1].get("event") == "end"
+
+
+def end_journal(path: str | Path) -> EndedCampaign:
+    """Append an `end` event with status `interrupted` to a journal left without one, saying how
+    far the campaign got (the trials begun, and whether one was under way). The journal's own
+    lock is held while it is written, so two recoveries cannot both end it."""
+    path = Path(path)
+    with _recovering(path):
+        events = _events(path)
+        if events and events[-1].get("event") == "end":
+            raise RigError(f"{path}: the campaign's journal already has an end")
+        start = next((e for e in events if e.get("event") == "start"), {})
+        begun = {e.get("n"): e for e in events if e.get("event") == "trial"}
+        ran = {e.get("n"): e for e in events if e.get("event") == "ran"}
+        running = [n for n in begun if n not in ran]
+        if running:
+            where = f"during trial {running[-1]} (its log, if it was opened, is recovered as interrupted)"
+        elif begun:
+            where = f"after trial {max(ran, key=lambda n: n or 0)}, between trials"
+        else:
+            where = "before its first trial"
+        reason = (f"interrupted: the process running the campaign stopped without ending it (killed, a "
+                  f"crash or a power loss) {where}; {len(begun)} trial{'s' if len(begun) != 1 else ''} begun")
+        specimen = str(start.get("specimen", ""))
+        trials = [{"n": n, "protocol": e.get("protocol"), "why": e.get("why"),
+                   "outcome": ran[n].get("outcome") if n in ran else "interrupted",
+                   "log": ran[n].get("log") if n in ran else None} for n, e in begun.items()]
+        now = datetime.now(UTC)
+        end = {"t": now.timestamp(), "event": "end", "status": "interrupted", "reason": reason,
+               "recovered": True, "recovered_at": now.isoformat(),
+               "summary": {"specimen": specimen, "status": "interrupted", "reason": reason,
+                           "journal": str(path), "trials": trials}}
+        with open(path, "rb+") as fh:
+            fh.seek(0, os.SEEK_END)
+            if fh.tell():  # a line the crash cut short stays a line of its own
+                fh.seek(-1, os.SEEK_END)
+                cut = fh.read(1) != b"\n"
+            else:
+                cut = False
+            fh.write((("\n" if cut else "") + json.dumps(end) + "\n").encode())
+            fh.flush()
+            os.fsync(fh.fileno())
+    started = start.get("t")
+    return EndedCampaign(path, specimen, float(started) if isinstance(started, int | float) else None,
+                         len(begun), reason)

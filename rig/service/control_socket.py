@@ -3,8 +3,11 @@
 The socket is born mode 0660 (its owner and the configured group) and no network listener
 exists. Each connection gets a thread; its peer (SO_PEERCRED) is checked before a byte is
 read; a request longer than the limit is refused and its tail discarded; a line that is not
-a JSON object with a "cmd" gets an error reply. What a command does is the handler's
-business: `handle(conn, request, user, received_s)` returns False to end the connection.
+a JSON object with a "cmd" gets an error reply (so does one nested too deeply to read, or one
+with NaN or Infinity, which JSON does not have). What a command does is the handler's
+business: `handle(conn, request, user, received_s)` returns False to end the connection; an
+exception it did not foresee is answered as an error and logged, and the connection carries
+on (a client is never left without a reply).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import socket
 import stat
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from pathlib import Path
 
@@ -159,9 +163,22 @@ class ControlSocket:
     def _line(self, conn: socket.socket, line: bytes, user: str) -> bool:
         received = time.monotonic()
         try:
-            req = json.loads(line)
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            req = json.loads(line, parse_constant=_not_json)
+        except RecursionError:  # a few thousand nested brackets
+            return send(conn, {"ok": False, "error": "not JSON this daemon reads: nested too deeply"})
+        except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError, a 5000-digit integer, NaN
             return send(conn, {"ok": False, "error": f"not JSON: {exc}"})
         if not isinstance(req, dict) or not isinstance(req.get("cmd"), str):
             return send(conn, {"ok": False, "error": 'expected a JSON object with "cmd"'})
-        return self.handle(conn, req, user, received)
+        try:
+            return self.handle(conn, req, user, received)
+        except Exception as exc:  # noqa: BLE001 - a request the handler did not foresee: answer, carry on
+            self.say(f"request {line[:200]!r} from {user} failed: {traceback.format_exc()}")
+            why = f"{type(exc).__name__}: {exc}"
+            return send(conn, {"ok": False, "error": f"the daemon could not carry out {req['cmd']!r}: {why} "
+                                                     "(a bug; the daemon's log has the details)"})
+
+
+def _not_json(name: str):
+    """NaN, Infinity and -Infinity: Python's json reads them, JSON has no such numbers."""
+    raise ValueError(f"{name} is not a JSON number")

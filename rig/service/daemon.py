@@ -9,14 +9,44 @@ Requests: {"cmd": "ping"}, {"cmd": "status"}, {"cmd": "logs"},
 {"cmd": "start", "protocol_text": ..., "protocol_path": ..., "specimen": ..., "operator": ..., "notes": ...},
 {"cmd": "stop", "mode": "abort" | "hold"}, {"cmd": "estop"}, {"cmd": "reset_alarm"},
 {"cmd": "watch", "rate_Hz": 10}.
-Replies carry "ok": true, or "ok": false with "error". A stop or estop is answered once the
-STOP has gone out on the bus and the drive acknowledged it; "ok": false says it did not.
+Replies carry "ok": true, or "ok": false with "error". Every field is checked before it is
+used: a field of the wrong type (a `rate_Hz` that is not a number > 0, a `mode` or a
+`specimen` that is not a string) is refused with an error naming it and what is expected.
+`rate_Hz` is clamped to 0.5-100 updates per second. Specimen and operator names are text
+without control characters; where a name becomes part of a file name (a campaign's folder, a
+trial's log) it is reduced to letters, digits, `-` and `_` (`rig.recording.names`), so every
+file the daemon writes lies inside its log folder.
+
+Stops latch. `stop` and `estop` take the state lock, count one more stop (a generation
+number), set the running campaign's stop, and note what they cut: the trial that owns the
+devices, the starts being set up, a campaign between trials. A start, and each trial of a
+campaign, notes the generation when it begins (a campaign: when it was started) and checks it
+again under the state lock right before it hands the devices to its trial: if a stop came in
+between, or one is still being carried out, it is cancelled before anything moves, and its
+reply (or the campaign's journal) says which stop cancelled it. A trial handed its devices
+before the stop gets the stop itself (before its first tick it sends the STOP at once and ends
+on that tick without moving). So no trial starts after a stop that was acknowledged, whatever
+it met. The latch cancels only what was under way when it came: a start that arrives after the
+stop is answered starts normally (the latch never has to be cleared).
+
+A stop or estop is answered once the STOP has gone out on the bus and the drive acknowledged
+it; "ok": false says it did not. With a trial running, the trial sends it (from its loop's next
+tick, or at once while it starts or closes); otherwise the daemon sends it itself on the idle
+devices (a stop with nothing to stop is refused: "no trial is running"). The state lock is
+only ever held for bookkeeping, never across a bus transaction, a protocol's parsing or a
+trial's set-up, so a stop never waits behind a slow start. The reply says whether a trial was
+running, which starts being set up were cancelled, whether the campaign ends, and whether the
+drive acknowledged the STOP: "message" in words (what `rig stop` and `rig estop` print), and
+"trial_running", "cancelled" (what was being set up), "campaign_ends" and "acknowledged".
 """
 
 from __future__ import annotations
 
 import contextlib
 import grp
+import itertools
+import json
+import math
 import os
 import signal
 import socket
@@ -24,7 +54,7 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from rig import __version__
@@ -33,14 +63,18 @@ from rig.control.devices import Devices, open_devices
 from rig.control.stopping import StopMode
 from rig.control.trial import Snapshot, Trial, TrialResult, default_log_path
 from rig.errors import RigError
+from rig.recording.names import file_part, inside
 from rig.recording.recorder import TrialInfo
-from rig.recording.recovery import find_unfinished, list_trials, recover
+from rig.recording.recovery import end_journal, find_open_journals, find_unfinished, list_trials, recover
 from rig.service.control_socket import ControlSocket, private_dir, send
 from rig.service.sdnotify import Watchdog, healthy, notify, watchdog_interval_s
 from rig.specs.config import RigConfig
 from rig.specs.protocol import check_limits, parse_protocol
 
 LOG_NAMED_S = 5.0  # a start waits this long at most for its log to be named
+HAND_OVER_S = 2.0  # a start waits this long at most for the devices (a status read holds them briefly)
+STOP_SENT_S = 1.0  # a stop waits this long at most for the STOP to go out
+MAX_NAME_CHARS = 200  # a specimen or operator name; the log's file name keeps fewer of them
 
 
 def default_socket_path(config: RigConfig | None = None) -> Path:
@@ -62,6 +96,75 @@ class RequestError(Exception):
     """A request the daemon refuses; the message goes back to the client."""
 
 
+# ---------------------------------------------------------------------- request fields
+def _shown(value: object) -> str:
+    """A value as the client sent it (JSON), cut short."""
+    text = json.dumps(value, default=str)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _text(req: dict, key: str, default: str) -> str:
+    """A text field: absent, null or empty gives `default`; anything but a string is refused."""
+    value = req.get(key)
+    if value is None:
+        return default
+    if not isinstance(value, str):
+        raise RequestError(f'"{key}" must be a string, not {_shown(value)}')
+    return value or default
+
+
+def _name(req: dict, key: str, default: str) -> str:
+    """A specimen's or an operator's name: text of at most MAX_NAME_CHARS, without control
+    characters (a NUL or a newline would garble the log list, and has no place in a name)."""
+    value = _text(req, key, default)
+    if any(ord(c) < 0x20 or 0x7F <= ord(c) < 0xA0 for c in value):
+        raise RequestError(f'"{key}" must be printable text (no NUL, newline or other control '
+                           f"character), not {_shown(value)}")
+    if len(value) > MAX_NAME_CHARS:
+        raise RequestError(f'"{key}" must be at most {MAX_NAME_CHARS} characters, not {len(value)}')
+    return value
+
+
+def _number(value: object) -> float | None:
+    """A JSON number as a float (a finite one), else None; true and false are not numbers."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+# ---------------------------------------------------------------------- the stop latch
+@dataclass
+class _SetUp:
+    """A start, or a campaign's trial, between its request and the moment its trial is handed
+    the devices: checked, its Trial built, nothing moved yet."""
+
+    id: int
+    what: str  # as a reply names it: "the start of 'demo' (specimen pig-07, by ann)"
+    gen: int  # the stop generation when it began: any later stop cancels it
+
+
+@dataclass
+class _Cut:
+    """What a stop or estop found when it latched (under the state lock)."""
+
+    trial: Trial | None  # the trial that owns the devices, if one had not ended
+    protocol: str
+    cancelled: list[str] = field(default_factory=list)  # starts being set up: now cancelled
+    campaign: bool = False  # a campaign was running: it starts no further trial
+
+    def notes(self, trial_running: bool) -> list[str]:
+        out = [f"{what} was cancelled: nothing moved" for what in self.cancelled]
+        if self.campaign:
+            out.append("the campaign ends with this trial" if trial_running else
+                       "the campaign ends before its next trial (the probe stays where it is)")
+        return out
+
+
+def _joined(head: str, notes: list[str]) -> str:
+    return "; ".join([head, *notes])
+
+
 class Daemon:
     def __init__(self, config: RigConfig, socket_path: Path | None = None, *, log=sys.stderr,
                  spy_path: str | None = None) -> None:
@@ -73,6 +176,8 @@ class Daemon:
         self.group_gid = grp.getgrnam(config.daemon.group).gr_gid if config.daemon.group else None
         self.devices: Devices | None = None
         self.dev_lock = threading.Lock()  # held by the trial thread for a whole trial
+        # Bookkeeping only (who runs, what is set up, the stop latch): never held across a bus
+        # transaction or a slow check, so a stop always gets it at once.
         self.state_lock = threading.Lock()
         self.trial: Trial | None = None
         self.trial_thread: threading.Thread | None = None
@@ -89,6 +194,13 @@ class Daemon:
         self.campaign: dict = {}  # the campaign running (rig start --characterize), its last word
         self.campaign_thread: threading.Thread | None = None
         self.campaign_stop: threading.Event | None = None
+        # The stop latch (module docstring), under state_lock.
+        self.stop_gen = 0  # stops and estops so far
+        self.stops_in_progress = 0  # latched and not yet answered: no trial is handed the devices
+        self.last_stop = ""  # "an estop from ann at 14:02:11": what a cancelled start is told
+        self.campaign_gen = 0  # the generation when the campaign started
+        self.setting_up: dict[int, _SetUp] = {}
+        self._setup_ids = itertools.count(1)
 
     def say(self, msg: str) -> None:
         print(f"rigd: {msg}", file=self.log, flush=True)
@@ -128,6 +240,9 @@ class Daemon:
         notify(f"READY=1\nSTATUS=idle; socket {self.socket_path}")
 
     def _recover_logs(self) -> None:
+        """The logs a crash left unfinished (in the log folder and its campaigns' folders), then
+        the campaigns it left without an end: their journals get one saying they were
+        interrupted, and status reports the newest (`campaign`, and `recovered`)."""
         in_use: list[Path] = []
         for path in find_unfinished(self.out_dir, in_use=in_use):
             try:
@@ -136,6 +251,20 @@ class Daemon:
                 self.say(f"recovered interrupted trial log {path}")
             except RigError as exc:
                 self.say(f"could not recover {path}: {exc}")
+        for path in find_open_journals(self.out_dir, in_use=in_use):
+            try:
+                ended = end_journal(path)
+            except (RigError, OSError) as exc:
+                self.say(f"could not end the campaign journal {path}: {exc}")
+                continue
+            self.recovered.append(str(path))
+            self.say(f"campaign of specimen {ended.specimen} {ended.reason}; its journal {path} now ends so")
+            started = time.strftime("%H:%M:%S", time.localtime(ended.started_t)) if ended.started_t else "?"
+            by = next((e.requested_by for e in list_trials(path.parent) if e.requested_by), "?")
+            self.campaign = {"specimen": ended.specimen, "user": by, "started": started,
+                             "phase": "ended: interrupted (found at the daemon's start)",
+                             "trials": ended.trials, "status": "interrupted", "reason": ended.reason,
+                             "journal": str(path)}
         for path in in_use:
             self.say(f"left {path} alone: another process is writing it")
 
@@ -164,9 +293,12 @@ class Daemon:
 
     def shutdown(self) -> None:
         notify("STOPPING=1")
-        t = self.trial
-        if self.campaign_stop is not None:
-            self.campaign_stop.set()
+        with self.state_lock:  # nothing being set up starts now
+            self.stop_gen += 1
+            self.last_stop = "the daemon's shutdown"
+            if self.campaign_stop is not None:
+                self.campaign_stop.set()
+            t = self.trial
         if self._trial_running():
             self.say("stopping the running trial before shutting down")
             t.request_stop(StopMode.ABORT, user="rigd shutdown")
@@ -241,6 +373,7 @@ class Daemon:
         return {"ok": True, "trials": [e.as_dict() for e in list_trials(self.out_dir)]}
 
     def _refuse_if_busy(self) -> None:
+        """The caller holds state_lock."""
         if self._campaign_running():
             c = self.campaign
             raise RequestError(f"busy: characterizing specimen {c['specimen']} (started by {c['user']} at "
@@ -249,6 +382,43 @@ class Daemon:
             m = self.trial_meta
             raise RequestError(f"busy: trial '{m['protocol']}' (specimen {m['specimen']}, started "
                                f"by {m['user']} at {m['started']}) is running; log {m['log']}")
+        if self.setting_up:
+            what = next(iter(self.setting_up.values())).what
+            raise RequestError(f"busy: {what} is being set up")
+
+    # ------------------------------------------------------------------ set-up and hand-over
+    def _begin_setup(self, what: str, gen: int | None = None) -> _SetUp:
+        """The caller holds state_lock. `gen`: the generation the set-up answers to (a campaign's
+        trial: the campaign's), else now's."""
+        setup = _SetUp(next(self._setup_ids), what, self.stop_gen if gen is None else gen)
+        self.setting_up[setup.id] = setup
+        return setup
+
+    def _end_setup(self, setup: _SetUp) -> None:
+        with self.state_lock:
+            self.setting_up.pop(setup.id, None)
+
+    def _hand_over(self, setup: _SetUp, trial: Trial, meta: dict,
+                   thread: threading.Thread | None = None) -> str | None:
+        """Give the devices to `trial`, unless a stop came since `setup` began (or one is being
+        carried out): then nothing is handed over and the reason is returned. With `thread`, it
+        is started to run the trial; without, the calling thread runs it (a campaign's)."""
+        if not self.dev_lock.acquire(timeout=HAND_OVER_S):
+            raise RequestError(f"the devices stayed busy for {HAND_OVER_S:g} s (a status read or a stop); "
+                               "not starting; try again")
+        with self.state_lock:
+            self.setting_up.pop(setup.id, None)
+            if self.stop_gen == setup.gen and not self.stops_in_progress:
+                self.trial = trial
+                self.trial_meta = meta
+                self.trial_thread = thread or threading.current_thread()
+                self.beat = time.monotonic()
+                if thread is not None:
+                    thread.start()
+                return None
+            why = self.last_stop
+        self.dev_lock.release()
+        return why
 
     def cmd_start(self, req: dict, user: str, received: float) -> dict:
         if req.get("characterize") is not None:
@@ -256,28 +426,31 @@ class Daemon:
         text = req.get("protocol_text")
         if not isinstance(text, str) or not text.strip():
             raise RequestError('start needs "protocol_text" (the protocol file\'s contents)')
-        path = str(req.get("protocol_path") or "<protocol>")
+        path = _text(req, "protocol_path", "<protocol>")
+        specimen = _name(req, "specimen", "specimen")
+        operator = _name(req, "operator", user)
+        notes = _text(req, "notes", "")
         with self.state_lock:
             self._refuse_if_busy()
+            setup = self._begin_setup(f"the start of a trial (specimen {specimen}, by {user})")
+        try:
             proto = parse_protocol(text, path)  # SpecError -> error reply
+            setup.what = f"the start of '{proto.name}' (specimen {specimen}, by {user})"
             # From where the slider is now: the trial's zero is there, not at 0.
             check_limits(proto, self.config, start_mm=self._read_position())  # LimitError -> error reply
-            specimen = str(req.get("specimen") or "specimen")
-            operator = str(req.get("operator") or user)
-            log_path = default_log_path(self.out_dir, proto, specimen)
-            warnings = self.devices.warnings
-            trial = self._new_trial(proto, specimen, operator, str(req.get("notes") or ""), user, log_path,
-                                    self._model(req))
-            warnings = [*warnings, *trial.warnings]
-            self.trial = trial
-            self.trial_meta = {"protocol": proto.name, "specimen": specimen, "user": user,
-                               "operator": operator, "log": str(log_path),
-                               "started": time.strftime("%H:%M:%S")}
-            self.beat = time.monotonic()
-            self.trial_thread = threading.Thread(target=self._run_trial, args=(trial,), name="trial",
-                                                 daemon=True)
-            self.dev_lock.acquire()
-            self.trial_thread.start()
+            log_path = inside(self.out_dir, default_log_path(self.out_dir, proto, specimen))
+            trial = self._new_trial(proto, specimen, operator, notes, user, log_path, self._model(req))
+            warnings = [*self.devices.warnings, *trial.warnings]
+            meta = {"protocol": proto.name, "specimen": specimen, "user": user, "operator": operator,
+                    "log": str(log_path), "started": time.strftime("%H:%M:%S")}
+            thread = threading.Thread(target=self._run_trial, args=(trial,), name="trial", daemon=True)
+            why = self._hand_over(setup, trial, meta, thread)
+        finally:
+            self._end_setup(setup)
+        if why is not None:
+            self.say(f"{user}'s start of '{proto.name}' cancelled: {why} arrived while it was set up")
+            raise RequestError(f"not started: {why} arrived while the trial was being set up; "
+                               "it was cancelled before anything moved")
         # the recorder may take the next free name (a log of the same second exists): the reply
         # names the file this trial writes, never an earlier one
         trial.log_named.wait(LOG_NAMED_S)
@@ -285,12 +458,14 @@ class Daemon:
         if trial.recorder is None and trial.log_named.is_set():
             # it ended before opening its log (a limit from where the slider stands, the first
             # position read, the log's folder): the truth is that it did not start
-            self.trial_thread.join(LOG_NAMED_S)
+            thread.join(LOG_NAMED_S)
             why = (self.last or {}).get("error", "it ended at once")
             raise RequestError(f"the trial did not start: {why}")
         with self.state_lock:
             if self.trial is trial:
                 self.trial_meta["log"] = str(log_path)
+            if self.stop_gen != setup.gen:  # handed over, then stopped: the trial carries it out
+                warnings.append(f"{self.last_stop} came as the trial started: the trial carries it out")
         self.say(f"{user} started '{proto.name}' (specimen {specimen}) -> {log_path}")
         for w in warnings:
             self.say(w)
@@ -306,28 +481,43 @@ class Daemon:
         opts = req.get("characterize")
         if not isinstance(opts, dict):
             raise RequestError('"characterize" must be an object of options (max_trials, budget_min, ...)')
-        specimen = str(req.get("specimen") or "specimen")
+        specimen = _name(req, "specimen", "specimen")
         text = req.get("protocol_text") or None
         if text is not None:
             if not isinstance(text, str):
                 raise RequestError('"protocol_text" must be the protocol file\'s contents')
-            parse_protocol(text, str(req.get("protocol_path") or "<protocol>"))  # refused here, not later
-        numbers = {"max_trials": int, "budget_min": float, "target_rse": float, "rest_s": float}
+            parse_protocol(text, _text(req, "protocol_path", "<protocol>"))  # refused here, not later
+        _name(req, "operator", user)  # checked now: each trial takes it
         kw = {}
-        for name, kind in numbers.items():
-            if opts.get(name) is not None:
-                try:
-                    kw[name] = kind(opts[name])
-                except (TypeError, ValueError):
-                    raise RequestError(f'characterize "{name}" must be a number, not {opts[name]!r}') from None
-                if kw[name] < 0 or (name == "max_trials" and kw[name] < 1):
-                    raise RequestError(f'characterize "{name}" must be positive, not {opts[name]!r}')
+        for name in ("max_trials", "budget_min", "target_rse", "rest_s"):
+            if opts.get(name) is None:
+                continue
+            value = _number(opts[name])
+            if name == "max_trials":
+                if value is None or value < 1 or not value.is_integer():
+                    raise RequestError(f'characterize "{name}" must be a whole number >= 1, '
+                                       f"not {_shown(opts[name])}")
+                kw[name] = int(value)
+            elif value is None or value < 0:
+                raise RequestError(f'characterize "{name}" must be a number >= 0, not {_shown(opts[name])}')
+            else:
+                kw[name] = value
+        model = _text(opts, "model", "proposed")
+        indenter = _text(opts, "indenter", "") or None
+        # The specimen's name is text; the campaign's folder, journal and logs are named from
+        # its file-name form, inside the log folder (characterize names them from Request.specimen).
+        stem = file_part(specimen, default="specimen")
+        out = inside(self.out_dir, self.out_dir / f"characterize-{stem}")
+        warnings = list(self.devices.warnings)
+        if stem != specimen:
+            warnings.append(f"specimen {specimen!r} is not a file name: the campaign's folder, journal and "
+                            f"logs are named '{stem}' ({out})")
         with self.state_lock:
             self._refuse_if_busy()
             self.campaign_stop = threading.Event()
-            out = self.out_dir / f"characterize-{specimen}"
-            request = Request(specimen, self.config, out, model=str(opts.get("model") or "proposed"),
-                              indenter=opts.get("indenter"), first_text=text, speed=1.0, say=self.say,
+            self.campaign_gen = self.stop_gen
+            request = Request(stem, self.config, out, model=model, indenter=indenter, first_text=text,
+                              speed=1.0, say=self.say,
                               runner=lambda proto, n, log: self._campaign_trial(proto, n, log, req, user),
                               stop=self.campaign_stop, on_event=self._campaign_event, **kw)
             self.campaign = {"specimen": specimen, "user": user, "started": time.strftime("%H:%M:%S"),
@@ -337,8 +527,7 @@ class Daemon:
             self.campaign_thread.start()
         self.say(f"{user} started characterizing specimen {specimen} -> {out}")
         notify(f"STATUS=characterizing {specimen}")
-        return {"ok": True, "characterize": specimen, "out": str(out),
-                "warnings": list(self.devices.warnings)}
+        return {"ok": True, "characterize": specimen, "out": str(out), "warnings": warnings}
 
     def _run_campaign(self, request) -> None:
         from rig.service.characterize import characterize
@@ -377,19 +566,29 @@ class Daemon:
                                        data={k: v for k, v in data.items() if k != "yaml"}))
 
     def _campaign_trial(self, proto, n: int, log_path: Path, req: dict, user: str) -> TrialResult:
-        """One trial of the campaign, on this thread, with the devices held for its whole length."""
+        """One trial of the campaign, on this thread, with the devices held for its whole length;
+        cancelled before anything moves (outcome "cancelled", no log) if a stop came since the
+        campaign started."""
         specimen = self.campaign["specimen"]
+        operator = _name(req, "operator", user)
         with self.state_lock:
+            setup = self._begin_setup(f"the campaign's trial {n} ('{proto.name}', specimen {specimen})",
+                                      gen=self.campaign_gen)
+        try:
+            inside(self.out_dir, log_path)
             check_limits(proto, self.config, start_mm=self._read_position())
-            trial = self._new_trial(proto, specimen, str(req.get("operator") or user),
-                                    f"characterize trial {n}", user, log_path, None)
-            self.trial_meta = {"protocol": proto.name, "specimen": specimen, "user": user,
-                               "operator": str(req.get("operator") or user), "log": str(log_path),
-                               "started": time.strftime("%H:%M:%S"), "campaign": f"characterize trial {n}"}
-            self.trial = trial
-            self.trial_thread = threading.current_thread()
-            self.beat = time.monotonic()
-            self.dev_lock.acquire()
+            trial = self._new_trial(proto, specimen, operator, f"characterize trial {n}", user, log_path, None)
+            meta = {"protocol": proto.name, "specimen": specimen, "user": user, "operator": operator,
+                    "log": str(log_path), "started": time.strftime("%H:%M:%S"),
+                    "campaign": f"characterize trial {n}"}
+            why = self._hand_over(setup, trial, meta)
+        finally:
+            self._end_setup(setup)
+        if why is not None:
+            self.say(f"campaign trial {n} cancelled: {why} arrived while it was set up")
+            return TrialResult("cancelled", log_path, 0, 0, 0, 0.0,
+                               fault=f"{why} arrived while it was being set up: cancelled before anything "
+                                     "moved (no log written)")
         try:
             return self._trial_ran(trial, f"campaign trial {n}")
         finally:
@@ -418,7 +617,7 @@ class Daemon:
             return model_for_run(self.config)
         if not isinstance(text, str):
             raise RequestError('"model_text" must be the model file\'s contents')
-        return runnable(loads(text, str(req.get("model_path") or "<model>")))
+        return runnable(loads(text, _text(req, "model_path", "<model>")))
 
     @contextlib.contextmanager
     def _idle_devices(self, busy: str):
@@ -432,7 +631,7 @@ class Daemon:
             self.dev_lock.release()
 
     def _read_position(self) -> float:
-        """A fresh position while no trial owns the devices (the caller holds state_lock)."""
+        """A fresh position while no trial owns the devices."""
         with self._idle_devices("the devices are busy (a status read or a stop); try again") as dev:
             reading = dev.slider.position()
         if not reading.fresh:
@@ -469,65 +668,100 @@ class Daemon:
             self.dev_lock.release()
             notify("STATUS=idle")
 
-    def _running_trial(self) -> Trial:
-        if not self._trial_running():
-            raise RequestError("no trial is running")
-        return self.trial
-
-    def cmd_stop(self, req: dict, user: str, received: float) -> dict:
-        mode = req.get("mode", "abort")
-        if mode not in ("abort", "hold"):
-            raise RequestError('stop "mode" must be "abort" (stop, then return) or "hold" (stop and stay)')
+    # ------------------------------------------------------------------ stops
+    def _latch(self, what: str) -> _Cut:
+        """One more stop (the caller holds state_lock): what it cuts, from now on."""
+        self.stop_gen += 1
+        self.stops_in_progress += 1
+        self.last_stop = what
         campaign = self._campaign_running()
-        if campaign:
-            self.campaign_stop.set()
-            if not self._trial_running():
-                self.say(f"{user} stopped the campaign between trials")
-                return {"ok": True, "mode": mode, "message": "the campaign ends before its next trial (no "
-                        "trial was running; the probe is where the last trial left it)"}
-        ticket = self._running_trial().request_stop(StopMode(mode), user=user, received_s=received)
-        self.say(f"{user} requested stop ({mode})")
-        if ticket.trial_over:
-            raise RequestError("no trial is running (it has just ended)")
-        return self._stop_reply(ticket, mode)
-
-    def _stop_reply(self, ticket, mode: str) -> dict:
-        """Answer once the STOP went out (from the loop's next tick, or at once while the trial
-        starts or closes): the truth about whether the drive took it, or why it was refused."""
-        if not ticket.wait(1.0):
-            raise RequestError(f"{mode}: the trial's loop did not send the STOP within 1 s")
-        if not ticket.acknowledged:
-            raise RequestError(f"{mode}: {ticket.message}")
-        return {"ok": True, "mode": mode, "message": ticket.message}
-
-    def cmd_estop(self, req: dict, user: str, received: float) -> dict:
-        self.say(f"{user} requested an emergency stop")
         if self.campaign_stop is not None:
-            self.campaign_stop.set()  # no further trial of a campaign
-        # A trial owns the bus from its thread's start to its end: ask it (it sends at once when
-        # its loop is not ticking); otherwise take the idle devices. Re-checked until one of the
-        # two answers, so an estop that meets a trial starting or ending is never turned away.
-        deadline = time.monotonic() + 1.0
-        while True:
-            t = self.trial
-            if self._trial_running():
-                ticket = t.request_stop(StopMode.ESTOP, user=user, received_s=received)
-                if not ticket.trial_over:
-                    return self._stop_reply(ticket, "estop")
-            if self.dev_lock.acquire(timeout=0.01):
-                break
+            self.campaign_stop.set()  # no further trial of a campaign (a rest in progress ends now)
+        t = self.trial if self.trial is not None and self.trial.phase != "ended" else None
+        return _Cut(t, self.trial_meta.get("protocol", "") if t is not None else "",
+                    [s.what for s in self.setting_up.values()], campaign)
+
+    def _unlatch(self) -> None:
+        with self.state_lock:
+            self.stops_in_progress -= 1
+
+    def _send_stop(self, mode: str, notes: list[str]) -> None:
+        """STOP on the idle devices (no trial owns them), or `RequestError` saying why not; a
+        trial that ended a moment ago may still be letting go of them."""
+        deadline = time.monotonic() + STOP_SENT_S
+        while not self.dev_lock.acquire(timeout=0.01):
             if time.monotonic() > deadline:
-                raise RequestError("estop: could not reach the drive (the devices stayed busy for 1 s)")
+                raise RequestError(_joined(f"{mode}: could not reach the drive (the devices stayed busy for "
+                                           f"{STOP_SENT_S:g} s)", notes))
         try:
             ok = self.devices.slider.stop()
         except RigError as exc:
-            raise RequestError(f"estop: STOP not sent: {exc}") from None
+            raise RequestError(_joined(f"{mode}: STOP not sent: {exc}", notes)) from None
         finally:
             self.dev_lock.release()
         if not ok:
-            raise RequestError(f"estop: the drive did not acknowledge STOP "
-                               f"({getattr(self.devices.slider, 'last_error', '')})")
-        return {"ok": True, "mode": "estop", "message": "STOP acknowledged by the drive (no trial was running)"}
+            raise RequestError(_joined(f"{mode}: the drive did not acknowledge STOP "
+                                       f"({getattr(self.devices.slider, 'last_error', '')})", notes))
+
+    def _stop_reply(self, ticket, mode: str, notes: list[str]) -> dict:
+        """Answer once the STOP went out (from the loop's next tick, or at once while the trial
+        starts or closes): the truth about whether the drive took it, or why it was refused."""
+        if not ticket.wait(STOP_SENT_S):
+            raise RequestError(_joined(f"{mode}: the trial's loop did not send the STOP within "
+                                       f"{STOP_SENT_S:g} s", notes))
+        if not ticket.acknowledged:
+            raise RequestError(_joined(f"{mode}: {ticket.message}", notes))
+        said = ticket.message
+        if "acknowledged" not in said:  # the loop's own word is "STOP sent in 2.1 ms"
+            said += ", acknowledged by the drive"
+        return {"ok": True, "mode": mode, "message": said, "acknowledged": True, "trial_running": True}
+
+    def _carry_out(self, cut: _Cut, mode: str, user: str, received: float) -> dict:
+        """Carry a latched stop or estop out: through the trial that owns the devices, else on the
+        idle devices when it cut something (a start being set up, a campaign between trials)."""
+        if cut.trial is not None:
+            ticket = cut.trial.request_stop(StopMode(mode), user=user, received_s=received)
+            if not ticket.trial_over:
+                notes = cut.notes(trial_running=True)
+                reply = self._stop_reply(ticket, mode, notes)
+                head = {"abort": f"stopping, then returning to the start position: {reply['message']}",
+                        "hold": f"stopping and staying in place: {reply['message']}",
+                        "estop": f"{reply['message']} (trial '{cut.protocol}' was running)"}[mode]
+                reply.update(message=_joined(head, notes), cancelled=cut.cancelled, campaign_ends=cut.campaign)
+                return reply
+        notes = cut.notes(trial_running=False)
+        if mode != "estop" and not (cut.cancelled or cut.campaign):
+            raise RequestError("no trial is running" + (" (it has just ended)" if cut.trial else ""))
+        self._send_stop(mode, notes)
+        return {"ok": True, "mode": mode, "acknowledged": True, "trial_running": False,
+                "cancelled": cut.cancelled, "campaign_ends": cut.campaign,
+                "message": _joined("STOP acknowledged by the drive (no trial was running)", notes)}
+
+    def cmd_stop(self, req: dict, user: str, received: float) -> dict:
+        mode = req.get("mode", "abort")
+        if not isinstance(mode, str) or mode not in ("abort", "hold"):
+            raise RequestError('stop "mode" must be "abort" (stop, then return) or "hold" (stop and stay), '
+                               f"not {_shown(mode)}")
+        with self.state_lock:
+            cut = self._latch(f"a stop ({mode}) from {user} at {time.strftime('%H:%M:%S')}")
+        try:
+            self.say(f"{user} requested stop ({mode})")
+            reply = self._carry_out(cut, mode, user, received)
+        finally:
+            self._unlatch()
+        self.say(f"{user}'s stop: {reply['message']}")
+        return reply
+
+    def cmd_estop(self, req: dict, user: str, received: float) -> dict:
+        with self.state_lock:
+            cut = self._latch(f"an estop from {user} at {time.strftime('%H:%M:%S')}")
+        try:
+            self.say(f"{user} requested an emergency stop")
+            reply = self._carry_out(cut, "estop", user, received)
+        finally:
+            self._unlatch()
+        self.say(f"{user}'s estop: {reply['message']}")
+        return reply
 
     def cmd_reset_alarm(self, req: dict, user: str, received: float) -> dict:
         if self._busy():
@@ -544,7 +778,14 @@ class Daemon:
         return {"ok": True, "alarm_before": before, "alarm_after": after.value.alarm_code}
 
     def cmd_watch(self, conn: socket.socket, req: dict) -> bool:
-        rate = float(req.get("rate_Hz") or self.config.daemon.watch_rate_Hz)
+        given = req.get("rate_Hz")
+        if given is None:
+            rate = self.config.daemon.watch_rate_Hz
+        else:
+            rate = _number(given)
+            if rate is None or rate <= 0:
+                return send(conn, {"ok": False, "error": 'watch "rate_Hz" must be a number > 0 (updates per '
+                                                         f"second; 0.5 to 100 are sent), not {_shown(given)}"})
         period = 1.0 / min(max(rate, 0.5), 100.0)
         while self._busy():
             t = self.trial
