@@ -14,6 +14,11 @@ How the faults are made:
 - the serial port vanishing: both ends of the RTU client's pseudo-terminal closed mid-trial
   (`RtuBridge.vanish`); it comes back behind the same symlink, as a by-id name does.
 - drive alarm, dropped, corrupted (bad CRC) and garbled (line noise) replies: `FaultParams`.
+- a load cell that freezes (its last line repeated), goes noiseless, or a specimen that triples
+  its stiffness mid-trial: `FaultParams.loadcell_frozen`, `loadcell_noiseless`, `stiffness_scale`.
+- a stop or estop racing a start's set-up, a campaign (`rig start --characterize`) stopped at
+  any moment, a protocol past the repeat cap and one just under it, specimen names that are
+  paths: plain requests on the socket, timed from threads.
 
 Rules whose feature is still being built are tagged with a name in FEATURES_PENDING: a broken
 invariant under such a tag is recorded in `Soak.pending` (and printed) instead of failing the
@@ -71,7 +76,21 @@ SLOW = ("name: slow\nsteps:\n  - ramp: {to_mm: 6, speed_mm_s: 3}\n  - hold: {dur
 # the tissue relaxes (tau1 8 s) while it is loaded: about 5 mm deep from its surface it carries 0.5 N
 FORCE = ("name: force\nlimits: {max_force_N: 0.5}\nsteps:\n  - ramp: {to_mm: 8, speed_mm_s: 5}\n"
          "  - hold: {duration_s: 0.3}\n  - return: {speed_mm_s: 5}\n")
-PROTOCOLS = {"short": (SHORT, 3.0, None), "slow": (SLOW, 6.0, None), "force": (FORCE, 8.0, 0.5)}
+# force control: the surface found by an approach, a force ramp and hold (1.5 N, about 12 mm deep)
+FORCE_HOLD = ("name: force hold\nsteps:\n  - approach: {speed_mm_s: 3, contact_N: 0.3, max_mm: 15}\n"
+              "  - ramp_force: {to_N: 1.5, rate_N_s: 1.5, max_mm: 12}\n"
+              "  - hold_force: {force_N: 1.5, duration_s: 1.5, max_mm: 12}\n  - return: {speed_mm_s: 10}\n")
+PROTOCOLS = {"short": (SHORT, 3.0, None), "slow": (SLOW, 6.0, None), "force": (FORCE, 8.0, 0.5),
+             "force_hold": (FORCE_HOLD, 15.0, None)}
+# how far from the start a protocol may reach as `check_limits` sees it (a refusal from further in
+# is the truth), where that differs from the depth above (the approach may find contact anywhere)
+REACH_MM = {"force_hold": 27.0}
+# a protocol past the repeat cap (limits.max_protocol_steps, 10,000 executed steps), and one under it
+REPEAT_OVER = "name: too many\nrepeat: 20000\nsteps:\n  - ramp: {to_mm: 1, speed_mm_s: 5}\n" \
+              "  - ramp: {to_mm: 0, speed_mm_s: 5}\n"
+REPEAT_UNDER = REPEAT_OVER.replace("repeat: 20000", "repeat: 4900").replace("too many", "many")
+# specimen names that are paths: the daemon writes nothing outside its log folder
+BAD_NAMES = ["/tmp/rig-soak-outside/x", "../../up", "a/b/../../c", ".hidden", "trial\x00nul"]
 
 SITECUSTOMIZE = '''
 import datetime as _dt, os as _os, time as _time
@@ -166,6 +185,7 @@ class Soak:
         self.last_start_wall = 0.0
         self.clock_offset_s = 0.0
         self.fsize_limited = False
+        self.stiffness_seen = 1.0
         self.start_daemon()
 
     # ------------------------------------------------------------ bookkeeping
@@ -280,7 +300,7 @@ class Soak:
                       "specimen": f"s{self.seed}"})
         self.last_start_wall = time.time()
         if not r["ok"]:
-            inside = TRAVEL_MM[0] <= pos + depth_mm <= TRAVEL_MM[1]
+            inside = TRAVEL_MM[0] <= pos + REACH_MM.get(name, depth_mm) <= TRAVEL_MM[1]
             self.expect(not inside or "busy" in r["error"], "reply true",
                         f"start '{name}' from {pos:.2f} mm refused: {r['error']}")
             time.sleep(0.1)
@@ -368,13 +388,16 @@ class Soak:
 
     def check_force(self) -> None:
         peak = self.sim.rig.take_peak_force_N()
+        # a specimen made stiffer mid-trial rises faster: one tick's rise scales with it
+        scale = max(self.sim.params.faults.stiffness_scale, self.stiffness_seen)
+        self.stiffness_seen = self.sim.params.faults.stiffness_scale
         rec = self.current
         if rec is None:
             limit, deepest, feature = CONFIG_MAX_FORCE_N, max(self.position_mm(), 0.0), None
         else:
             limit, deepest = rec.limit_N, rec.deepest_mm
             feature = "preload_limit" if rec.preload_N > 0.05 else self._pending_feature(rec)
-        margin = force_margin_N(deepest)
+        margin = force_margin_N(deepest) * scale
         self.expect(peak <= limit + margin, "force within limit + one tick's rise",
                     f"the tissue carried {peak:.2f} N, limit {limit:g} N + {margin:.2f} N"
                     + (f" (trial '{rec.protocol}' started at {rec.start_mm:.2f} mm with "
@@ -395,6 +418,33 @@ class Soak:
         self.clock_file.write_text(repr(self.clock_offset_s))
         time.sleep(0.1)  # the daemon re-reads the offset every 50 ms
         return back
+
+    def heal_cell(self) -> None:
+        """The load cell and the specimen as they were (after a trial that froze or stiffened them)."""
+        f = self.sim.params.faults
+        f.loadcell_frozen = f.loadcell_noiseless = False
+        f.stiffness_scale = 1.0
+
+    def no_start_after(self, acked_wall: float, allowed: set[str], what: str, returning: bool = False) -> None:
+        """An acknowledged stop: the slider stands still, and no trial starts after it (no log
+        but those in `allowed` is written from then on; a campaign's folders included). An abort
+        returns to the start first: its trial's end is waited for."""
+        if returning:
+            self.wait_idle(60)
+        self.settle()
+        moves = self.sim.drive.moves
+        time.sleep(1.0)
+        self.expect(self.sim.drive.moves == moves and not self.sim.rig.slider.moving,
+                    "stop acknowledged: stopped, nothing starts",
+                    f"after {what} was acknowledged the drive took {self.sim.drive.moves - moves} more moves")
+        for path in self.out.rglob("*.mcap") if self.out.exists() else ():
+            if str(path) in allowed or path.stat().st_mtime < acked_wall - 0.5:
+                continue
+            log = read_log(path)
+            started = log.trial.get("start_time", "")
+            self.expect(log.n <= 1 or log.outcome in ("estopped", "stopped", "aborted", "fault"),
+                        "stop acknowledged: stopped, nothing starts",
+                        f"{path.name} (started {started}) ran to {log.outcome!r} after {what} was acknowledged")
 
     def reset_drive_alarm(self) -> None:
         if not self.sim.params.faults.alarm_code:
@@ -469,6 +519,7 @@ class SoakMachine(RuleBasedStateMachine):
         s.settle()
         if s.proc is not None:
             s.reset_drive_alarm()
+        s.heal_cell()
 
     # ------------------------------------------------------------ rules
     def start(self, name: str) -> None:
@@ -539,6 +590,141 @@ class SoakMachine(RuleBasedStateMachine):
                        and s.sim.bridge is not None and s.sim.bridge.client_master < 0)
         s.expect(ended or faulted or stopping or unreachable, "reply true",
                  f"{mode} {delay:g} s after the start was refused: {r['error']}", "stop_anytime")
+
+    def cell_fault(self, kind: str) -> None:
+        """The load cell freezes or goes noiseless (a fault within half a second, under any step),
+        or the specimen triples its stiffness (the force loop holds; position steps carry on)."""
+        s = self.soak
+        s.step(kind)
+        if not self._into_trial():
+            return
+        if kind == "stiffness_jump":
+            s.sim.params.faults.stiffness_scale = 3.0
+            if s.current.protocol == "force":  # its limit trips the sooner; nothing else changes
+                return
+            s.current.causes.append("completed")  # ridden through
+            return
+        setattr(s.sim.params.faults, kind, True)
+        s.current.causes.append("fault")
+
+    def start_racing_stop(self, mode: str, delay: float) -> None:
+        """A start and a stop (or estop) `delay` apart, from two clients: whatever the order, a stop
+        that was acknowledged leaves the slider stopped and no trial running after it; a start that
+        it cancelled says so and wrote no log."""
+        s = self.soak
+        s.step(f"start racing a {mode} {delay:g} s later")
+        replies: dict = {}
+
+        def start() -> None:
+            replies["start"] = s.req({"cmd": "start", "protocol_text": SLOW, "protocol_path": "race.yaml",
+                                      "specimen": f"race{s.seed}"})
+
+        t = threading.Thread(target=start)
+        t.start()
+        time.sleep(delay)
+        r = s.req({"cmd": "estop"} if mode == "estop" else {"cmd": "stop", "mode": mode})
+        acked = time.time()
+        t.join(30)
+        rs = replies.get("start") or {"ok": False, "error": "no reply"}
+        s.last_start_wall = time.time()
+        log = rs.get("log") if rs.get("ok") else None
+        if not rs["ok"]:
+            s.expect("cancelled" in rs["error"] or "busy" in rs["error"], "reply true",
+                     f"a start racing a {mode} was refused: {rs['error']}")
+        if r["ok"]:
+            s.no_start_after(acked, set(), f"{mode} racing a start", returning=mode == "abort")
+        else:  # refused: only because nothing was running or being set up when it came
+            s.expect("no trial is running" in r["error"], "reply true",
+                     f"a {mode} racing a start was refused: {r['error']}")
+        if log is not None:
+            rec = TrialRecord(log, "slow", 0.0, 0.0, CONFIG_MAX_FORCE_N, 6.0)
+            rec.final = ({STOP_OUTCOME[mode], "completed"} if not r["ok"] else {STOP_OUTCOME[mode]}) \
+                | ({"aborted"} if mode == "abort" else set())
+            s.trials[log] = rec
+            s.wait_idle()
+            s.check_log(rec)
+        s.wait_idle()
+        s.settle()
+        s.heal_cell()
+
+    def campaign(self, mode: str, delay: float) -> None:
+        """`rig start --characterize`, stopped (or estopped) `delay` seconds in: whatever the campaign
+        was doing (its first approach, between trials, fitting), the stop ends it, the slider
+        stops, and no trial of it starts after the acknowledged stop."""
+        s = self.soak
+        s.step(f"campaign, {mode} after {delay:g} s")
+        r = s.req({"cmd": "start", "characterize": {"max_trials": 3, "budget_min": 3},
+                   "specimen": f"camp{s.seed}"})
+        s.last_start_wall = time.time()
+        if not r["ok"]:
+            s.expect("busy" not in r["error"], "reply true", f"a campaign on an idle daemon: {r['error']}")
+            return
+        time.sleep(delay)
+        stop = s.req({"cmd": "estop"} if mode == "estop" else {"cmd": "stop", "mode": mode})
+        acked = time.time()
+        if stop["ok"]:
+            s.no_start_after(acked, set(), f"{mode} of a campaign", returning=mode == "abort")
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            st = s.req({"cmd": "status"})
+            if st["state"] == "idle" and (st.get("campaign") or {}).get("status") != "running":
+                break
+            time.sleep(0.1)
+        st = s.req({"cmd": "status"})
+        camp = st.get("campaign") or {}
+        s.expect(camp.get("status") not in (None, "running"), "reply true",
+                 f"a campaign stopped by {mode} ({stop}) still says {camp}")
+        s.settle()
+
+    def repeats(self) -> None:
+        """A protocol past the repeat cap is refused at once, naming `repeat`; one just under it
+        runs, its status answers, and an estop during it is acknowledged within the second."""
+        s = self.soak
+        s.step("repeat 20000, then 4900 estopped")
+        t0 = time.monotonic()
+        r = s.req({"cmd": "start", "protocol_text": REPEAT_OVER, "protocol_path": "many.yaml"})
+        s.expect(not r["ok"] and "repeat" in r["error"] and time.monotonic() - t0 < 5.0, "reply true",
+                 f"a protocol of 40,000 steps: {r} after {time.monotonic() - t0:.1f} s")
+        r = s.req({"cmd": "start", "protocol_text": REPEAT_UNDER, "protocol_path": "many.yaml"})
+        s.last_start_wall = time.time()
+        if not r["ok"]:
+            s.expect(False, "reply true", f"a protocol of 9,800 steps was refused: {r['error']}")
+            return
+        time.sleep(1.0)
+        st = s.req({"cmd": "status"})
+        snap = st.get("snapshot") or {}
+        s.expect(snap.get("steps_total") == 9800 and snap.get("time_left_s", 0) > 100, "reply true",
+                 f"status of the 9,800-step trial: {snap}")
+        t0 = time.monotonic()
+        stop = s.req({"cmd": "estop"})
+        took = time.monotonic() - t0
+        s.expect(stop["ok"] and took < 1.5, "reply true",
+                 f"estop of the 9,800-step trial: {stop} in {took:.2f} s")
+        rec = TrialRecord(r["log"], "many", 0.0, 0.0, CONFIG_MAX_FORCE_N, 1.0)
+        rec.final = {"estopped"}
+        s.trials[r["log"]] = rec
+        s.wait_idle()
+        s.check_log(rec)
+        s.settle()
+
+    def bad_name(self, name: str) -> None:
+        """A specimen name that is a path: refused, or written inside the log folder, never outside."""
+        s = self.soak
+        s.step(f"specimen {name!r}")
+        outside = Path("/tmp/rig-soak-outside")
+        r = s.req({"cmd": "start", "protocol_text": SHORT, "protocol_path": "short.yaml", "specimen": name})
+        s.last_start_wall = time.time()
+        if r["ok"]:
+            s.expect(Path(r["log"]).resolve().parent == s.out.resolve(), "names stay inside the log folder",
+                     f"specimen {name!r} wrote {r['log']}")
+            rec = TrialRecord(r["log"], "short", s.position_mm(), 0.0, CONFIG_MAX_FORCE_N, 3.0)
+            s.trials[r["log"]] = s.current = rec
+            s.end_trial()
+        else:
+            s.expect("specimen" in r["error"], "reply true", f"specimen {name!r} refused: {r['error']}")
+        stray = [p for p in s.tmp.rglob("*.mcap") if s.out.resolve() not in p.resolve().parents]
+        s.expect(not stray and not outside.exists() and not (s.tmp.parent / "up").exists(),
+                 "names stay inside the log folder", f"specimen {name!r} left {stray}")
 
     def estop_idle(self) -> None:
         s = self.soak
@@ -696,10 +882,17 @@ class SoakMachine(RuleBasedStateMachine):
                        {"kind": ["position", "move", "run"]}),
         "sigint_daemon": (lambda m: m.soak.proc is not None, {}),
         "sigint_rig_run": (lambda m: True, {}),
+        "cell_fault": (lambda m: m.running,
+                       {"kind": ["loadcell_frozen", "loadcell_noiseless", "stiffness_jump"]}),
+        "start_racing_stop": (lambda m: m.idle and m.soak.position_mm() < 20,
+                              {"mode": ["estop", "hold", "abort"], "delay": [0.0, 0.005, 0.03, 0.15, 0.6]}),
+        "campaign": (lambda m: m.idle, {"mode": ["estop", "hold", "abort"], "delay": [0.2, 2.0, 6.0]}),
+        "repeats": (lambda m: m.idle and m.soak.position_mm() < 30, {}),
+        "bad_name": (lambda m: m.idle, {"name": BAD_NAMES}),
     }
     # starts and trial-time events more often than the slow process-level ones
     WEIGHTS: ClassVar[dict] = {"start": 4, "finish": 2, "stop": 3, "fault": 3, "line_fault": 2,
-                               "sigint_rig_run": 1}
+                               "sigint_rig_run": 1, "cell_fault": 3, "start_racing_stop": 2}
 
     @rule(data=st.data())
     def act(self, data) -> None:

@@ -1,4 +1,4 @@
-"""The fault-injection soak, long: 20 seeds, each one example of 16 random steps (320 steps),
+"""The fault-injection soak, long: 20 seeds, each one example of 21 random steps (420 steps),
 printing every step and the invariants checked. RIG_SOAK_STRICT=1 fails on the invariants of
 features still pending (tests/soak_harness.py FEATURES_PENDING) instead of listing them."""
 
@@ -9,7 +9,7 @@ import pytest
 from tests.test_soak import run_soak
 
 SEEDS = range(1, 21)
-STEPS = 16
+STEPS = 21
 
 
 @pytest.mark.parametrize("seed_value", SEEDS)
