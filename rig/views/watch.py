@@ -17,6 +17,17 @@ def sparkline(values: list[float]) -> str:
     return "".join(SPARK[min(int((v - lo) / span * (len(SPARK) - 1) + 0.5), len(SPARK) - 1)] for v in values)
 
 
+def force_step_line(fig: dict) -> str:
+    """One force step's figures (`rig.control.forcestats.StepFigures.as_dict`) on one line."""
+    head = f"step {fig['index']} ({fig['kind']} {fig['setpoint_N']:.4g} N): "  # numbered as the log's events
+    if fig["kind"] == "ramp_force":
+        return head + ("reached" if fig.get("reached", True) else "SHORT of its target") + \
+            (f" {fig['lag_s']:.2f} s after its planned end" if fig.get("lag_s") else " on time")
+    rms = "" if fig.get("rms_over_noise") is None else f", RMS error {fig['rms_over_noise']:.2f} sigma"
+    settle = "never settled" if fig.get("settle_s") is None else f"settled in {fig['settle_s']:.2f} s"
+    return head + f"overshoot {100 * fig['overshoot_share']:+.1f} %, {settle}{rms}"
+
+
 def format_status(reply: dict) -> str:
     state = reply["state"]
     snap = reply.get("snapshot") or {}
@@ -39,6 +50,8 @@ def format_status(reply: dict) -> str:
         if snap.get("force_model_N") is not None:
             lines.insert(-1, f"model     {snap['force_model_N']:.3f} N   error "
                              f"{snap['force_N'] - snap['force_model_N']:+.3f} N (measured - model)")
+        for fig in (snap.get("force_steps") or ())[-3:]:
+            lines.insert(-1, "force     " + force_step_line(fig))
         if snap.get("fault"):
             lines.append(f"FAULT     {snap['fault']}")
     elif snap:
