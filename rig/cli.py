@@ -110,7 +110,11 @@ def cmd_characterize(args: argparse.Namespace) -> int:
         from rig.specs.protocol import load_protocol
 
         load_protocol(args.protocol, config)  # refused here, before anything moves
-    out = Path(args.out or config.recorder.out_dir) / f"characterize-{args.specimen}"
+    # a name, never a path: the campaign's folder lies inside the log folder whatever it says
+    from rig.recording.names import file_part
+
+    stem = file_part(args.specimen, default="specimen")
+    out = Path(args.out or config.recorder.out_dir) / f"characterize-{stem}"
     say = (lambda _: None) if args.json else print
     req = Request(args.specimen, config, out, model=args.model, indenter=args.indenter, first=args.protocol,
                   max_trials=args.max_trials, budget_min=args.budget_min, target_rse=args.target_rse,

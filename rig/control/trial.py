@@ -51,6 +51,7 @@ from rig.models.online import OnlineModel
 from rig.models.saved import SavedModel
 from rig.realtime import Realtime, RealtimeState
 from rig.recording.messages import EVENT, HEALTH, SAMPLE
+from rig.recording.names import file_part
 from rig.recording.recorder import Recorder, TrialInfo
 from rig.specs.config import RigConfig
 from rig.specs.protocol import FORCE_STEPS, Approach, Protocol, RampForce, check_limits
@@ -1030,9 +1031,9 @@ def default_log_path(out_dir: str | Path, proto: Protocol, specimen: str) -> Pat
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    slug = "".join(c if c.isalnum() else "-" for c in proto.name.lower()).strip("-")
-    slug = "-".join(filter(None, slug.split("-")))[:40]
-    spec = "".join(c if c.isalnum() or c in "-_" else "-" for c in specimen)[:20] or "specimen"
+    # names, never paths (rig.recording.names): the log lies in `out_dir` whatever they say
+    slug = file_part(proto.name.replace("_", "-"), default="protocol", max_chars=40, lower=True)
+    spec = file_part(specimen, default="specimen", max_chars=20)
     # The name wanted: the recorder opens it exclusively, or the next free `_2`, `_3`... (a
     # check here would race with another run starting in the same second).
     return out / f"{stamp}_{spec}_{slug}.mcap"

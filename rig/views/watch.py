@@ -130,6 +130,8 @@ def format_logs(entries, out_dir: Path) -> str:
         dur = f"{e.duration_s:.1f} s" if e.duration_s is not None else "-"
         outcome = e.outcome + (" (recovered)" if e.recovered else "")
         started = e.start_time[:19].replace("T", " ")
-        rows.append((started, e.specimen, e.protocol[:36], dur, outcome, e.path.name))
+        # a campaign's trials lie in its folder: shown with it
+        shown = str(e.path.relative_to(out_dir)) if e.path.is_relative_to(out_dir) else e.path.name
+        rows.append((started, e.specimen, e.protocol[:36], dur, outcome, shown))
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in rows)
