@@ -150,6 +150,48 @@ def test_every_number_in_a_protocol_must_be_finite(value):
     assert not accepted, f"{value} accepted in {accepted}"
 
 
+@pytest.mark.parametrize(("text", "line", "key", "fragment"), [
+    ("limits: {max_force_N: 600}\n", 1, "limits.max_force_N",
+     "a force limit of 600 N is beyond the load cell's range (loadcell.max_abs_N 500 N)"),
+    ("loadcell:\n  max_abs_N: 10\n", 2, "loadcell.max_abs_N",
+     "a force limit of 20 N is beyond the load cell's range (loadcell.max_abs_N 10 N)"),
+    ("limits:\n  travel_mm: [-5, 100000.0]\n", 2, "limits.travel_mm[1]",
+     "must be at most 10000, got 100000: a travel window wider than any slider's stroke"),
+    ("limits:\n  max_speed_mm_s: 100000.0\n", 2, "limits.max_speed_mm_s",
+     "must be at most 1000, got 100000: a speed limit beyond any indentation slider limits nothing"),
+])
+def test_a_rig_config_with_absurd_limits_is_refused(text, line, key, fragment):
+    with pytest.raises(SpecError) as err:
+        parse_config(text, "rig.yaml")
+    msg = str(err.value)
+    assert msg.startswith(f"rig.yaml:{line}:") and f" {key}: " in msg and fragment in msg, msg
+    # a rig without a load cell limits the model's force: no range to stay within
+    assert parse_config("limits: {max_force_N: 600}\nloadcell: {backend: none}\n").limits.max_force_N == 600
+
+
+@pytest.mark.parametrize(("step", "fragment"), [
+    ("ramp: {to_mm: 3, speed_mm_s: 0.001}", "ramp speed 0.001 mm/s is below the drive's slowest (one step a "
+                                            "second, 0.01 mm/s at slider.steps_per_mm 100)"),
+    ("approach: {speed_mm_s: 1.0e-300, contact_N: 0.2, max_mm: 5}", "approach speed 1e-300 mm/s is below"),
+    ("ramp: {to_mm: 3, speed_mm_s: 1, accel_mm_s2: 1.0e-300}",
+     "ramp accel_mm_s2 1e-300 is below the drive's least, one step a second squared (0.01 mm/s^2)"),
+])
+def test_a_move_slower_than_the_drive_can_go_is_refused(tmp_path, capsys, step, fragment):
+    """The drive moves at whole steps a second at least: 0.001 mm/s would run ten times faster
+    than planned, and 1e-300 mm/s planned a move of 1e300 s (rig check hung on it)."""
+    code, _, err = _check(tmp_path, capsys, f"name: x\nsteps:\n  - {step}\n")
+    assert code == 2 and f"p.yaml:3: {fragment}" in err, err
+
+
+@pytest.mark.parametrize("step", ["hold: {duration_s: 1.0e+300}",
+                                  "ramp_force: {to_N: 3, rate_N_s: 1.0e-300, max_mm: 5}"])
+def test_a_finite_but_endless_step_is_planned_without_sampling_it(tmp_path, capsys, step):
+    began = time.perf_counter()
+    text = f"name: x\nsteps:\n  - ramp: {{to_mm: 3, speed_mm_s: 1}}\n  - {step}\n"
+    code, out, _ = _check(tmp_path, capsys, text)
+    assert code == 0 and "duration  " in out and time.perf_counter() - began < 10
+
+
 # ---------------------------------------------------------------- 2. durations that never end
 
 @pytest.mark.parametrize(("text", "line", "field"), [

@@ -37,14 +37,22 @@ class LoopConfig:
 # Bounds on the limits that are checks: a value past them would switch the check off without a
 # word (a stale limit of an hour never fires). Each is well beyond any rig's need.
 MAX_STALE_MS = 1000.0
+MAX_TRAVEL_MM = 10_000.0
+MAX_SPEED_MM_S = 1000.0
 MAX_PROTOCOL_STEPS_CEILING = 1_000_000
 
 
 @dataclass
 class LimitsConfig:
+    # At most the load cell's range (loadcell.max_abs_N), checked when the config is read: a
+    # limit the cell cannot read limits nothing.
     max_force_N: float = field(default=20.0, metadata={"gt": 0})
-    travel_mm: tuple[float, float] = (-5.0, 45.0)
-    max_speed_mm_s: float = field(default=10.0, metadata={"gt": 0})
+    # Slider coordinates, within +-10 m: a window wider than any slider's stroke limits nothing.
+    travel_mm: tuple[float, float] = field(default=(-5.0, 45.0), metadata={
+        "ge": -MAX_TRAVEL_MM, "le": MAX_TRAVEL_MM, "why": "a travel window wider than any slider's stroke"})
+    # At most 1 m/s: faster than any indentation slider.
+    max_speed_mm_s: float = field(default=10.0, metadata={
+        "gt": 0, "le": MAX_SPEED_MM_S, "why": "a speed limit beyond any indentation slider limits nothing"})
     # No new load-cell reading for this long is a fault; at most a second, so that no config
     # switches the check off.
     loadcell_stale_ms: float = field(default=100.0, metadata={
@@ -260,6 +268,7 @@ def parse_config(text: str, path: str = "<config>") -> RigConfig:
     _refuse_keys(node, ("source_text", "source_path"), path)
     cfg = bind(RigConfig, node, path)
     _check_material(cfg, node, path)
+    _check_force_limit(cfg, node, path)
     if cfg.probe:
         from rig.models.contact import parse_indenter
 
@@ -272,6 +281,29 @@ def parse_config(text: str, path: str = "<config>") -> RigConfig:
     cfg.source_text = text
     cfg.source_path = path
     return cfg
+
+
+def _check_force_limit(cfg: RigConfig, node, path: str) -> None:
+    """A force limit beyond the load cell's range: the cell reads over range first, and the
+    limit never acts (with `.inf` a protocol drove the probe until the cell read 500 N)."""
+    if cfg.loadcell.backend == "none" or cfg.limits.max_force_N <= cfg.loadcell.max_abs_N:
+        return
+    key = "limits.max_force_N"
+    child = _child(node, "limits", "max_force_N")
+    if child is None:  # the default limit, the cell's range set below it
+        key, child = "loadcell.max_abs_N", _child(node, "loadcell", "max_abs_N") or node
+    raise SpecError(f"a force limit of {cfg.limits.max_force_N:g} N is beyond the load cell's range "
+                    f"(loadcell.max_abs_N {cfg.loadcell.max_abs_N:g} N): the cell cannot read the limit",
+                    path=path, line=child.line, column=child.column, field=key)
+
+
+def _child(node, *keys: str):
+    """The node at `keys` in a mapping, or None."""
+    for key in keys:
+        if not isinstance(node.value, dict) or key not in node.value:
+            return None
+        node = node.value[key]
+    return node
 
 
 def _check_material(cfg: RigConfig, node, path: str) -> None:

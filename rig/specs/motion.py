@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from fractions import Fraction
 
 import numpy as np
 
@@ -66,6 +67,14 @@ def _power_sum(k: int, n: int) -> int:
     return m * n * (2 * m + 1) * (3 * m * m + 3 * m - 1) // 30
 
 
+def _times(x: float, count: int) -> float:
+    """x * count, where count may be past a float's range while the product is not (a move of
+    1e80 samples: its j^4 sums overflow, its coefficients are as small)."""
+    if count.bit_length() < 1000:
+        return x * float(count)
+    return float(Fraction(x) * count)
+
+
 def _poly_at(c: tuple[float, float, float], j: float) -> float:
     return c[0] + j * (c[1] + j * c[2])
 
@@ -116,7 +125,7 @@ class LaggedSums:
             # sum_{j=head}^{n-1} q(j) q(j-d): a polynomial of degree 4 in j
             e0, e1, e2 = c0 - d * c1 + d * d * c2, c1 - 2 * d * c2, c2  # q(j - d)
             prod = (c0 * e0, c0 * e1 + c1 * e0, c0 * e2 + c1 * e1 + c2 * e0, c1 * e2 + c2 * e1, c2 * e2)
-            self.sums[d] += sum(p * float(_power_sum(k, n) - _power_sum(k, head))
+            self.sums[d] += sum(_times(p, _power_sum(k, n) - _power_sum(k, head))
                                 for k, p in enumerate(prod) if p)
         self.last = [_poly_at(coeffs, j) for j in range(n - self.EDGE, n)]
         self.count += n - head
@@ -135,12 +144,15 @@ class LaggedSums:
         h = 1.0 / rate_Hz
 
         def before(t_end: float) -> int:
-            """How many samples (t = (i+1)/rate) fall before `t_end`, as position_at decides."""
+            """How many samples (t = (i+1)/rate) fall before `t_end`, as position_at decides (a
+            step or two either side of the estimate; at magnitudes where a float no longer tells
+            i from i + 1, the estimate stands)."""
             i = max(min(math.ceil(t_end * rate_Hz) - 1, n), 0)
-            while i > 0 and not i / rate_Hz < t_end:
-                i -= 1
-            while i < n and (i + 1) / rate_Hz < t_end:
-                i += 1
+            for _ in range(4):
+                if i > 0 and not i / rate_Hz < t_end:
+                    i -= 1
+                elif i < n and (i + 1) / rate_Hz < t_end:
+                    i += 1
             return i
 
         c_total = before(total)

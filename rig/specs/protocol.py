@@ -416,11 +416,22 @@ def check_limits(proto: Protocol, config: RigConfig, start_mm: float | None = No
                      f"limits.max_speed_mm_s {lim.max_speed_mm_s:g} mm/s is looser than the rig's "
                      f"{rig.max_speed_mm_s:g} mm/s")
     eff = proto.effective_limits(rig)
+    # The drive moves in whole steps a second (and a second squared): slower is not slower, it
+    # is one step a second (and a move planned to take 1e300 s is no plan).
+    slowest = 1.0 / config.slider.steps_per_mm
+    drive = f"one step a second, {slowest:g} mm/s at slider.steps_per_mm {config.slider.steps_per_mm:g}"
     for step in proto.steps:
         speed = getattr(step, "speed_mm_s", None)
         if speed is not None and speed > eff.max_speed_mm_s:
             raise refuse(step.line, f"{step.kind} speed {speed:g} mm/s exceeds the limit of "
                                     f"{eff.max_speed_mm_s:g} mm/s")
+        if speed is not None and speed < slowest:
+            raise refuse(step.line, f"{step.kind} speed {speed:g} mm/s is below the drive's slowest "
+                                    f"({drive})")
+        accel = getattr(step, "accel_mm_s2", None)
+        if accel is not None and accel < slowest:
+            raise refuse(step.line, f"{step.kind} accel_mm_s2 {accel:g} is below the drive's least, one "
+                                    f"step a second squared ({slowest:g} mm/s^2)")
         if isinstance(step, Approach) and step.contact_N >= eff.max_force_N:
             raise refuse(step.line, f"approach contact_N {step.contact_N:g} N is not below the "
                                     f"force limit {eff.max_force_N:g} N")
