@@ -404,8 +404,8 @@ def check_limits(proto: Protocol, config: RigConfig, start_mm: float | None = No
     if proto.executed_steps > rig.max_protocol_steps:
         raise refuse(proto.repeat_line or _line_of(proto, "repeat"),
                      f"repeat {proto.repeat}: {proto.executed_steps_text()}, more than the rig's "
-                     f"limits.max_protocol_steps {rig.max_protocol_steps} (fewer repeats, or a longer "
-                     f"step; the cap is the rig config's)")
+                     f"limits.max_protocol_steps {rig.max_protocol_steps} (fewer repeats, or a rig "
+                     f"config that raises the cap)")
     lim = proto.limits
     if lim.max_force_N is not None and lim.max_force_N > rig.max_force_N:
         raise refuse(_line_of(proto, "max_force_N"),
