@@ -236,7 +236,7 @@ class Trial:
         self.signal_handled: StopMode | None = None
         self.zero: Zero | None = (known_zero(config) if loadcell is not None else None) or zero
         self.preload_N: float | None = None  # known once the tare is done
-        self.snapshot = Snapshot(steps_total=len(proto.run_steps()), log_path=str(log_path))
+        self.snapshot = Snapshot(steps_total=proto.executed_steps, log_path=str(log_path))
         est = config.estimator
         self.rls = StiffnessRLS.from_config(est, self.rate)
         # Optional callable(Snapshot), called every tick on the loop thread: it must not block
