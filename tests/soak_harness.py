@@ -159,6 +159,10 @@ class Soak:
         self.trace: list[str] = []
         self.checks: dict[str, int] = {}
         self.pending: list[str] = []
+        # every failure as it happened: hypothesis replays a failing example to report it, and
+        # the rig's state (positions, files, the clock) is not replayed, so the replay can draw
+        # other steps and end in FlakyStrategyDefinition with the first failure out of sight
+        self.failures: list[str] = []
         self.sim = WireSim(SimParams(), tcp=False, rtu_link=str(tmp / "ttyRIG"))
         self.sim.start()
         self.sock = tmp / "rigd.sock"
@@ -201,6 +205,7 @@ class Soak:
             self.pending.append(f"({feature}) {msg}")
             return
         tail = "".join(self.output[-30:])
+        self.failures.append(msg)
         raise AssertionError(f"{msg}\n  daemon output (last lines):\n{tail}")
 
     def _pending_feature(self, rec: TrialRecord | None) -> str | None:
@@ -425,10 +430,14 @@ class Soak:
         f.loadcell_frozen = f.loadcell_noiseless = False
         f.stiffness_scale = 1.0
 
-    def no_start_after(self, acked_wall: float, allowed: set[str], what: str, returning: bool = False) -> None:
-        """An acknowledged stop: the slider stands still, and no trial starts after it (no log
-        but those in `allowed` is written from then on; a campaign's folders included). An abort
-        returns to the start first: its trial's end is waited for."""
+    def logs_now(self) -> set[Path]:
+        return set(self.out.rglob("*.mcap")) if self.out.exists() else set()
+
+    def no_start_after(self, before: set[Path], what: str, returning: bool = False) -> None:
+        """An acknowledged stop: the slider stands still, and no trial it met or that came after
+        it ran on: every log not in `before` (a campaign's folders included) ended stopped,
+        estopped, aborted or faulted, or holds no motion. An abort returns to the start first:
+        its trial's end is waited for."""
         if returning:
             self.wait_idle(60)
         self.settle()
@@ -437,9 +446,7 @@ class Soak:
         self.expect(self.sim.drive.moves == moves and not self.sim.rig.slider.moving,
                     "stop acknowledged: stopped, nothing starts",
                     f"after {what} was acknowledged the drive took {self.sim.drive.moves - moves} more moves")
-        for path in self.out.rglob("*.mcap") if self.out.exists() else ():
-            if str(path) in allowed or path.stat().st_mtime < acked_wall - 0.5:
-                continue
+        for path in sorted(self.logs_now() - before):
             log = read_log(path)
             started = log.trial.get("start_time", "")
             self.expect(log.n <= 1 or log.outcome in ("estopped", "stopped", "aborted", "fault"),
@@ -614,6 +621,7 @@ class SoakMachine(RuleBasedStateMachine):
         s = self.soak
         s.step(f"start racing a {mode} {delay:g} s later")
         replies: dict = {}
+        before = s.logs_now()
 
         def start() -> None:
             replies["start"] = s.req({"cmd": "start", "protocol_text": SLOW, "protocol_path": "race.yaml",
@@ -623,7 +631,6 @@ class SoakMachine(RuleBasedStateMachine):
         t.start()
         time.sleep(delay)
         r = s.req({"cmd": "estop"} if mode == "estop" else {"cmd": "stop", "mode": mode})
-        acked = time.time()
         t.join(30)
         rs = replies.get("start") or {"ok": False, "error": "no reply"}
         s.last_start_wall = time.time()
@@ -631,15 +638,17 @@ class SoakMachine(RuleBasedStateMachine):
         if not rs["ok"]:
             s.expect("cancelled" in rs["error"] or "busy" in rs["error"], "reply true",
                      f"a start racing a {mode} was refused: {rs['error']}")
-        if r["ok"]:
-            s.no_start_after(acked, set(), f"{mode} racing a start", returning=mode == "abort")
-        else:  # refused: only because nothing was running or being set up when it came
+        # what the stop met, as its reply says: a trial running or a start being set up; a stop that
+        # met neither came before the start reached the daemon, and that start runs as usual
+        met = bool(r["ok"] and (r.get("trial_running") or r.get("cancelled")))
+        if met:
+            s.no_start_after(before, f"{mode} racing a start", returning=mode == "abort")
+        elif not r["ok"]:  # refused: only because nothing was running or being set up when it came
             s.expect("no trial is running" in r["error"], "reply true",
                      f"a {mode} racing a start was refused: {r['error']}")
         if log is not None:
             rec = TrialRecord(log, "slow", 0.0, 0.0, CONFIG_MAX_FORCE_N, 6.0)
-            rec.final = ({STOP_OUTCOME[mode], "completed"} if not r["ok"] else {STOP_OUTCOME[mode]}) \
-                | ({"aborted"} if mode == "abort" else set())
+            rec.final = {STOP_OUTCOME[mode]} if met else {"completed"}
             s.trials[log] = rec
             s.wait_idle()
             s.check_log(rec)
@@ -653,6 +662,7 @@ class SoakMachine(RuleBasedStateMachine):
         stops, and no trial of it starts after the acknowledged stop."""
         s = self.soak
         s.step(f"campaign, {mode} after {delay:g} s")
+        before = s.logs_now()
         r = s.req({"cmd": "start", "characterize": {"max_trials": 3, "budget_min": 3},
                    "specimen": f"camp{s.seed}"})
         s.last_start_wall = time.time()
@@ -661,9 +671,8 @@ class SoakMachine(RuleBasedStateMachine):
             return
         time.sleep(delay)
         stop = s.req({"cmd": "estop"} if mode == "estop" else {"cmd": "stop", "mode": mode})
-        acked = time.time()
         if stop["ok"]:
-            s.no_start_after(acked, set(), f"{mode} of a campaign", returning=mode == "abort")
+            s.no_start_after(before, f"{mode} of a campaign", returning=mode == "abort")
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
             st = s.req({"cmd": "status"})
@@ -909,7 +918,13 @@ class SoakMachine(RuleBasedStateMachine):
         for k, options in self.ACTIONS[name][1].items():
             i = data.draw(st.integers(0, len(options) - 1), label=k)
             kwargs[k] = options[(i + 3 * step + 5 * self.seed_value) % len(options)]
-        getattr(self, name)(**kwargs)
+        try:
+            getattr(self, name)(**kwargs)
+        except Exception as exc:  # recorded for the report, then raised as it was
+            if not self.soak.failures or self.soak.failures[-1] not in str(exc):
+                self.soak.failures.append(f"{name}({kwargs}): {type(exc).__name__}: {exc}\n  steps: "
+                                          + " -> ".join(self.soak.trace[-12:]))
+            raise
 
     @invariant()
     def invariants(self) -> None:

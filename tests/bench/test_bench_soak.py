@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import pytest
 
+from tests.soak_harness import REPORT
 from tests.test_soak import run_soak
 
 SEEDS = range(1, 21)
@@ -14,7 +15,12 @@ STEPS = 21
 
 @pytest.mark.parametrize("seed_value", SEEDS)
 def test_bench_soak(seed_value):
-    soaks = run_soak(seed_value, examples=1, steps=STEPS)
+    try:
+        soaks = run_soak(seed_value, examples=1, steps=STEPS)
+    finally:
+        for soak in REPORT:
+            for line in soak.failures:
+                print(f"\nseed {seed_value} FAILED: {line}")
     for soak in soaks:
         print(f"\nseed {seed_value}: {len(soak.trace)} steps: " + " -> ".join(soak.trace))
         print("  invariants checked: " + ", ".join(f"{k} x{v}" for k, v in sorted(soak.checks.items())))
