@@ -692,12 +692,16 @@ class SoakMachine(RuleBasedStateMachine):
         s.step("repeat 20000, then 4900 estopped")
         t0 = time.monotonic()
         r = s.req({"cmd": "start", "protocol_text": REPEAT_OVER, "protocol_path": "many.yaml"})
-        s.expect(not r["ok"] and "repeat" in r["error"] and time.monotonic() - t0 < 5.0, "reply true",
+        # refused for its size, or (true as well, nothing moved) for a position read the wire lost
+        why = r.get("error", "")
+        s.expect(not r["ok"] and ("repeat" in why or "cannot read the slider's position" in why)
+                 and time.monotonic() - t0 < 5.0, "reply true",
                  f"a protocol of 40,000 steps: {r} after {time.monotonic() - t0:.1f} s")
         r = s.req({"cmd": "start", "protocol_text": REPEAT_UNDER, "protocol_path": "many.yaml"})
         s.last_start_wall = time.time()
         if not r["ok"]:
-            s.expect(False, "reply true", f"a protocol of 9,800 steps was refused: {r['error']}")
+            s.expect("cannot read the slider's position" in r["error"], "reply true",
+                     f"a protocol of 9,800 steps was refused: {r['error']}")
             return
         time.sleep(1.0)
         st = s.req({"cmd": "status"})
