@@ -1,7 +1,8 @@
 """`rig characterize`: the campaign on the simulated rig, through the command line and the
-journal, and a stop in the middle of it (rig.service.characterize). The campaigns of the issue's
-figures (five hidden effects, five seeds each; against the paper's fixed set) are in
-tests/bench/test_bench_characterize.py."""
+journal, and a stop in the middle of it (rig.service.characterize); its first trial on specimens
+ten times softer and stiffer than the default, and the margins its designed trials keep. The
+campaigns of the issue's figures (five hidden effects, five seeds each; against the paper's fixed
+set) are in tests/bench/test_bench_characterize.py."""
 
 from __future__ import annotations
 
@@ -9,10 +10,17 @@ import json
 import threading
 from pathlib import Path
 
+import pytest
+
 from rig.cli import main
+from rig.control.trial import TrialResult
+from rig.errors import RigError
 from rig.recording.logs import read_log
 from rig.service.characterize import Request, characterize
-from rig.specs.config import parse_config
+from rig.service.run import RunOptions, run_trial
+from rig.specs.config import RigConfig, parse_config
+from rig.specs.frames import Frame
+from rig.specs.protocol import Approach, Return, check_limits
 
 SHORT = ("name: short ramp-hold\nsteps:\n  - ramp: {to_mm: 20, speed_mm_s: 2}\n  - hold: {duration_s: 20}\n"
          "  - return: {to_mm: 0, speed_mm_s: 5}\n")
@@ -160,3 +168,95 @@ def test_the_rest_runs_while_the_trials_are_fitted():
     camp.trial_ended = time.monotonic() - 20.0
     simulated = Request("liver-5", config, Path("."), rest_s=60.0, speed=0.0)
     assert _rest_before_next(simulated, camp) == (60.0, 60.0)
+
+
+# ------------------------------------------------------------------ a campaign that respects the specimen
+
+def _scaled(scale: float, seed: int = 1) -> RigConfig:
+    """The simulated rig with its tissue `scale` times the default's stiffness (and damping), as
+    tests/test_force_control.py scales it."""
+    cfg = RigConfig()
+    t = cfg.sim.tissue
+    for k in ("k1_N_per_m3", "k2_N_per_m2", "k3_N_per_m", "tau2_N_s_per_m2"):
+        setattr(t, k, getattr(t, k) * scale)
+    cfg.sim.seed = seed
+    return cfg
+
+
+def _first_then_planned(tmp_path: Path, cfg: RigConfig, **more) -> tuple:
+    """A campaign whose first trial runs on the simulated rig, the force the tissue carries (the
+    simulator's own, noise-free) watched every tick, and whose second trial is only planned: its
+    protocol is kept and nothing runs ("aborted" ends the campaign)."""
+    true_peak_N: list[float] = []
+    planned = []
+
+    def runner(proto, n: int, log: Path) -> TrialResult:
+        if n > 1:
+            planned.append(proto)
+            return TrialResult("aborted", log, 0, 0, 0, 0.0, fault="planned only")
+        sim = {}
+
+        def on_start(trial, devices):
+            sim["rig"] = devices.rig
+            devices.rig.take_peak_force_N()
+
+        def on_tick(_snapshot):
+            true_peak_N.append(sim["rig"].take_peak_force_N())
+
+        return run_trial(proto, cfg, RunOptions(speed=0, progress=False, log_path=log, on_start=on_start,
+                                                on_tick=on_tick), warn=lambda _: None)
+
+    camp = characterize(Request("scaled", cfg, tmp_path, max_trials=2, speed=0, say=lambda _: None,
+                                runner=runner, **more))
+    return camp, max(true_peak_N), planned
+
+
+@pytest.mark.parametrize("scale", [0.1, 1.0, 10.0])
+def test_the_first_trial_respects_a_specimen_of_unknown_stiffness(scale, tmp_path):
+    """On specimens 0.1x, 1x and 10x the default's stiffness, the campaign's own first trial finds
+    the surface by force and loads by force to its budget: it completes, the force the tissue
+    carries stays under the budget (a quarter of the force limit), and the probe stays the margin
+    short of the end of travel. A designed second trial is planned the margin short of the end of
+    travel wherever its approach finds the surface, its predicted peak within the force margin,
+    and the journal says why each trial is its size. Before: the first trial was a position ramp to
+    two thirds of the travel, and on the stiffer specimen it faulted at 20.1 N; on the default one
+    the second went to 42.8 mm of the 45."""
+    cfg = _scaled(scale)
+    limit_N, far_mm = cfg.limits.max_force_N, cfg.limits.travel_mm[1]
+    margin_mm = 5.0
+    camp, true_peak_N, planned = _first_then_planned(tmp_path, cfg, travel_margin_mm=margin_mm)
+    first = camp.turns[0]
+    assert first.outcome == "completed", camp.reason
+    assert true_peak_N < 0.25 * limit_N, true_peak_N
+    log = read_log(first.log)
+    assert log.samples["force_N"].max() < 0.25 * limit_N
+    assert log.position_mm(Frame.SLIDER).max() <= far_mm - margin_mm + 0.05
+    assert "approach" in log.step_kind and "ramp_force" in log.step_kind
+    events = _events(camp.journal)
+    trials = [e for e in events if e["event"] == "trial"]
+    assert trials[0]["sizing"]["force_budget_N"] == 0.25 * limit_N and "force budget 5 N" in trials[0]["size"]
+    if scale >= 1.0:  # a tissue ten times softer is not described within the catalogue's contact offset
+        assert planned, camp.reason
+    for proto in planned:
+        steps = proto.steps
+        assert isinstance(steps[0], Approach) and isinstance(steps[-1], Return) and steps[-1].to_mm is None
+        # the rig's own check, with the travel ending the margin early: the deepest point counted
+        # from the far end of the approach's search
+        tight = RigConfig()
+        tight.limits.travel_mm = (cfg.limits.travel_mm[0], far_mm - margin_mm)
+        check_limits(proto, tight)
+        sizing = trials[1]["sizing"]
+        assert sizing["predicted_peak_N"] <= 0.8 * limit_N
+        assert sizing["deepest_mm"] <= far_mm - margin_mm
+        assert proto.limits.max_force_N <= limit_N
+        assert "mm short of the end of travel (5 mm kept)" in trials[1]["size"]
+
+
+def test_a_campaign_refuses_margins_it_cannot_meet(tmp_path):
+    for more, message in (({"first_force_share": 0.0}, "first_force_share 0: expected a share"),
+                          ({"force_margin_share": 1.5}, "force_margin_share 1.5: expected a share"),
+                          ({"travel_margin_mm": 50.0}, "travel_margin_mm 50 leaves no travel"),
+                          ({"first_force_share": 0.01}, "budget, 0.2 N, is too small")):
+        with pytest.raises(RigError, match=message):
+            characterize(Request("x", RigConfig(), tmp_path / "never", speed=0, say=lambda _: None, **more))
+    assert not (tmp_path / "never").exists()  # refused before the journal, before anything moved

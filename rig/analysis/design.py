@@ -14,7 +14,10 @@ separate anything, however far apart the two predictions were).
 
 Every candidate is a protocol in the rig's own format, checked against the rig's limits as
 `rig run` checks it, and kept only if both models predict a peak force within the force
-limit with a margin. Depths are measured from the zero the analysis took as contact.
+limit with a margin. Depths are measured from the zero the analysis took as contact. A
+campaign (`rig characterize`) narrows where a candidate may go (`Room`): a margin from the end
+of the travel and from the force limit, and an approach that finds the surface first, as its
+first trial's did, with the return to the start position after.
 """
 
 from __future__ import annotations
@@ -35,7 +38,8 @@ from rig.specs.config import RigConfig
 from rig.specs.motion import sample_move
 from rig.specs.protocol import check_limits, parse_protocol, plan
 
-FORCE_MARGIN = 1.25  # a candidate's predicted peak force, times this, must stay within the limit
+FORCE_SHARE = 0.8  # a candidate's predicted peak force at most this share of the force limit
+TRAVEL_SHARE = 0.95  # `rig analyze --design`: a candidate no deeper than this share of the travel left
 MAX_DURATION = 2.0  # a candidate may take at most this many times the longest trial given
 CHECKED = 12  # leaders by predicted difference that are refitted the hard way
 SCREEN_SAMPLES = 1500  # per trial, for the refits (the effects live on time scales of many samples)
@@ -90,6 +94,31 @@ class Design:
                 "refused": self.refused}
 
 
+@dataclass(frozen=True)
+class ApproachFirst:
+    """An `approach` step at the start of a designed trial (SI, force in N)."""
+
+    speed_m_s: float
+    contact_N: float
+    max_m: float
+
+
+@dataclass(frozen=True)
+class Room:
+    """Where a designed trial may go (SI). `depth_m`: the deepest point below the trial's zero;
+    `force_share`: the predicted peak force at most this share of the force limit. With
+    `approach` every candidate starts by finding the surface as the trials it is designed from
+    did (their depths are from that zero, so the candidate's must be too), from `surface_m`
+    above it where those trials found it, and ends with the return to the start position at
+    `home_m_s` (a probe left at the surface would start the next trial's approach in contact)."""
+
+    depth_m: float
+    force_share: float = FORCE_SHARE
+    approach: ApproachFirst | None = None
+    surface_m: float = 0.0
+    home_m_s: float = 0.0
+
+
 # ------------------------------------------------------------------ the alternatives
 
 def alternatives(ex: Explanation, pair: list[str]) -> tuple[FitResult, FitResult]:
@@ -132,8 +161,9 @@ def shape_of(trials: list[TrialData]) -> Shape:
 
 
 def candidate_steps(s: Shape, max_speed_m_s: float, max_depth_m: float) -> list[Candidate]:
-    """Protocols that vary what the trials given did not (depths, speeds in m, m/s)."""
-    D, V, R = s.depth_m, s.speed_m_s, min(s.return_m_s, max_speed_m_s)
+    """Protocols that vary what the trials given did not (depths, speeds in m, m/s), none deeper
+    than `max_depth_m` (trials given deeper than that are taken as reaching it)."""
+    D, V, R = min(s.depth_m, max_depth_m), s.speed_m_s, min(s.return_m_s, max_speed_m_s)
     H = s.hold_s if s.hold_s > 0 else D / V  # without a hold, one as long as the ramp
     deep = min(1.5 * D, max_depth_m)
     out: list[Candidate] = []
@@ -194,6 +224,11 @@ def protocol_text(c: Candidate, name: str, limits_N: float | None, comment: list
             lines.append(f"  - ramp:   {{to_mm: {_mm(p['to'])}, speed_mm_s: {_mm(p['speed'])}}}")
         elif kind == "hold":
             lines.append(f"  - hold:   {{duration_s: {_num(p['s'])}}}")
+        elif kind == "approach":
+            lines.append(f"  - approach: {{speed_mm_s: {_mm(p['speed'])}, contact_N: {_num(p['contact_N'])}, "
+                         f"max_mm: {_mm(p['max'])}}}")
+        elif kind == "home":  # to the start position
+            lines.append(f"  - return: {{speed_mm_s: {_mm(p['speed'])}}}")
         else:
             lines.append(f"  - return: {{to_mm: {_mm(p['to'])}, speed_mm_s: {_mm(p['speed'])}}}")
     if limits_N is not None:
@@ -202,16 +237,20 @@ def protocol_text(c: Candidate, name: str, limits_N: float | None, comment: list
 
 
 def _trial(c: Candidate, config: RigConfig) -> TrialData:
-    """The candidate's commanded motion at the loop rate, as the models see a trial."""
+    """The candidate's commanded motion at the loop rate, as the models see a trial: from the
+    surface, an approach's way to it from the start position (where the trials given found it)
+    negative, as their own records have it."""
     rate, accel = config.loop.rate_Hz, config.slider.accel_mm_s2
-    pos, segs, kinds = 0.0, [np.zeros(round(config.loop.tare_s * rate) + 1)], ["rest"]
+    pos = -1000.0 * c.steps[0][1]["from"] if c.steps and c.steps[0][0] == "approach" else 0.0
+    segs, kinds = [np.full(round(config.loop.tare_s * rate) + 1, pos)], ["rest"]
     for kind, p in c.steps:
         if kind == "hold":
             segs.append(np.full(max(round(p["s"] * rate), 1), pos))
         else:
-            target = p["to"] * 1000
+            target = 0.0 if kind == "approach" else p["to"] * 1000
             segs.append(sample_move(pos, target, p["speed"] * 1000, accel, rate))
-            kind = "ramp" if target > pos else "return"
+            if kind != "approach":
+                kind = "ramp" if target > pos else "return"
             pos = target
         kinds.append(kind)
     x_m = np.concatenate(segs) / 1000.0
@@ -234,13 +273,25 @@ def _trial(c: Candidate, config: RigConfig) -> TrialData:
 
 # ------------------------------------------------------------------ the design
 
-def rig_candidates(shape: Shape, config: RigConfig) -> list[Candidate]:
-    """`candidate_steps` within this rig's speed and travel (from the slider's start), each
-    with its commanded motion (`Candidate.trial`)."""
-    limits = config.limits
+def default_room(config: RigConfig) -> Room:
+    """`rig analyze --design`'s: TRAVEL_SHARE of the travel left from the slider's start, no
+    approach (depths from the zero the trials given were analysed from)."""
     start = config.sim.slider.start_mm if config.slider.backend == "sim" else 0.0
-    room_m = 0.95 * (limits.travel_mm[1] - start) / 1000.0  # the deepest a candidate may go
-    out = candidate_steps(shape, limits.max_speed_mm_s / 1000.0, room_m)
+    return Room(TRAVEL_SHARE * (config.limits.travel_mm[1] - start) / 1000.0)
+
+
+def rig_candidates(shape: Shape, config: RigConfig, room: Room | None = None) -> list[Candidate]:
+    """`candidate_steps` within this rig's speed and travel (from the slider's start) and within
+    `room` (default: `default_room`), each with its commanded motion (`Candidate.trial`)."""
+    room = room or default_room(config)
+    out = candidate_steps(shape, config.limits.max_speed_mm_s / 1000.0, room.depth_m)
+    if room.approach is not None:
+        a = room.approach
+        first = ("approach", {"speed": a.speed_m_s, "contact_N": a.contact_N, "max": a.max_m,
+                              "from": room.surface_m})
+        home = ("home", {"speed": room.home_m_s, "to": -room.surface_m})
+        for c in out:
+            c.steps = [first, *c.steps, home]
     for c in out:
         c.trial = _trial(c, config)
     return out
@@ -280,24 +331,29 @@ def slowed(c: Candidate, seconds: float, config: RigConfig, slowest_m_s: float =
     return None
 
 
-def inadmissible(c: Candidate, peak_N: float, config: RigConfig) -> str:
+def inadmissible(c: Candidate, peak_N: float, config: RigConfig, room: Room | None = None) -> str:
     """Why the candidate may not be run on this rig ("" when it may): its protocol beyond a
-    limit (as `rig run` checks it), or its predicted peak force within FORCE_MARGIN of the force
-    limit."""
+    limit (as `rig run` checks it), deeper than `room` allows, or its predicted peak force above
+    the room's share of the force limit."""
+    room = room or default_room(config)
     try:
         check_limits(parse_protocol(protocol_text(c, c.name, None, []), c.name), config)
     except LimitError as exc:
         return str(exc)
-    if peak_N * FORCE_MARGIN > config.limits.max_force_N:
-        return (f"{c.name}: predicted peak {peak_N:.3g} N, within {FORCE_MARGIN:g}x of the force limit "
+    deepest_m = max((p["to"] for k, p in c.steps if k == "ramp"), default=0.0)
+    if deepest_m > room.depth_m * (1 + 1e-9):
+        return f"{c.name}: to {_mm(deepest_m)} mm, past the {_mm(room.depth_m)} mm the travel leaves"
+    if peak_N > room.force_share * config.limits.max_force_N:
+        return (f"{c.name}: predicted peak {peak_N:.3g} N, above {room.force_share:g} of the force limit "
                 f"{config.limits.max_force_N:g} N")
     return ""
 
 
 def design(ex: Explanation, config: RigConfig | None = None,
-           max_duration_s: float | None = None) -> Design | None:
+           max_duration_s: float | None = None, room: Room | None = None) -> Design | None:
     """The protocol that best separates the first look-alike pair, or None without one;
-    `max_duration_s`: the specimen time left for it (a campaign's budget)."""
+    `max_duration_s`: the specimen time left for it, `room`: where it may go (a campaign's budget
+    and margins; default `default_room`)."""
     if not ex.lookalikes:
         return None
     config = config or RigConfig()
@@ -308,7 +364,7 @@ def design(ex: Explanation, config: RigConfig | None = None,
     shape = shape_of(trials)
     limits = config.limits
     cands, refused = [], []
-    for c in rig_candidates(shape, config):
+    for c in rig_candidates(shape, config, room):
         duration = float(c.trial.motion.t_s[-1])
         if duration > MAX_DURATION * shape.duration_s:
             refused.append(f"{c.name}: {duration:.0f} s, over {MAX_DURATION:g}x the trials given")
@@ -319,7 +375,7 @@ def design(ex: Explanation, config: RigConfig | None = None,
         pa, pb = a.model.predict(a.values, c.trial.motion), b.model.predict(b.values, c.trial.motion)
         c.predictions = (pa, pb)
         c.peak_N = float(max(np.max(pa), np.max(pb)))
-        why = inadmissible(c, c.peak_N, config)
+        why = inadmissible(c, c.peak_N, config, room)
         if why:
             refused.append(why)
             continue
@@ -370,10 +426,16 @@ def _effect_of(wrong: FitResult, truth: FitResult) -> str:
     return f"the model without {lacks[0]}" if lacks else wrong.model.name
 
 
+def trial_limit_N(peak_N: float, force_limit_N: float) -> float:
+    """A designed trial's own force limit: about twice its predicted peak (a specimen far stiffer
+    than its fitted model faults there, not at the rig's limit), never above the rig's."""
+    return min(force_limit_N, max(math.ceil(2 * peak_N), 1))
+
+
 def design_yaml(d: Design, force_limit_N: float) -> str:
     b = d.best
     x, y = d.effects
-    limit = min(force_limit_N, max(math.ceil(2 * b.peak_N), 1))
+    limit = trial_limit_N(b.peak_N, force_limit_N)
     comment = [f"Designed by rig analyze --design to tell {x} from {y} (look-alikes on the trials given).",
                f"Predicted with both fitted models: they differ by {b.difference_N:.3g} N RMS on this trial "
                f"({b.difference_N / d.noise_N:.1f}x the noise, {d.noise_N:.3g} N);",

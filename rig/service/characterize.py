@@ -1,7 +1,10 @@
 """A specimen characterised by the rig itself: run a trial, fit every trial so far jointly,
 diagnose, choose the next trial, until the model is right and its parameters are determined.
 
-    start     the protocol given, or an exploratory ramp-hold inside the rig's limits
+    start     the protocol given, or a first look that respects a specimen of unknown stiffness:
+              the surface found by force at an approach's pace, then a force-controlled ramp to
+              a budget (a share of the force limit) no deeper than half the travel left, a hold,
+              and back to the start position
     each turn run the trial (an ordinary trial: every limit, stop and estop as for `rig run`);
               fit the model to every trial so far; add what the diagnosis names (`--auto`'s
               stepwise selection); then decide:
@@ -18,8 +21,11 @@ diagnose, choose the next trial, until the model is right and its parameters are
 Every decision goes to a journal (JSON lines, beside the trial logs): what was fitted, what was
 suspected, which protocols were considered and why one was chosen. Candidates come from the
 same generator `--design` uses (other speeds, depths, holds, staircases, cycles, a triangle
-wave at depth), each checked against the rig's limits and the specimen's force budget before
-it is considered.
+wave at depth), each checked against the rig's limits before it is considered and kept a
+margin from the end of the travel and from the force limit (its predicted peak at most a share
+of it); after a first trial that found the surface, each starts by finding it the same way (its
+depths are from there) and ends back at the start position. The journal says, trial by trial,
+why its size is what it is.
 """
 
 from __future__ import annotations
@@ -37,14 +43,18 @@ import numpy as np
 
 from rig.analysis.analyze import load_inputs
 from rig.analysis.design import (
+    FORCE_SHARE,
     SLOWEST,
+    ApproachFirst,
     Candidate,
+    Room,
     design,
     inadmissible,
     protocol_text,
     rig_candidates,
     shape_of,
     slowed,
+    trial_limit_N,
 )
 from rig.analysis.explain import Explanation, auto, explain
 from rig.analysis.fit import FitResult, fit
@@ -54,7 +64,8 @@ from rig.models.catalogue import build_model
 from rig.records import ReadOptions
 from rig.service.run import RunOptions, run_trial
 from rig.specs.config import RigConfig
-from rig.specs.protocol import Protocol, check_limits, parse_protocol, plan
+from rig.specs.frames import Frame
+from rig.specs.protocol import FORCE_SETPOINT_SHARE, Approach, Protocol, check_limits, parse_protocol, plan
 
 TARGET_RSE = 0.05
 MAX_TRIALS = 6
@@ -64,6 +75,26 @@ SEPARATES = 2.0  # a designed trial must leave the wrong model this many noise l
 TRIAL_MARGIN_S = 5.0  # a trial's tare and settling beyond its candidate's motion
 INFORMATION_GAIN = 0.9  # a candidate must bring the largest relative error below this share of today's
 
+# The first trial knows nothing of the specimen: a position ramp to a fixed depth that is gentle on
+# the default tissue drives one ten times stiffer to the force limit (20.1 N, a fault, on trial 1).
+# So it finds the surface by force and loads by force, to a budget.
+FIRST_FORCE_SHARE = 0.25  # the first trial's force budget, a share of the force limit
+FORCE_MARGIN_SHARE = FORCE_SHARE  # a designed trial's predicted peak force, at most this share of the limit
+TRAVEL_MARGIN_MM = 5.0  # no trial planned closer than this to the far end of the travel
+APPROACH_SPEED_SHARE = 0.05  # of the speed limit: the approach's pace (the force loop's own seek speed)
+CONTACT_SIGMAS = 3.0  # the approach's contact threshold, in the load cell's expected noise
+FIRST_SPEED_SHARE = 0.15  # of the speed limit: the first trial's own speed limit (the force loop's too)
+FIRST_RAMP_S = 45.0  # the first trial's force ramp, from contact to its setpoint
+OVERSHOOT_SHARE = 0.05  # the force loop's overshoot at most (its own target)
+PEAK_SIGMAS = 5.0  # a reading this many times the cell's noise above the force is not a fault
+FIRST_HOLD_S = 30.0
+# a later trial's approach searches this much past the deepest surface found so far (on the
+# simulated rig the contact moved by up to 1.3 mm from seed to seed, 17-19 mm deep on a tissue ten
+# times softer than the default, 0.4-0.5 mm on one a hundred times stiffer)
+SURFACE_SLACK_MM = 2.0
+SURFACE_SLACK_SHARE = 0.25
+MIN_DEPTH_MM = 1.0  # a designed trial needs at least this much travel past the surface
+
 
 @dataclass
 class Turn:
@@ -71,6 +102,7 @@ class Turn:
 
     protocol: str
     why: str
+    size: str = ""  # why the trial is as deep and as forceful as it is
     log: str = ""
     outcome: str = ""
     model: str = ""
@@ -94,6 +126,11 @@ class Campaign:
     journal: Path | None = None
     elapsed_s: float = 0.0  # specimen time: the trials and the rests between them
     trial_ended: float | None = None  # time.monotonic() when the last trial ended
+    # the first trial's approach, which every designed trial repeats (None: the first had none, and
+    # its depths, like theirs, are from the start position); the surfaces found, mm below the start
+    approach: Approach | None = None
+    surfaces_mm: list[float] = field(default_factory=list)
+    start_mm: float | None = None  # where the trials start (and end), slider coordinates, as logged
 
     def summary(self) -> dict:
         out = {"specimen": self.specimen, "status": self.status, "reason": self.reason,
@@ -120,6 +157,9 @@ class Request:
     budget_min: float = BUDGET_MIN
     target_rse: float = TARGET_RSE
     rest_s: float = REST_S
+    first_force_share: float = FIRST_FORCE_SHARE  # the first trial's force budget, of the force limit
+    force_margin_share: float = FORCE_MARGIN_SHARE  # a designed trial's predicted peak, of the force limit
+    travel_margin_mm: float = TRAVEL_MARGIN_MM  # kept from the far end of the travel by every trial planned
     speed: float = 1.0
     seed_per_trial: bool = True  # the simulated rig: a new noise draw for every trial
     say: Callable[[str], None] = print
@@ -149,19 +189,105 @@ def _tissue_params(f: FitResult) -> list[str]:
     return [p.name for p in f.model.params if p.name.partition("@")[0] not in own]
 
 
-def exploratory(config: RigConfig) -> str:
-    """A ramp-hold-return well inside the limits: two thirds of the travel at 15 % of the speed
-    limit, a 30 s hold, the return at half the speed limit."""
-    lim = config.limits
-    start = config.sim.slider.start_mm if config.slider.backend == "sim" else 0.0
-    depth = round(2.0 / 3.0 * (lim.travel_mm[1] - start), 1)
-    speed = round(0.15 * lim.max_speed_mm_s, 2)
-    back = round(0.5 * lim.max_speed_mm_s, 2)
-    return ("name: exploratory ramp-hold\ndescription: >-\n  the campaign's first look at the specimen: one "
-            "ramp, a hold, the return\nsteps:\n"
-            f"  - ramp:   {{to_mm: {depth:g}, speed_mm_s: {speed:g}}}\n"
-            "  - hold:   {duration_s: 30}\n"
-            f"  - return: {{to_mm: 0, speed_mm_s: {back:g}}}\n")
+@dataclass
+class Sized:
+    """A trial's protocol text, why it was chosen, and why it is the size it is (in words and in
+    figures, for the journal)."""
+
+    text: str
+    why: str
+    size: str
+    figures: dict = field(default_factory=dict)
+
+
+def _start_mm(config: RigConfig) -> float:
+    return config.sim.slider.start_mm if config.slider.backend == "sim" else 0.0
+
+
+def _far_mm(req: Request) -> float:
+    """The deepest a trial may be planned to go, in slider coordinates."""
+    return req.config.limits.travel_mm[1] - req.travel_margin_mm
+
+
+def check_request(req: Request) -> None:
+    """Refuse margins and budgets that cannot be met, before anything moves."""
+    if not 0.0 < req.first_force_share <= 1.0:
+        raise RigError(f"first_force_share {req.first_force_share:g}: expected a share of the force limit "
+                       "in (0, 1]")
+    if not 0.0 < req.force_margin_share <= 1.0:
+        raise RigError(f"force_margin_share {req.force_margin_share:g}: expected a share of the force limit in "
+                       "(0, 1]")
+    if not (math.isfinite(req.travel_margin_mm) and req.travel_margin_mm >= 0.0):
+        raise RigError(f"travel_margin_mm {req.travel_margin_mm:g}: expected a finite distance >= 0 mm")
+    room = _far_mm(req) - _start_mm(req.config)
+    if room <= 0.0:
+        raise RigError(f"travel_margin_mm {req.travel_margin_mm:g} leaves no travel: the slider starts at "
+                       f"{_start_mm(req.config):g} mm and the travel ends at "
+                       f"{req.config.limits.travel_mm[1]:g} mm")
+
+
+def _down(x: float) -> float:
+    """`x` rounded down to three significant digits (a setpoint written never above its share)."""
+    if x <= 0.0:
+        return x
+    step = 10.0 ** (math.floor(math.log10(x)) - 2)
+    return math.floor(x / step * (1 + 1e-12)) * step
+
+
+def _g(x: float) -> str:
+    """A number for a protocol file: at most four significant digits, never in exponent form (YAML
+    would read 1e-05 as text)."""
+    return np.format_float_positional(float(f"{x:.4g}"), trim="-")
+
+
+def first_look(req: Request) -> Sized:
+    """The first trial when none is given, safe on a specimen of any stiffness: the surface found
+    by force at an approach's pace (the contact threshold CONTACT_SIGMAS times the cell's noise),
+    then a force-controlled ramp to a budget (`first_force_share` of the force limit, and the
+    trial's own force limit; the setpoint below it by the loop's overshoot and the cell's noise),
+    never deeper than what the approach left of the travel, under a speed limit of its own; a hold
+    at that depth (the relaxation) and back to the start position.
+
+    Half the travel left (the far end less `travel_margin_mm`) to each of the approach and the
+    ramp: a soft specimen's surface is found deep (at 3x the noise, 17-19 mm below where a tissue
+    ten times softer than the default begins), and the check before the trial must find the
+    deepest point inside the travel wherever the surface turns out to be."""
+    cfg = req.config
+    lim = cfg.limits
+    start = _start_mm(cfg)
+    room = _far_mm(req) - start
+    half = math.floor(10.0 * room / 2.0) / 10.0
+    budget = req.first_force_share * lim.max_force_N
+    noise = cfg.estimator.noise_N
+    # the budget is the trial's own force limit, checked on every reading: the setpoint leaves room
+    # for the loop's overshoot (OVERSHOOT_SHARE) and a reading PEAK_SIGMAS of the noise high on top
+    setpoint = _down(min(FORCE_SETPOINT_SHARE * budget, (budget - PEAK_SIGMAS * noise) / (1 + OVERSHOOT_SHARE)))
+    contact = CONTACT_SIGMAS * noise
+    if contact >= setpoint:
+        raise RigError(f"first_force_share {req.first_force_share:g}: the first trial's budget, "
+                       f"{budget:.3g} N, is too small: its force ramp must end above the approach's contact "
+                       f"threshold ({contact:.3g} N, {CONTACT_SIGMAS:g}x the load cell's noise) and below the "
+                       f"budget by the loop's overshoot and {PEAK_SIGMAS:g}x the noise")
+    cap = FIRST_SPEED_SHARE * lim.max_speed_mm_s
+    approach = min(APPROACH_SPEED_SHARE * lim.max_speed_mm_s, cap)
+    rate = setpoint / FIRST_RAMP_S
+    text = ("name: first look\ndescription: >-\n  the campaign's first look at the specimen: the surface found "
+            "by force, a force-controlled ramp to a budget, a hold, back to the start\nsteps:\n"
+            f"  - approach:   {{speed_mm_s: {_g(approach)}, contact_N: {_g(contact)}, max_mm: {_g(half)}}}\n"
+            f"  - ramp_force: {{to_N: {_g(setpoint)}, rate_N_s: {_g(rate)}, max_mm: {_g(half)}}}\n"
+            f"  - hold:       {{duration_s: {_g(FIRST_HOLD_S)}}}\n"
+            f"  - return:     {{speed_mm_s: {_g(cap)}}}\n"
+            f"limits: {{max_force_N: {_g(budget)}, max_speed_mm_s: {_g(cap)}}}\n")
+    size = (f"force budget {budget:.3g} N ({req.first_force_share:g} of the {lim.max_force_N:g} N limit, the "
+            f"trial's own limit): the surface found at {contact:.3g} N ({CONTACT_SIGMAS:g}x the noise) within "
+            f"{half:g} mm, a force ramp to {setpoint:.3g} N at most {half:g} mm past it and {cap:g} mm/s: "
+            f"at most {start + 2 * half:g} mm, {lim.travel_mm[1] - start - 2 * half:g} mm short of the end of "
+            "travel")
+    figures = {"force_budget_N": budget, "first_force_share": req.first_force_share, "setpoint_N": setpoint,
+               "contact_N": contact, "approach_max_mm": half, "force_max_mm": half, "speed_limit_mm_s": cap,
+               "deepest_mm": start + 2 * half, "travel_end_mm": lim.travel_mm[1],
+               "travel_margin_mm": req.travel_margin_mm}
+    return Sized(text, "exploratory: the first look, by force within a budget", size, figures)
 
 
 class Journal:
@@ -192,30 +318,36 @@ def _plain(o):
 
 
 def characterize(req: Request) -> Campaign:
+    check_request(req)
+    if req.first or req.first_text:
+        text = req.first_text or Path(req.first).read_text()
+        first = Sized(text, f"given ({req.first or 'with the request'})", "as given")
+    else:
+        first = first_look(req)  # refused here, before the journal
     camp = Campaign(req.specimen)
     stamp = time.strftime("%Y%m%d-%H%M%S")
     camp.journal = req.out_dir / f"characterize-{req.specimen}-{stamp}.jsonl"
     journal = Journal(camp.journal, req.on_event)
     journal.write("start", journal=str(camp.journal), specimen=req.specimen, model=req.model,
                   indenter=req.indenter, target_rse=req.target_rse, max_trials=req.max_trials,
-                  budget_min=req.budget_min, limits=vars(req.config.limits))
+                  budget_min=req.budget_min, first_force_share=req.first_force_share,
+                  force_margin_share=req.force_margin_share, travel_margin_mm=req.travel_margin_mm,
+                  limits=vars(req.config.limits))
     try:
-        _run(req, camp, journal)
+        _run(req, camp, journal, first)
     finally:
         journal.write("end", status=camp.status, reason=camp.reason, summary=camp.summary())
         journal.close()
     return camp
 
 
-def _run(req: Request, camp: Campaign, journal: Journal) -> None:
-    text = req.first_text or (Path(req.first).read_text() if req.first else exploratory(req.config))
-    why = (f"given ({req.first or 'with the request'})" if req.first or req.first_text else
-           "exploratory: the first look inside the rig's limits")
+def _run(req: Request, camp: Campaign, journal: Journal, nxt: Sized) -> None:
     logs: list[str] = []
     model_name, extra = req.model, []
     last: FitResult | None = None
     budget_s = 60.0 * req.budget_min
     while True:
+        text, why = nxt.text, nxt.why
         proto = parse_protocol(text, "<campaign>")
         check_limits(proto, req.config)
         duration = plan(proto, req.config).duration_s
@@ -238,10 +370,12 @@ def _run(req: Request, camp: Campaign, journal: Journal) -> None:
             journal.write("decision", kind="stopped", why=camp.reason)
             break
         camp.elapsed_s += rest
-        turn = Turn(proto.name, why)
+        turn = Turn(proto.name, why, nxt.size)
         camp.turns.append(turn)
-        journal.write("trial", n=len(camp.turns), protocol=proto.name, why=why, yaml=text, duration_s=duration)
+        journal.write("trial", n=len(camp.turns), protocol=proto.name, why=why, size=nxt.size,
+                      sizing=nxt.figures, yaml=text, duration_s=duration)
         req.say(f"trial {len(camp.turns)}: {proto.name} ({duration:.0f} s): {why}")
+        req.say(f"  size: {nxt.size}")
         result = _one_trial(req, proto, len(camp.turns))
         camp.elapsed_s += result.duration_s
         camp.trial_ended = time.monotonic()
@@ -254,6 +388,11 @@ def _run(req: Request, camp: Campaign, journal: Journal) -> None:
                            + (f": {result.fault}" if result.fault else "") + "; the campaign stops with it")
             break
         logs.append(str(result.log_path))
+        if len(camp.turns) == 1:
+            camp.approach = next((st for st in proto.steps if isinstance(st, Approach)), None)
+        camp.start_mm, surface_mm = _frames_of(result.log_path)
+        if camp.approach is not None:
+            camp.surfaces_mm.append(surface_mm)
         last, ex, extra = _fit_all(req, logs, model_name, extra, last, turn, journal)
         camp.final = last
         req.say(f"  {turn.model}: RMSE {turn.rmse_over_noise:.2f}x the noise, "
@@ -262,7 +401,15 @@ def _run(req: Request, camp: Campaign, journal: Journal) -> None:
         nxt = _decide(req, last, ex, turn, journal, camp)
         if nxt is None:
             break
-        text, why = nxt
+
+
+def _frames_of(log_path: Path) -> tuple[float, float]:
+    """Where the trial started (slider coordinates) and where its approach found the surface,
+    mm from there (0 without an approach)."""
+    from rig.recording.logs import read_log
+
+    frames = read_log(log_path).frames.frames
+    return frames.start_mm, frames.zero_mm(Frame.SURFACE) - frames.start_mm
 
 
 def _one_trial(req: Request, proto, n: int):
@@ -289,7 +436,11 @@ def _warn_once(req: Request, text: str) -> None:
 
 def _fit_all(req: Request, logs: list[str], model_name: str, extra: list[str], last: FitResult | None,
              turn: Turn, journal: Journal) -> tuple[FitResult, Explanation, list[str]]:
-    inp = load_inputs(logs, [], [], ReadOptions(), indenter=req.indenter)
+    # every sample in force form (the force predicted from the measured motion), as for a trial in
+    # position control: the first trial's force-controlled ramp is a ramp whose pace the specimen
+    # set. In creep form (the indentation predicted from the force) its fit on a specimen ten
+    # times softer than the default, whose ramp reached its max_mm, missed by 5.2x the noise.
+    inp = load_inputs(logs, [], [], ReadOptions(), indenter=req.indenter, form="force")
     model = build_model(model_name, extra, inp.registry)
     base = fit(model, inp.trials, initial=last.values if last is not None else None)
     steps = auto(base, inp.registry)
@@ -332,8 +483,62 @@ def _time_left(req: Request, camp: Campaign) -> float:
     return 60.0 * req.budget_min - camp.elapsed_s - _rest_before_next(req, camp)[0] - TRIAL_MARGIN_S
 
 
+def _room(req: Request, camp: Campaign, f: FitResult) -> tuple[Room, dict]:
+    """Where the next designed trial may go, and the figures that say why. After a first trial that
+    found the surface by force, a designed trial finds it the same way (its depths, as the fit's,
+    are from there), searching SURFACE_SLACK_MM or SURFACE_SLACK_SHARE past the deepest surface
+    found so far; the check before it runs counts its depths from the far end of that search,
+    so the deepest it may be planned to go from the surface is what is left of the travel (its end
+    less `travel_margin_mm`) past that. Its predicted peak force is at most `force_margin_share`
+    of the force limit. It goes back to the start position at the trials' return speed."""
+    cfg = req.config
+    start = camp.start_mm if camp.start_mm is not None else _start_mm(cfg)
+    far = _far_mm(req)
+    try:
+        home_m_s = min(shape_of(f.trials).return_m_s, cfg.limits.max_speed_mm_s / 1000.0)
+    except RigError:
+        home_m_s = 0.5 * cfg.limits.max_speed_mm_s / 1000.0
+    figures = {"start_mm": start, "travel_end_mm": cfg.limits.travel_mm[1],
+               "travel_margin_mm": req.travel_margin_mm, "force_margin_share": req.force_margin_share,
+               "force_limit_N": cfg.limits.max_force_N}
+    a = camp.approach
+    if a is None or not camp.surfaces_mm:
+        depth = far - start
+        figures.update(zero="the start position", depth_room_mm=depth)
+        return Room(depth / 1000.0, req.force_margin_share), figures
+    deepest = max(camp.surfaces_mm)
+    search = round(deepest + max(SURFACE_SLACK_MM, SURFACE_SLACK_SHARE * deepest), 1)
+    depth = far - start - search
+    figures.update(zero="the surface the approach finds", surfaces_found_mm=list(camp.surfaces_mm),
+                   approach_max_mm=search, depth_room_mm=depth)
+    approach = ApproachFirst(a.speed_mm_s / 1000.0, a.contact_N, search / 1000.0)
+    surface = float(np.mean(camp.surfaces_mm))
+    return Room(max(depth, 0.0) / 1000.0, req.force_margin_share, approach, surface / 1000.0, home_m_s), figures
+
+
+def _sized(req: Request, c: Candidate, peak_N: float, room: Room, figures: dict) -> tuple[float, str, dict]:
+    """A designed trial's own force limit, and why its size is what it is (words, figures)."""
+    cfg = req.config
+    limit = trial_limit_N(peak_N, cfg.limits.max_force_N)
+    deepest = 1000.0 * max((p["to"] for k, p in c.steps if k == "ramp"), default=0.0)
+    search = 1000.0 * room.approach.max_m if room.approach is not None else 0.0
+    # the deepest the check before the trial allows for: the surface at the far end of its search
+    lowest = figures.get("start_mm", _start_mm(cfg)) + search + deepest
+    found = figures.get("surfaces_found_mm") or [0.0]
+    seen = f"{found[0]:.1f}" if len(found) == 1 else f"{min(found):.1f}-{max(found):.1f}"
+    where = (f"{deepest:.1f} mm past the surface, which its approach seeks within {search:g} mm of the start "
+             f"(found at {seen} mm so far)" if room.approach is not None
+             else f"to {deepest:.1f} mm from the start position")
+    size = (f"{where}: at most {lowest:.1f} mm, {cfg.limits.travel_mm[1] - lowest:.1f} mm short of the end of "
+            f"travel ({req.travel_margin_mm:g} mm kept); predicted peak {peak_N:.3g} N (at most "
+            f"{req.force_margin_share:g} of the {cfg.limits.max_force_N:g} N limit); its own force limit "
+            f"{limit:g} N")
+    return limit, size, {**figures, "deepest_from_zero_mm": deepest, "deepest_mm": lowest,
+                         "predicted_peak_N": peak_N, "trial_force_limit_N": limit}
+
+
 def _decide(req: Request, f: FitResult, ex: Explanation, turn: Turn, journal: Journal,
-            camp: Campaign) -> tuple[str, str] | None:
+            camp: Campaign) -> Sized | None:
     if not ex.lookalikes and f.adequate and turn.max_rse <= req.target_rse:
         return _inform_or_stop(req, f, turn, journal, camp)  # done
     if not ex.lookalikes and not f.adequate:
@@ -349,10 +554,19 @@ def _decide(req: Request, f: FitResult, ex: Explanation, turn: Turn, journal: Jo
         journal.write("decision", kind="budget", why=why)
         camp.status, camp.reason = "budget", why
         return None
+    room, figures = _room(req, camp, f)
+    if room.depth_m < MIN_DEPTH_MM / 1000.0:
+        why = (f"{figures['depth_room_mm']:.1f} mm of travel left past the surface (the approach searching "
+               f"{figures.get('approach_max_mm', 0.0):g} mm from the start at {figures['start_mm']:g} mm, the "
+               f"travel ending at {figures['travel_end_mm']:g} mm less the {req.travel_margin_mm:g} mm "
+               "margin): no room for a designed trial")
+        journal.write("decision", kind="nothing better", why=why, sizing=figures)
+        camp.status, camp.reason = "nothing better", why
+        return None
     if ex.lookalikes:
         pair = ex.lookalikes[0]["effects"]
         try:
-            d = design(ex, req.config, max_duration_s=left)
+            d = design(ex, req.config, max_duration_s=left, room=room)
         except RigError as exc:
             journal.write("decision", kind="nothing better", why=str(exc))
             camp.status = "nothing better"
@@ -363,18 +577,19 @@ def _decide(req: Request, f: FitResult, ex: Explanation, turn: Turn, journal: Jo
                           separation_over_noise=(d.best.separation_N or 0.0) / d.noise_N,
                           why=f"the best protocol within the limits separates them by less than {SEPARATES:g}x "
                               "the noise: left as look-alikes")
-            return _inform_or_stop(req, f, turn, journal, camp)
+            return _inform_or_stop(req, f, turn, journal, camp, room, figures)
         journal.write("decision", kind="separate", effects=pair, protocol=d.best.name,
                       considered=[{"protocol": c.name, "separation_N": c.separation_N} for c in d.ranked[:12]],
                       refused=d.refused, why=d.best.why)
         miss = (d.best.separation_N or 0) / d.noise_N
-        return d.yaml, (f"separate {pair[0]} from {pair[1]}: {d.best.name} (the wrong model would still miss "
-                        f"it by {miss:.1f}x the noise)")
-    return _inform_or_stop(req, f, turn, journal, camp)
+        _, size, sizing = _sized(req, d.best, d.best.peak_N, room, figures)  # design_yaml sets the same limit
+        return Sized(d.yaml, f"separate {pair[0]} from {pair[1]}: {d.best.name} (the wrong model would still "
+                             f"miss it by {miss:.1f}x the noise)", size, sizing)
+    return _inform_or_stop(req, f, turn, journal, camp, room, figures)
 
 
 def _inform_or_stop(req: Request, f: FitResult, turn: Turn, journal: Journal,
-                    camp: Campaign) -> tuple[str, str] | None:
+                    camp: Campaign, room: Room | None = None, figures: dict | None = None) -> Sized | None:
     if turn.max_rse <= req.target_rse:
         journal.write("decision", kind="done", worst=turn.worst, max_rse=turn.max_rse,
                       why=f"adequate; every parameter within {100 * req.target_rse:g} %")
@@ -383,7 +598,9 @@ def _inform_or_stop(req: Request, f: FitResult, turn: Turn, journal: Journal,
                        f"(largest: {turn.worst}, {100 * turn.max_rse:.2f} %)")
         return None
     left = _time_left(req, camp)
-    best = _most_informative(req, f, journal, left, left / max(req.max_trials - len(camp.turns), 1))
+    if room is None:
+        room, figures = _room(req, camp, f)
+    best = _most_informative(req, f, journal, left, left / max(req.max_trials - len(camp.turns), 1), room)
     if best is None:
         camp.status = "nothing better"
         camp.reason = (f"no protocol within the limits and the budget left brings {turn.worst} "
@@ -392,15 +609,18 @@ def _inform_or_stop(req: Request, f: FitResult, turn: Turn, journal: Journal,
     c, after, so_far = best
     also = (f" ({100 * so_far:.1f} % if its samples are worth what the earlier trials' were)"
             if math.isfinite(so_far) else "")
-    text = protocol_text(c, f"inform {turn.worst}: {c.name}", req.config.limits.max_force_N,
+    limit, size, sizing = _sized(req, c, c.peak_N, room, figures or {})
+    text = protocol_text(c, f"inform {turn.worst}: {c.name}", limit,
                          [f"Chosen by rig characterize to narrow {turn.worst}: expected largest relative "
-                          f"error {100 * turn.max_rse:.2f} % -> {100 * after:.2f} %{also}."])
-    return text, (f"the largest relative error ({turn.worst}, {100 * turn.max_rse:.1f} %) is expected to fall "
-                  f"to {100 * after:.1f} % with {c.name}{also}")
+                          f"error {100 * turn.max_rse:.2f} % -> {100 * after:.2f} %{also}.",
+                          f"Size: {size}."])
+    return Sized(text, f"the largest relative error ({turn.worst}, {100 * turn.max_rse:.1f} %) is expected to "
+                       f"fall to {100 * after:.1f} % with {c.name}{also}", size, sizing)
 
 
 def _most_informative(req: Request, f: FitResult, journal: Journal, max_duration_s: float = math.inf,
-                      share_s: float = math.inf) -> tuple[Candidate, float, float] | None:
+                      share_s: float = math.inf, room: Room | None = None
+                      ) -> tuple[Candidate, float, float] | None:
     """The candidate protocol after which the largest relative standard error is smallest, from
     the fit's covariance and the candidate's Fisher information at the fitted values (white noise
     of the fit's level, discounted by the fit's own effective share of independent samples),
@@ -415,6 +635,8 @@ def _most_informative(req: Request, f: FitResult, journal: Journal, max_duration
     became 62 %; the calibrated forecast said 70 %. The choice is the white-noise one: on the two
     seeds where every candidate was run, its best three were the best three run, in order; the
     text gives both.
+    Candidates go only where `room` lets them (default: `rig analyze --design`'s); the one chosen
+    carries its predicted peak force (`Candidate.peak_N`).
     Returns (candidate, forecast, calibrated forecast)."""
     if f.covariance is None:
         return None
@@ -450,7 +672,7 @@ def _most_informative(req: Request, f: FitResult, journal: Journal, max_duration
         return max(se[i] / max(abs(values[i]), 1e-300) for i in keep) if keep else 0.0
 
     calibrate = _as_so_far(cov, share * sum(_gram(jacobian(t.motion)) for t in f.trials) / noise2)
-    cands = rig_candidates(shape_of(f.trials), req.config)
+    cands = rig_candidates(shape_of(f.trials), req.config, room)
     if math.isfinite(share_s):
         fill = min(share_s, max_duration_s)
         # never slower than a quarter of the first trial's speed: each trial could otherwise go a
@@ -462,9 +684,10 @@ def _most_informative(req: Request, f: FitResult, journal: Journal, max_duration
     for c in cands:
         m = c.trial.motion
         pred = f.model.predict(f.values, m)
+        c.peak_N = float(np.max(pred))
         duration = float(m.t_s[-1])
         why = (f"{c.name}: {duration:.0f} s, over the {max_duration_s:.0f} s the budget leaves"
-               if duration > max_duration_s else inadmissible(c, float(np.max(pred)), req.config))
+               if duration > max_duration_s else inadmissible(c, c.peak_N, req.config, room))
         if why:
             refused.append(why)
             continue
