@@ -155,7 +155,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def cmd_check(args: argparse.Namespace) -> int:
     from rig.specs.config import load_config
-    from rig.specs.protocol import load_protocol, plan
+    from rig.specs.protocol import FORCE_STEPS, load_protocol, plan
 
     config = load_config(args.config)
     proto = load_protocol(args.protocol, config)
@@ -181,6 +181,18 @@ def cmd_check(args: argparse.Namespace) -> int:
                    "max_protocol_steps": config.limits.max_protocol_steps},
         "excitation_order": order,
     }
+    # a force step's clock starts at contact: out of contact it first seeks the surface, at most
+    # to its max_mm, at the seek speed (each force step that does not follow another one)
+    seek_mm_s = config.force.seek_speed_share * limits.max_speed_mm_s
+    seek_s = 0.0
+    after_force = False
+    for _, step in proto.run_steps():
+        is_force = isinstance(step, FORCE_STEPS)
+        if is_force and not after_force:
+            seek_s += step.max_mm / seek_mm_s
+        after_force = is_force
+    if seek_s:
+        info["force_seek_up_to_s"] = round(seek_s, 1)
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
@@ -196,6 +208,9 @@ def cmd_check(args: argparse.Namespace) -> int:
     print(f"  steps     {' -> '.join(s.kind for s in proto.steps)}{repeats}")
     print(f"  duration  {bound}{p.duration_s:.1f} s (including {config.loop.tare_s:g} s tare)")
     print(f"  depths    {_depths_text(p)}   speeds {', '.join(f'{v:g}' for v in speeds) or '-'} mm/s")
+    if seek_s:
+        print(f"  force     steps timed from contact: seeking the surface at {seek_mm_s:g} mm/s adds up to "
+              f"{seek_s:.0f} s")
     print(f"  limits    force {limits.max_force_N:g} N, speed {limits.max_speed_mm_s:g} mm/s, "
           f"travel [{limits.travel_mm[0]:g}, {limits.travel_mm[1]:g}] mm")
     note = {0: "no motion: nothing is identifiable",

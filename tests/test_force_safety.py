@@ -317,3 +317,16 @@ def test_every_force_step_is_reported_in_the_log_the_snapshot_and_replay(tmp_pat
     assert 0 < hold["rms_over_noise"] < 1.5 and math.isfinite(hold["overshoot_share"])
     text = format_summary(summarize(read_log(trial.log_path)))
     assert "force step" in text and "hold_force 1.5 N" in text and "RMS error" in text, text
+
+
+def test_rig_check_says_a_force_step_may_first_seek_the_surface(tmp_path):
+    """The plan times a force step from contact; `rig check` says how long finding it may add."""
+    import subprocess
+    import sys
+
+    path = tmp_path / "far.yaml"
+    path.write_text("name: far\nsteps:\n  - hold_force: {force_N: 5, duration_s: 6, max_mm: 38}\n"
+                    "  - return: {speed_mm_s: 10}\n")
+    out = subprocess.run([sys.executable, "-m", "rig", "check", str(path)], capture_output=True, text=True,
+                         check=True).stdout
+    assert "seeking the surface at 0.5 mm/s adds up to 76 s" in out, out
