@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -110,13 +110,18 @@ class Room:
     `approach` every candidate starts by finding the surface as the trials it is designed from
     did (their depths are from that zero, so the candidate's must be too), from `surface_m`
     above it where those trials found it, and ends with the return to the start position at
-    `home_m_s` (a probe left at the surface would start the next trial's approach in contact)."""
+    `home_m_s` (a probe left at the surface would start the next trial's approach in contact).
+    `pace_m_s` and `return_m_s`, when given, are the ramp and return speeds the candidates are
+    built around instead of the trials' own (a force-controlled ramp's pace is the specimen's)."""
 
     depth_m: float
     force_share: float = FORCE_SHARE
     approach: ApproachFirst | None = None
     surface_m: float = 0.0
     home_m_s: float = 0.0
+    pace_m_s: float | None = None
+    return_m_s: float | None = None
+    max_peak_N: float | None = None  # the predicted peak force also at most this (a campaign's growth)
 
 
 # ------------------------------------------------------------------ the alternatives
@@ -284,6 +289,8 @@ def rig_candidates(shape: Shape, config: RigConfig, room: Room | None = None) ->
     """`candidate_steps` within this rig's speed and travel (from the slider's start) and within
     `room` (default: `default_room`), each with its commanded motion (`Candidate.trial`)."""
     room = room or default_room(config)
+    shape = replace(shape, speed_m_s=room.pace_m_s or shape.speed_m_s,
+                    return_m_s=room.return_m_s or shape.return_m_s)
     out = candidate_steps(shape, config.limits.max_speed_mm_s / 1000.0, room.depth_m)
     if room.approach is not None:
         a = room.approach
@@ -346,6 +353,8 @@ def inadmissible(c: Candidate, peak_N: float, config: RigConfig, room: Room | No
     if peak_N > room.force_share * config.limits.max_force_N:
         return (f"{c.name}: predicted peak {peak_N:.3g} N, above {room.force_share:g} of the force limit "
                 f"{config.limits.max_force_N:g} N")
+    if room.max_peak_N is not None and peak_N > room.max_peak_N:
+        return f"{c.name}: predicted peak {peak_N:.3g} N, above the {room.max_peak_N:.3g} N the room allows"
     return ""
 
 

@@ -65,7 +65,15 @@ from rig.records import ReadOptions
 from rig.service.run import RunOptions, run_trial
 from rig.specs.config import RigConfig
 from rig.specs.frames import Frame
-from rig.specs.protocol import FORCE_SETPOINT_SHARE, Approach, Protocol, check_limits, parse_protocol, plan
+from rig.specs.protocol import (
+    FORCE_SETPOINT_SHARE,
+    FORCE_STEPS,
+    Approach,
+    Protocol,
+    check_limits,
+    parse_protocol,
+    plan,
+)
 
 TARGET_RSE = 0.05
 MAX_TRIALS = 6
@@ -94,6 +102,10 @@ FIRST_HOLD_S = 30.0
 SURFACE_SLACK_MM = 2.0
 SURFACE_SLACK_SHARE = 0.25
 MIN_DEPTH_MM = 1.0  # a designed trial needs at least this much travel past the surface
+# a designed trial's predicted peak at most this times the largest force measured so far: the model
+# is trusted near what it was fitted to (one fitted to a first look's 4.6 N on a specimen ten times
+# stiffer than the default chose a trial predicted at 14.3 N next)
+GROWTH = 2.0
 
 
 @dataclass
@@ -130,6 +142,7 @@ class Campaign:
     # its depths, like theirs, are from the start position); the surfaces found, mm below the start
     approach: Approach | None = None
     surfaces_mm: list[float] = field(default_factory=list)
+    by_force: bool = False  # the first trial loaded under force control: its pace was the specimen's
     start_mm: float | None = None  # where the trials start (and end), slider coordinates, as logged
 
     def summary(self) -> dict:
@@ -390,6 +403,7 @@ def _run(req: Request, camp: Campaign, journal: Journal, nxt: Sized) -> None:
         logs.append(str(result.log_path))
         if len(camp.turns) == 1:
             camp.approach = next((st for st in proto.steps if isinstance(st, Approach)), None)
+            camp.by_force = any(isinstance(st, FORCE_STEPS) for st in proto.steps)
         camp.start_mm, surface_mm = _frames_of(result.log_path)
         if camp.approach is not None:
             camp.surfaces_mm.append(surface_mm)
@@ -490,22 +504,37 @@ def _room(req: Request, camp: Campaign, f: FitResult) -> tuple[Room, dict]:
     found so far; the check before it runs counts its depths from the far end of that search,
     so the deepest it may be planned to go from the surface is what is left of the travel (its end
     less `travel_margin_mm`) past that. Its predicted peak force is at most `force_margin_share`
-    of the force limit. It goes back to the start position at the trials' return speed."""
+    of the force limit and GROWTH times the largest force measured so far. It goes back to the
+    start position."""
     cfg = req.config
     start = camp.start_mm if camp.start_mm is not None else _start_mm(cfg)
     far = _far_mm(req)
+    fastest = cfg.limits.max_speed_mm_s / 1000.0
+    pace = back = None
+    if camp.by_force:
+        # the first trial's pace was what its force loop needed on this specimen (0.5 mm/s on the
+        # default one, 0.1-0.2 mm/s on stiffer ones, stopping and starting): the designs are built
+        # around its speed limit and return at half the speed limit, as after the position ramp
+        # that was the first trial before, and the predicted force keeps the stiff specimens' slow
+        pace, back = FIRST_SPEED_SHARE * fastest, 0.5 * fastest
     try:
-        home_m_s = min(shape_of(f.trials).return_m_s, cfg.limits.max_speed_mm_s / 1000.0)
+        home_m_s = min(back or shape_of(f.trials).return_m_s, fastest)
     except RigError:
-        home_m_s = 0.5 * cfg.limits.max_speed_mm_s / 1000.0
+        home_m_s = 0.5 * fastest
+    measured = max(float(np.max(t.force_N)) for t in f.trials)
+    grow = GROWTH * measured
     figures = {"start_mm": start, "travel_end_mm": cfg.limits.travel_mm[1],
                "travel_margin_mm": req.travel_margin_mm, "force_margin_share": req.force_margin_share,
-               "force_limit_N": cfg.limits.max_force_N}
+               "force_limit_N": cfg.limits.max_force_N, "largest_force_measured_N": measured,
+               "growth": GROWTH}
+    if pace is not None:
+        figures["pace_mm_s"] = 1000.0 * pace
     a = camp.approach
     if a is None or not camp.surfaces_mm:
         depth = far - start
         figures.update(zero="the start position", depth_room_mm=depth)
-        return Room(depth / 1000.0, req.force_margin_share), figures
+        return Room(depth / 1000.0, req.force_margin_share, pace_m_s=pace, return_m_s=back,
+                    max_peak_N=grow), figures
     deepest = max(camp.surfaces_mm)
     search = round(deepest + max(SURFACE_SLACK_MM, SURFACE_SLACK_SHARE * deepest), 1)
     depth = far - start - search
@@ -513,7 +542,8 @@ def _room(req: Request, camp: Campaign, f: FitResult) -> tuple[Room, dict]:
                    approach_max_mm=search, depth_room_mm=depth)
     approach = ApproachFirst(a.speed_mm_s / 1000.0, a.contact_N, search / 1000.0)
     surface = float(np.mean(camp.surfaces_mm))
-    return Room(max(depth, 0.0) / 1000.0, req.force_margin_share, approach, surface / 1000.0, home_m_s), figures
+    return Room(max(depth, 0.0) / 1000.0, req.force_margin_share, approach, surface / 1000.0, home_m_s,
+                pace, back, grow), figures
 
 
 def _sized(req: Request, c: Candidate, peak_N: float, room: Room, figures: dict) -> tuple[float, str, dict]:
@@ -529,10 +559,12 @@ def _sized(req: Request, c: Candidate, peak_N: float, room: Room, figures: dict)
     where = (f"{deepest:.1f} mm past the surface, which its approach seeks within {search:g} mm of the start "
              f"(found at {seen} mm so far)" if room.approach is not None
              else f"to {deepest:.1f} mm from the start position")
+    measured = figures.get("largest_force_measured_N")
+    grown = f" and {GROWTH:g}x the {measured:.3g} N measured so far" if measured is not None else ""
     size = (f"{where}: at most {lowest:.1f} mm, {cfg.limits.travel_mm[1] - lowest:.1f} mm short of the end of "
             f"travel ({req.travel_margin_mm:g} mm kept); predicted peak {peak_N:.3g} N (at most "
-            f"{req.force_margin_share:g} of the {cfg.limits.max_force_N:g} N limit); its own force limit "
-            f"{limit:g} N")
+            f"{req.force_margin_share:g} of the {cfg.limits.max_force_N:g} N limit{grown}); its own force "
+            f"limit {limit:g} N")
     return limit, size, {**figures, "deepest_from_zero_mm": deepest, "deepest_mm": lowest,
                          "predicted_peak_N": peak_N, "trial_force_limit_N": limit}
 
@@ -600,7 +632,13 @@ def _inform_or_stop(req: Request, f: FitResult, turn: Turn, journal: Journal,
     left = _time_left(req, camp)
     if room is None:
         room, figures = _room(req, camp, f)
-    best = _most_informative(req, f, journal, left, left / max(req.max_trials - len(camp.turns), 1), room)
+    share_s = left / max(req.max_trials - len(camp.turns), 1)
+    best, over_budget = _most_informative(req, f, journal, left, share_s, room)
+    if best is None and over_budget:
+        camp.status = "budget"
+        camp.reason = (f"no candidate protocol fits in the {max(left, 0.0):.0f} s of specimen time the "
+                       f"{req.budget_min:g} min budget leaves")
+        return None
     if best is None:
         camp.status = "nothing better"
         camp.reason = (f"no protocol within the limits and the budget left brings {turn.worst} "
@@ -620,7 +658,7 @@ def _inform_or_stop(req: Request, f: FitResult, turn: Turn, journal: Journal,
 
 def _most_informative(req: Request, f: FitResult, journal: Journal, max_duration_s: float = math.inf,
                       share_s: float = math.inf, room: Room | None = None
-                      ) -> tuple[Candidate, float, float] | None:
+                      ) -> tuple[tuple[Candidate, float, float] | None, bool]:
     """The candidate protocol after which the largest relative standard error is smallest, from
     the fit's covariance and the candidate's Fisher information at the fitted values (white noise
     of the fit's level, discounted by the fit's own effective share of independent samples),
@@ -637,9 +675,10 @@ def _most_informative(req: Request, f: FitResult, journal: Journal, max_duration
     text gives both.
     Candidates go only where `room` lets them (default: `rig analyze --design`'s); the one chosen
     carries its predicted peak force (`Candidate.peak_N`).
-    Returns (candidate, forecast, calibrated forecast)."""
+    Returns (candidate, forecast, calibrated forecast) or None, and whether every candidate was
+    refused for taking longer than `max_duration_s`."""
     if f.covariance is None:
-        return None
+        return None, False
     names = f.model.param_names
     keep = [names.index(n) for n in _tissue_params(f)]
     values = np.array([f.values[n] for n in names])
@@ -651,7 +690,7 @@ def _most_informative(req: Request, f: FitResult, journal: Journal, max_duration
     try:
         info_now = np.linalg.pinv(cov, rcond=1e-12, hermitian=True)
     except np.linalg.LinAlgError:
-        return None
+        return None, False
     n_all = sum(t.n for t in f.trials)
     share = min(max(f.n_eff / max(n_all, 1), 1e-6), 1.0)
     noise2 = max(f.noise_N, 1e-300) ** 2
@@ -678,14 +717,16 @@ def _most_informative(req: Request, f: FitResult, journal: Journal, max_duration
         # never slower than a quarter of the first trial's speed: each trial could otherwise go a
         # quarter slower than the slowest before it, and on a 30 min budget the ramps fell to
         # 0.12 mm/s, six-minute trials whose fits took four minutes each
-        floor = SLOWEST * _first_speed(f.trials)
+        floor = SLOWEST * (room.pace_m_s if room is not None and room.pace_m_s else _first_speed(f.trials))
         cands += [s for s in (slowed(c, fill, req.config, floor) for c in cands) if s is not None]
     scored, refused = [], []
+    over_time = 0
     for c in cands:
         m = c.trial.motion
         pred = f.model.predict(f.values, m)
         c.peak_N = float(np.max(pred))
         duration = float(m.t_s[-1])
+        over_time += duration > max_duration_s
         why = (f"{c.name}: {duration:.0f} s, over the {max_duration_s:.0f} s the budget leaves"
                if duration > max_duration_s else inadmissible(c, c.peak_N, req.config, room))
         if why:
@@ -704,9 +745,9 @@ def _most_informative(req: Request, f: FitResult, journal: Journal, max_duration
                   for r, q, c in scored[:12]]
     journal.write("decision", kind="inform", now=now, considered=considered, refused=refused)
     if not scored or scored[0][0] > INFORMATION_GAIN * now:
-        return None
+        return None, bool(cands) and over_time == len(cands)
     rse, so_far, c = scored[0]
-    return c, rse, so_far
+    return (c, rse, so_far), False
 
 
 def _first_speed(trials) -> float:

@@ -9,11 +9,16 @@
 - against the paper's fixed set (0.75, 1.5 and 3 mm/s to 30 mm, 60 s holds) on the same seeds,
   given the same specimen time: the campaign's largest relative error and its trials;
 - the compliance / cubic stiffening look-alike: the campaign runs a designed trial and its
-  final verdict has no look-alike left.
+  final verdict has no look-alike left;
+- specimens 0.1x to 100x the default's stiffness, three-trial campaigns: every trial ends without a
+  fault, the force the tissue carries (the simulator's) stays under the first trial's budget and
+  each designed trial's own limit, the slider the travel margin short of the end; predicted and
+  true peaks, and depths, printed trial by trial.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import time
@@ -25,9 +30,11 @@ from rig.analysis.analyze import load_inputs
 from rig.analysis.explain import auto, explain
 from rig.analysis.fit import fit
 from rig.models.catalogue import build_model
+from rig.recording.logs import read_log
 from rig.records import ReadOptions
 from rig.service.characterize import REST_S, Request, _rse, _tissue_params, characterize
-from rig.specs.config import parse_config
+from rig.specs.config import RigConfig, parse_config
+from rig.specs.frames import Frame
 from tests.conftest import PROTOCOLS, per_seed, run_sim
 
 SEEDS = [int(s) for s in os.environ.get("RIG_BENCH_SEEDS", "1,2,3,4,5").split(",")]
@@ -169,3 +176,65 @@ def test_the_campaign_separates_compliance_from_stiffening_by_itself(tmp_path):
     print(f"tied after the first trial in {tied} of {len(rows)} seeds; separated by the campaign in "
           f"{separated}")
     assert tied >= len(rows) - 1 and separated == tied
+
+
+STIFFNESS = [0.1, 1.0, 10.0, 100.0]
+
+
+def _scaled_campaign(seed: int, scale: float, out: str) -> dict:
+    """A three-trial campaign on a tissue `scale` times the default's stiffness (k1, k2, k3 and
+    tau2 scaled, as tests/test_force_control.py does), the simulator's true force watched."""
+    cfg = RigConfig()
+    for k in ("k1_N_per_m3", "k2_N_per_m2", "k3_N_per_m", "tau2_N_s_per_m2"):
+        setattr(cfg.sim.tissue, k, getattr(cfg.sim.tissue, k) * scale)
+    cfg.sim.seed = 100 * seed
+    peaks: dict[int, float] = {}
+
+    def options(n: int) -> dict:
+        sim = {}
+
+        def on_start(trial, devices):
+            sim["rig"] = devices.rig
+            devices.rig.take_peak_force_N()
+
+        def on_tick(_snapshot):
+            peaks[n] = max(peaks.get(n, 0.0), sim["rig"].take_peak_force_N())
+
+        return {"on_start": on_start, "on_tick": on_tick}
+
+    camp = characterize(Request(f"x{scale:g}-{seed}", cfg, Path(out) / f"x{scale:g}-{seed}", max_trials=3,
+                                speed=0, say=lambda _: None, trial_options=options))
+    events = [json.loads(line) for line in camp.journal.read_text().splitlines()]
+    planned = {e["n"]: e for e in events if e["event"] == "trial"}
+    rows = []
+    for n, turn in enumerate(camp.turns, 1):
+        log = read_log(turn.log)
+        sizing = planned[n]["sizing"]
+        rows.append({"n": n, "protocol": turn.protocol, "outcome": turn.outcome,
+                     "true_peak_N": peaks.get(n, 0.0), "predicted_N": sizing.get("predicted_peak_N"),
+                     "budget_N": sizing.get("force_budget_N"),
+                     "own_limit_N": sizing.get("trial_force_limit_N", sizing.get("force_budget_N")),
+                     "deepest_mm": float(log.position_mm(Frame.SLIDER).max()),
+                     "planned_deepest_mm": sizing["deepest_mm"]})
+    return {"seed": seed, "scale": scale, "status": camp.status, "reason": camp.reason, "rows": rows,
+            "limit_N": cfg.limits.max_force_N, "far_mm": cfg.limits.travel_mm[1] - 5.0}
+
+
+@pytest.mark.parametrize("scale", STIFFNESS)
+def test_campaigns_respect_specimens_from_a_tenth_to_a_hundred_times_the_default(scale, tmp_path):
+    runs = per_seed(_scaled_campaign, SEEDS, scale, str(tmp_path))
+    for r in runs:
+        print(f"\n{scale:g}x seed {r['seed']}: {r['status']}: {r['reason'][:160]}")
+        for row in r["rows"]:
+            predicted = f"{row['predicted_N']:.2f}" if row["predicted_N"] is not None else "-"
+            print(f"  {row['n']}. {row['protocol'][:60]:<60} {row['outcome']:<9} true peak "
+                  f"{row['true_peak_N']:6.2f} N (predicted {predicted}, own limit {row['own_limit_N']:g} N); "
+                  f"slider to {row['deepest_mm']:.2f} mm (planned at most {row['planned_deepest_mm']:.1f})")
+        assert all(row["outcome"] == "completed" for row in r["rows"]), r["reason"]
+        first = r["rows"][0]
+        assert first["true_peak_N"] < first["budget_N"]
+        for row in r["rows"]:
+            assert row["deepest_mm"] <= r["far_mm"] + 0.05
+            assert row["true_peak_N"] < row["own_limit_N"]
+            if row["predicted_N"] is not None:
+                assert row["predicted_N"] <= 0.8 * r["limit_N"]
