@@ -122,6 +122,9 @@ class Room:
     pace_m_s: float | None = None
     return_m_s: float | None = None
     max_peak_N: float | None = None  # the predicted peak force also at most this (a campaign's growth)
+    # the trial's own travel window, slider mm (a protocol's limits.travel_mm): checked before it
+    # runs from wherever the slider is, and on every tick
+    travel_mm: tuple[float, float] | None = None
 
 
 # ------------------------------------------------------------------ the alternatives
@@ -221,7 +224,9 @@ def _mm(x_m: float) -> str:
     return _num(x_m * 1000)
 
 
-def protocol_text(c: Candidate, name: str, limits_N: float | None, comment: list[str]) -> str:
+def protocol_text(c: Candidate, name: str, limits_N: float | None, comment: list[str],
+                  travel_mm: tuple[float, float] | None = None) -> str:
+    """The candidate as a protocol file, with its own force limit and travel window when given."""
     lines = [f"# {line}" for line in comment]
     lines += [f"name: {json.dumps(name)}", f"description: >-\n  {c.why}", "steps:"]
     for kind, p in c.steps:
@@ -236,8 +241,11 @@ def protocol_text(c: Candidate, name: str, limits_N: float | None, comment: list
             lines.append(f"  - return: {{speed_mm_s: {_mm(p['speed'])}}}")
         else:
             lines.append(f"  - return: {{to_mm: {_mm(p['to'])}, speed_mm_s: {_mm(p['speed'])}}}")
-    if limits_N is not None:
-        lines.append(f"limits: {{max_force_N: {_num(limits_N)}}}")
+    limits = [f"max_force_N: {_num(limits_N)}"] if limits_N is not None else []
+    if travel_mm is not None:
+        limits.append(f"travel_mm: [{_num(travel_mm[0])}, {_num(travel_mm[1])}]")
+    if limits:
+        lines.append(f"limits: {{{', '.join(limits)}}}")
     return "\n".join(lines) + "\n"
 
 
@@ -344,7 +352,7 @@ def inadmissible(c: Candidate, peak_N: float, config: RigConfig, room: Room | No
     the room's share of the force limit."""
     room = room or default_room(config)
     try:
-        check_limits(parse_protocol(protocol_text(c, c.name, None, []), c.name), config)
+        check_limits(parse_protocol(protocol_text(c, c.name, None, [], room.travel_mm), c.name), config)
     except LimitError as exc:
         return str(exc)
     deepest_m = max((p["to"] for k, p in c.steps if k == "ramp"), default=0.0)
@@ -397,7 +405,7 @@ def design(ex: Explanation, config: RigConfig | None = None,
         _separation(c, a, b, trials)
     cands.sort(key=lambda c: -(c.separation_N if c.separation_N is not None else -1.0))
     d = Design((pair[0], pair[1]), (a, b), noise, cands[0], cands, refused)
-    d.yaml = design_yaml(d, limits.max_force_N)
+    d.yaml = design_yaml(d, limits.max_force_N, room.travel_mm if room is not None else None)
     proto = parse_protocol(d.yaml, "<design>")
     check_limits(proto, config)  # as `rig run` will
     d.duration_s = plan(proto, config).duration_s
@@ -441,7 +449,7 @@ def trial_limit_N(peak_N: float, force_limit_N: float) -> float:
     return min(force_limit_N, max(math.ceil(2 * peak_N), 1))
 
 
-def design_yaml(d: Design, force_limit_N: float) -> str:
+def design_yaml(d: Design, force_limit_N: float, travel_mm: tuple[float, float] | None = None) -> str:
     b = d.best
     x, y = d.effects
     limit = trial_limit_N(b.peak_N, force_limit_N)
@@ -452,7 +460,7 @@ def design_yaml(d: Design, force_limit_N: float) -> str:
                f"{b.separation_N:.3g} N RMS ({b.separation_N / d.noise_N:.1f}x the noise).",
                f"Predicted peak force {b.peak_N:.3g} N. Depths are from the zero the analysis took as contact.",
                "Run it on the same specimen, then analyze it together with the trials given."]
-    return protocol_text(b, f"separate {x} from {y}: {b.name}", limit, comment)
+    return protocol_text(b, f"separate {x} from {y}: {b.name}", limit, comment, travel_mm)
 
 
 def write_design(d: Design, path: str | Path) -> Path:

@@ -89,6 +89,10 @@ INFORMATION_GAIN = 0.9  # a candidate must bring the largest relative error belo
 FIRST_FORCE_SHARE = 0.25  # the first trial's force budget, a share of the force limit
 FORCE_MARGIN_SHARE = FORCE_SHARE  # a designed trial's predicted peak force, at most this share of the limit
 TRAVEL_MARGIN_MM = 5.0  # no trial planned closer than this to the far end of the travel
+# each trial carries the margin as its own travel window, this much beyond its deepest planned
+# point (a drive's overshoot at the end of a move must not fault a trial that keeps to its plan):
+# checked from wherever the slider is before the trial runs, and on every tick
+TRAVEL_GUARD_MM = 0.5
 APPROACH_SPEED_SHARE = 0.05  # of the speed limit: the approach's pace (the force loop's own seek speed)
 CONTACT_SIGMAS = 3.0  # the approach's contact threshold, in the load cell's expected noise
 FIRST_SPEED_SHARE = 0.15  # of the speed limit: the first trial's own speed limit (the force loop's too)
@@ -290,16 +294,18 @@ def first_look(req: Request) -> Sized:
             f"  - ramp_force: {{to_N: {_g(setpoint)}, rate_N_s: {_g(rate)}, max_mm: {_g(half)}}}\n"
             f"  - hold:       {{duration_s: {_g(FIRST_HOLD_S)}}}\n"
             f"  - return:     {{speed_mm_s: {_g(cap)}}}\n"
-            f"limits: {{max_force_N: {_g(budget)}, max_speed_mm_s: {_g(cap)}}}\n")
+            f"limits: {{max_force_N: {_g(budget)}, max_speed_mm_s: {_g(cap)}, "
+            f"travel_mm: [{_g(lim.travel_mm[0])}, {_g(_far_mm(req) + TRAVEL_GUARD_MM)}]}}\n")
     size = (f"force budget {budget:.3g} N ({req.first_force_share:g} of the {lim.max_force_N:g} N limit, the "
             f"trial's own limit): the surface found at {contact:.3g} N ({CONTACT_SIGMAS:g}x the noise) within "
             f"{half:g} mm, a force ramp to {setpoint:.3g} N at most {half:g} mm past it and {cap:g} mm/s: "
             f"at most {start + 2 * half:g} mm, {lim.travel_mm[1] - start - 2 * half:g} mm short of the end of "
-            "travel")
+            f"travel (its own travel to {_far_mm(req) + TRAVEL_GUARD_MM:g} mm)")
     figures = {"force_budget_N": budget, "first_force_share": req.first_force_share, "setpoint_N": setpoint,
                "contact_N": contact, "approach_max_mm": half, "force_max_mm": half, "speed_limit_mm_s": cap,
                "deepest_mm": start + 2 * half, "travel_end_mm": lim.travel_mm[1],
-               "travel_margin_mm": req.travel_margin_mm}
+               "travel_margin_mm": req.travel_margin_mm, "travel_window_mm": [lim.travel_mm[0],
+                                                                              _far_mm(req) + TRAVEL_GUARD_MM]}
     return Sized(text, "exploratory: the first look, by force within a budget", size, figures)
 
 
@@ -523,6 +529,7 @@ def _room(req: Request, camp: Campaign, f: FitResult) -> tuple[Room, dict]:
         home_m_s = 0.5 * fastest
     measured = max(float(np.max(t.force_N)) for t in f.trials)
     grow = GROWTH * measured
+    window = (cfg.limits.travel_mm[0], far + TRAVEL_GUARD_MM)
     figures = {"start_mm": start, "travel_end_mm": cfg.limits.travel_mm[1],
                "travel_margin_mm": req.travel_margin_mm, "force_margin_share": req.force_margin_share,
                "force_limit_N": cfg.limits.max_force_N, "largest_force_measured_N": measured,
@@ -534,7 +541,7 @@ def _room(req: Request, camp: Campaign, f: FitResult) -> tuple[Room, dict]:
         depth = far - start
         figures.update(zero="the start position", depth_room_mm=depth)
         return Room(depth / 1000.0, req.force_margin_share, pace_m_s=pace, return_m_s=back,
-                    max_peak_N=grow), figures
+                    max_peak_N=grow, travel_mm=window), figures
     deepest = max(camp.surfaces_mm)
     search = round(deepest + max(SURFACE_SLACK_MM, SURFACE_SLACK_SHARE * deepest), 1)
     depth = far - start - search
@@ -543,7 +550,7 @@ def _room(req: Request, camp: Campaign, f: FitResult) -> tuple[Room, dict]:
     approach = ApproachFirst(a.speed_mm_s / 1000.0, a.contact_N, search / 1000.0)
     surface = float(np.mean(camp.surfaces_mm))
     return Room(max(depth, 0.0) / 1000.0, req.force_margin_share, approach, surface / 1000.0, home_m_s,
-                pace, back, grow), figures
+                pace, back, grow, window), figures
 
 
 def _sized(req: Request, c: Candidate, peak_N: float, room: Room, figures: dict) -> tuple[float, str, dict]:
@@ -564,9 +571,10 @@ def _sized(req: Request, c: Candidate, peak_N: float, room: Room, figures: dict)
     size = (f"{where}: at most {lowest:.1f} mm, {cfg.limits.travel_mm[1] - lowest:.1f} mm short of the end of "
             f"travel ({req.travel_margin_mm:g} mm kept); predicted peak {peak_N:.3g} N (at most "
             f"{req.force_margin_share:g} of the {cfg.limits.max_force_N:g} N limit{grown}); its own force "
-            f"limit {limit:g} N")
+            f"limit {limit:g} N" + (f", its travel to {room.travel_mm[1]:g} mm" if room.travel_mm else ""))
     return limit, size, {**figures, "deepest_from_zero_mm": deepest, "deepest_mm": lowest,
-                         "predicted_peak_N": peak_N, "trial_force_limit_N": limit}
+                         "predicted_peak_N": peak_N, "trial_force_limit_N": limit,
+                         "travel_window_mm": list(room.travel_mm) if room.travel_mm else None}
 
 
 def _decide(req: Request, f: FitResult, ex: Explanation, turn: Turn, journal: Journal,
@@ -651,7 +659,7 @@ def _inform_or_stop(req: Request, f: FitResult, turn: Turn, journal: Journal,
     text = protocol_text(c, f"inform {turn.worst}: {c.name}", limit,
                          [f"Chosen by rig characterize to narrow {turn.worst}: expected largest relative "
                           f"error {100 * turn.max_rse:.2f} % -> {100 * after:.2f} %{also}.",
-                          f"Size: {size}."])
+                          f"Size: {size}."], room.travel_mm)
     return Sized(text, f"the largest relative error ({turn.worst}, {100 * turn.max_rse:.1f} %) is expected to "
                        f"fall to {100 * after:.1f} % with {c.name}{also}", size, sizing)
 
