@@ -20,7 +20,7 @@ from rig.service.characterize import Request, characterize
 from rig.service.run import RunOptions, run_trial
 from rig.specs.config import RigConfig, parse_config
 from rig.specs.frames import Frame
-from rig.specs.protocol import Approach, Return, check_limits
+from rig.specs.protocol import Approach, Return, check_limits, parse_protocol
 
 SHORT = ("name: short ramp-hold\nsteps:\n  - ramp: {to_mm: 20, speed_mm_s: 2}\n  - hold: {duration_s: 20}\n"
          "  - return: {to_mm: 0, speed_mm_s: 5}\n")
@@ -235,6 +235,9 @@ def test_the_first_trial_respects_a_specimen_of_unknown_stiffness(scale, tmp_pat
     events = _events(camp.journal)
     trials = [e for e in events if e["event"] == "trial"]
     assert trials[0]["sizing"]["force_budget_N"] == 0.25 * limit_N and "force budget 5 N" in trials[0]["size"]
+    # each trial carries the margin as its own travel window (checked from wherever the slider is)
+    for e in trials:
+        assert parse_protocol(e["yaml"]).limits.travel_mm == (cfg.limits.travel_mm[0], far_mm - margin_mm + 0.5)
     if scale >= 1.0:  # a tissue ten times softer is not described within the catalogue's contact offset
         assert planned, camp.reason
     for proto in planned:
