@@ -108,8 +108,9 @@ class Room:
     """Where a designed trial may go (SI). `depth_m`: the deepest point below the trial's zero;
     `force_share`: the predicted peak force at most this share of the force limit. With
     `approach` every candidate starts by finding the surface as the trials it is designed from
-    did (their depths are from that zero, so the candidate's must be too), from `surface_m`
-    above it where those trials found it, and ends with the return to the start position at
+    did, and its depths are from there; the trials were fitted from their start position, and
+    found the surface `surface_m` past it, so a candidate's motion is predicted from the start:
+    the approach to `surface_m`, the steps from there, and the return to the start position at
     `home_m_s` (a probe left at the surface would start the next trial's approach in contact).
     `pace_m_s` and `return_m_s`, when given, are the ramp and return speeds the candidates are
     built around instead of the trials' own (a force-controlled ramp's pace is the specimen's)."""
@@ -250,17 +251,17 @@ def protocol_text(c: Candidate, name: str, limits_N: float | None, comment: list
 
 
 def _trial(c: Candidate, config: RigConfig) -> TrialData:
-    """The candidate's commanded motion at the loop rate, as the models see a trial: from the
-    surface, an approach's way to it from the start position (where the trials given found it)
-    negative, as their own records have it."""
+    """The candidate's commanded motion at the loop rate, as the models see a trial: from its
+    zero, or, for one that finds the surface first, from the start position, the surface where
+    the trials given found it (`Room`)."""
     rate, accel = config.loop.rate_Hz, config.slider.accel_mm_s2
-    pos = -1000.0 * c.steps[0][1]["from"] if c.steps and c.steps[0][0] == "approach" else 0.0
-    segs, kinds = [np.full(round(config.loop.tare_s * rate) + 1, pos)], ["rest"]
+    surface = 1000.0 * c.steps[0][1]["from"] if c.steps and c.steps[0][0] == "approach" else 0.0
+    pos, segs, kinds = 0.0, [np.zeros(round(config.loop.tare_s * rate) + 1)], ["rest"]
     for kind, p in c.steps:
         if kind == "hold":
             segs.append(np.full(max(round(p["s"] * rate), 1), pos))
         else:
-            target = 0.0 if kind == "approach" else p["to"] * 1000
+            target = surface if kind == "approach" else 0.0 if kind == "home" else surface + p["to"] * 1000
             segs.append(sample_move(pos, target, p["speed"] * 1000, accel, rate))
             if kind != "approach":
                 kind = "ramp" if target > pos else "return"
@@ -297,14 +298,16 @@ def rig_candidates(shape: Shape, config: RigConfig, room: Room | None = None) ->
     """`candidate_steps` within this rig's speed and travel (from the slider's start) and within
     `room` (default: `default_room`), each with its commanded motion (`Candidate.trial`)."""
     room = room or default_room(config)
-    shape = replace(shape, speed_m_s=room.pace_m_s or shape.speed_m_s,
+    # depths from the surface the approach finds: the trials' own were from their start
+    depth_m = max(shape.depth_m - room.surface_m, 0.0) if room.approach is not None else shape.depth_m
+    shape = replace(shape, depth_m=depth_m, speed_m_s=room.pace_m_s or shape.speed_m_s,
                     return_m_s=room.return_m_s or shape.return_m_s)
     out = candidate_steps(shape, config.limits.max_speed_mm_s / 1000.0, room.depth_m)
     if room.approach is not None:
         a = room.approach
         first = ("approach", {"speed": a.speed_m_s, "contact_N": a.contact_N, "max": a.max_m,
                               "from": room.surface_m})
-        home = ("home", {"speed": room.home_m_s, "to": -room.surface_m})
+        home = ("home", {"speed": room.home_m_s})
         for c in out:
             c.steps = [first, *c.steps, home]
     for c in out:

@@ -36,7 +36,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -61,7 +61,8 @@ from rig.analysis.fit import FitResult, fit
 from rig.control.trial import TrialResult
 from rig.errors import RigError
 from rig.models.catalogue import build_model
-from rig.records import ReadOptions
+from rig.records import ReadOptions, read_record
+from rig.records.record import Record
 from rig.service.run import RunOptions, run_trial
 from rig.specs.config import RigConfig
 from rig.specs.frames import Frame
@@ -147,7 +148,9 @@ class Campaign:
     approach: Approach | None = None
     surfaces_mm: list[float] = field(default_factory=list)
     by_force: bool = False  # the first trial loaded under force control: its pace was the specimen's
-    start_mm: float | None = None  # where the trials start (and end), slider coordinates, as logged
+    # where the first trial started, slider coordinates: the fits' zero for every trial
+    start_mm: float | None = None
+    records: list[Record] = field(default_factory=list)  # the trials as fitted, positions from start_mm
 
     def summary(self) -> dict:
         out = {"specimen": self.specimen, "status": self.status, "reason": self.reason,
@@ -410,10 +413,12 @@ def _run(req: Request, camp: Campaign, journal: Journal, nxt: Sized) -> None:
         if len(camp.turns) == 1:
             camp.approach = next((st for st in proto.steps if isinstance(st, Approach)), None)
             camp.by_force = any(isinstance(st, FORCE_STEPS) for st in proto.steps)
-        camp.start_mm, surface_mm = _frames_of(result.log_path)
+        record, start_mm, surface_mm = _read_from_start(result.log_path, camp.start_mm)
+        camp.start_mm = start_mm if camp.start_mm is None else camp.start_mm
+        camp.records.append(record)
         if camp.approach is not None:
             camp.surfaces_mm.append(surface_mm)
-        last, ex, extra = _fit_all(req, logs, model_name, extra, last, turn, journal)
+        last, ex, extra = _fit_all(req, logs, camp.records, model_name, extra, last, turn, journal)
         camp.final = last
         req.say(f"  {turn.model}: RMSE {turn.rmse_over_noise:.2f}x the noise, "
                 f"{'adequate' if turn.adequate else 'NOT adequate'}; largest relative error "
@@ -423,20 +428,37 @@ def _run(req: Request, camp: Campaign, journal: Journal, nxt: Sized) -> None:
             break
 
 
-def _frames_of(log_path: Path) -> tuple[float, float]:
-    """Where the trial started (slider coordinates) and where its approach found the surface,
-    mm from there (0 without an approach)."""
+def _read_from_start(log_path: Path, start_mm: float | None) -> tuple[Record, float, float]:
+    """The trial's log as the analysis reads it, its positions measured from `start_mm` (slider
+    coordinates; None: from where this trial started), and where the trial started and where its
+    approach found the surface, mm from `start_mm` (the start, without an approach).
+
+    Every trial of a campaign is fitted from one zero, the first trial's start, not from the
+    surface its own approach found: the threshold fires where the tissue's toe first carries a
+    few times the noise (4.1-4.8 mm into the default tissue, 17-19 mm into one ten times softer),
+    a little further or nearer each time, and one contact offset cannot follow a zero that moves
+    from trial to trial (read from the surface, a first look on the softer tissue left the fit at
+    1.09x the noise, its contact offset at the bound of its range). Read from the start, a fit
+    places the tissue's start itself (`contact_offset`) when it is not where the slider started."""
     from rig.recording.logs import read_log
 
-    frames = read_log(log_path).frames.frames
-    return frames.start_mm, frames.zero_mm(Frame.SURFACE) - frames.start_mm
+    log = read_log(log_path)
+    rec = read_record(log_path)
+    frames = log.frames.frames
+    start = frames.start_mm if start_mm is None else start_mm
+    kinds = np.asarray(log.step_kind)
+    keep = ~np.isin(kinds, ["tare", "fault", "done"])  # the samples rig.records keeps of a log
+    slider_mm = log.position_mm(Frame.SLIDER)[keep]
+    if len(slider_mm) != rec.n:
+        raise RigError(f"{log_path}: {rec.n} samples read for the analysis, {len(slider_mm)} positions")
+    from_start = replace(rec, position_m=(slider_mm - start) / 1000.0,
+                         notes=[*rec.notes, f"positions from the campaign's start, slider {start:g} mm"])
+    return from_start, frames.start_mm, frames.zero_mm(Frame.SURFACE) - start
 
 
 def _one_trial(req: Request, proto, n: int):
     config = req.config
     if req.seed_per_trial and config.slider.backend == "sim":
-        from dataclasses import replace
-
         config = replace(config, sim=replace(config.sim, seed=config.sim.seed + n - 1))
     log = req.out_dir / f"{req.specimen}-trial{n}.mcap"
     if req.runner is not None:
@@ -454,13 +476,13 @@ def _warn_once(req: Request, text: str) -> None:
         print(text, file=sys.stderr)
 
 
-def _fit_all(req: Request, logs: list[str], model_name: str, extra: list[str], last: FitResult | None,
-             turn: Turn, journal: Journal) -> tuple[FitResult, Explanation, list[str]]:
+def _fit_all(req: Request, logs: list[str], records: list[Record], model_name: str, extra: list[str],
+             last: FitResult | None, turn: Turn, journal: Journal) -> tuple[FitResult, Explanation, list[str]]:
     # every sample in force form (the force predicted from the measured motion), as for a trial in
     # position control: the first trial's force-controlled ramp is a ramp whose pace the specimen
     # set. In creep form (the indentation predicted from the force) its fit on a specimen ten
     # times softer than the default, whose ramp reached its max_mm, missed by 5.2x the noise.
-    inp = load_inputs(logs, [], [], ReadOptions(), indenter=req.indenter, form="force")
+    inp = load_inputs(logs, [], [], ReadOptions(), indenter=req.indenter, form="force", records=records)
     model = build_model(model_name, extra, inp.registry)
     base = fit(model, inp.trials, initial=last.values if last is not None else None)
     steps = auto(base, inp.registry)
@@ -505,8 +527,9 @@ def _time_left(req: Request, camp: Campaign) -> float:
 
 def _room(req: Request, camp: Campaign, f: FitResult) -> tuple[Room, dict]:
     """Where the next designed trial may go, and the figures that say why. After a first trial that
-    found the surface by force, a designed trial finds it the same way (its depths, as the fit's,
-    are from there), searching SURFACE_SLACK_MM or SURFACE_SLACK_SHARE past the deepest surface
+    found the surface by force, a designed trial finds it the same way (its depths are from
+    there; the fit's from the first trial's start, where the surfaces found are measured from),
+    searching SURFACE_SLACK_MM or SURFACE_SLACK_SHARE past the deepest surface
     found so far; the check before it runs counts its depths from the far end of that search,
     so the deepest it may be planned to go from the surface is what is left of the travel (its end
     less `travel_margin_mm`) past that. Its predicted peak force is at most `force_margin_share`
