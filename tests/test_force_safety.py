@@ -21,6 +21,7 @@ from rig.recording.logs import read_log
 from rig.service.run import RunOptions, run_trial
 from rig.specs.config import RigConfig
 from rig.specs.protocol import parse_protocol
+from tests.test_force_control import _measure
 
 # scale of the stiffness terms, the load cell's noise (N), the force held (N)
 SPECIMENS = {"0.1x": (0.1, 0.004, 0.15), "1x": (1.0, 0.04, 1.5), "10x": (10.0, 0.08, 15.0),
@@ -55,18 +56,9 @@ def force_first(target_N: float, approach: bool, hold_s: float = 5.0) -> str:
 
 def hold_figures(log, target_N: float) -> dict:
     """Overshoot on the force averaged over 0.1 s, over the ramp and the hold; RMS error over the
-    hold past its first second, against the noise the tare measured; the ramp's end against its
-    target."""
-    s = log.samples
-    kind = np.asarray(log.step_kind)
-    t, f = np.asarray(s["t_s"]), np.asarray(s["force_N"])
-    noise = float(np.std(f[kind == "tare"]))
-    smooth = np.convolve(f, np.ones(10) / 10, mode="same")
-    hold = kind == "hold_force"
-    late = hold & (t >= t[hold][0] + 1.0)
-    rms = float(np.sqrt(np.mean((f[late] - target_N) ** 2)))
-    both = (kind == "ramp_force") | hold
-    return {"overshoot": float((smooth[both].max() - target_N) / target_N), "rms_over_noise": rms / noise}
+    hold past its first second, against the noise the tare measured (as the force tests measure
+    them: `tests/test_force_control._measure`)."""
+    return _measure(log, target_N)
 
 
 @pytest.mark.parametrize("name", SPECIMENS)
