@@ -97,7 +97,11 @@ TRAVEL_GUARD_MM = 0.5
 APPROACH_SPEED_SHARE = 0.05  # of the speed limit: the approach's pace (the force loop's own seek speed)
 CONTACT_SIGMAS = 3.0  # the approach's contact threshold, in the load cell's expected noise
 FIRST_SPEED_SHARE = 0.15  # of the speed limit: the first trial's own speed limit (the force loop's too)
-FIRST_RAMP_S = 45.0  # the first trial's force ramp, from contact to its setpoint
+# the first trial's force ramp, from contact to its setpoint: on a tissue ten times softer than
+# the default the loop, at the trial's speed limit, falls behind a faster setpoint and its motion
+# check (5 mm with the force within 4 sigma: a frozen cell) stopped the first look in 4 of 5 seeds
+# over 20 s and 1 of 12 over 45 s; over 90 s in none of 50 (0.1x to 0.5x the default, 10 seeds each)
+FIRST_RAMP_S = 90.0
 OVERSHOOT_SHARE = 0.05  # the force loop's overshoot at most (its own target)
 PEAK_SIGMAS = 5.0  # a reading this many times the cell's noise above the force is not a fault
 FIRST_HOLD_S = 30.0
@@ -541,10 +545,10 @@ def _room(req: Request, camp: Campaign, f: FitResult) -> tuple[Room, dict]:
     fastest = cfg.limits.max_speed_mm_s / 1000.0
     pace = back = None
     if camp.by_force:
-        # the first trial's pace was what its force loop needed on this specimen (0.5 mm/s on the
-        # default one, 0.1-0.2 mm/s on stiffer ones, stopping and starting): the designs are built
-        # around its speed limit and return at half the speed limit, as after the position ramp
-        # that was the first trial before, and the predicted force keeps the stiff specimens' slow
+        # the first trial's pace was what its force loop needed on this specimen (a few tenths of
+        # a mm/s, less on stiffer ones, stopping and starting): the designs are built around its
+        # speed limit and return at half the speed limit, as after the position ramp that was the
+        # first trial before, and the predicted force keeps the stiff specimens' trials slow
         pace, back = FIRST_SPEED_SHARE * fastest, 0.5 * fastest
     try:
         home_m_s = min(back or shape_of(f.trials).return_m_s, fastest)
