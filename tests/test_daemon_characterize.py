@@ -19,6 +19,7 @@ from rig.sim.server import WireSim
 from rig.recording.logs import read_log
 from rig.recording.recovery import end_journal, find_open_journals
 from rig.service.client import stream
+from rig.specs.protocol import parse_protocol
 from tests.conftest import ROOT
 from tests.test_daemon import DaemonProc
 
@@ -71,6 +72,11 @@ def test_a_campaign_on_the_daemon_runs_its_trials_and_is_watched(tmp_path):
             assert all(e["outcome"] == "completed" for e in events if e["event"] == "ran")
             second = next(e for e in events if e["event"] == "trial" and e["n"] == 2)
             assert second["why"] and second["duration_s"] <= 0.4 * 60
+            # designed on the daemon as by `rig characterize`: the travel margin as its own window,
+            # the predicted peak within the force margin, and the journal says why it is its size
+            assert parse_protocol(second["yaml"]).limits.travel_mm == (-5.0, 40.5)
+            assert second["sizing"]["predicted_peak_N"] <= 0.8 * 20.0
+            assert "mm short of the end of travel (5 mm kept)" in second["size"]
             logs = [e["log"] for e in events if e["event"] == "ran"]
             for log in logs:
                 trial = read_log(log).trial
