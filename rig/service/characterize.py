@@ -96,12 +96,19 @@ TRAVEL_MARGIN_MM = 5.0  # no trial planned closer than this to the far end of th
 TRAVEL_GUARD_MM = 0.5
 APPROACH_SPEED_SHARE = 0.05  # of the speed limit: the approach's pace (the force loop's own seek speed)
 CONTACT_SIGMAS = 3.0  # the approach's contact threshold, in the load cell's expected noise
-FIRST_SPEED_SHARE = 0.15  # of the speed limit: the first trial's own speed limit (the force loop's too)
-# the first trial's force ramp, from contact to its setpoint: on a tissue ten times softer than
-# the default the loop, at the trial's speed limit, falls behind a faster setpoint and its motion
-# check (5 mm with the force within 4 sigma: a frozen cell) stopped the first look in 4 of 5 seeds
-# over 20 s and 1 of 12 over 45 s; over 90 s in none of 50 (0.1x to 0.5x the default, 10 seeds each)
-FIRST_RAMP_S = 90.0
+# of the speed limit: the first trial's own speed limit (the force loop's too; 3 mm/s, the paper's
+# fastest ramp, on the simulated rig): at 1.5 mm/s the loop could not keep a soft tissue's force up
+# with its setpoint (see FIRST_RAMP_S)
+FIRST_SPEED_SHARE = 0.3
+PACE_SHARE = 0.15  # of the speed limit: what designed trials' speeds are built around after a first look
+# the first trial's force ramp, from contact to its setpoint. On a tissue ten times softer than
+# the default the loop, at the trial's speed limit, falls behind a setpoint rising faster than the
+# tissue's force can, and its check that the force answers the motion (5 mm with the force within
+# 4 sigma: a frozen cell) stopped the first look: under a 1.5 mm/s limit in 4 of 5 seeds over 20 s,
+# 1 of 12 over 45 s and none of 50 over 90 s (0.1x-0.5x), which made the first look 150 s long and
+# cost the campaigns' science (relaxation2 missed in 2 of 5 bench seeds); under 3 mm/s, over 30 s,
+# in none of 52 (0.1x-0.3x)
+FIRST_RAMP_S = 30.0
 OVERSHOOT_SHARE = 0.05  # the force loop's overshoot at most (its own target)
 PEAK_SIGMAS = 5.0  # a reading this many times the cell's noise above the force is not a fault
 FIRST_HOLD_S = 30.0
@@ -545,11 +552,11 @@ def _room(req: Request, camp: Campaign, f: FitResult) -> tuple[Room, dict]:
     fastest = cfg.limits.max_speed_mm_s / 1000.0
     pace = back = None
     if camp.by_force:
-        # the first trial's pace was what its force loop needed on this specimen (a few tenths of
-        # a mm/s, less on stiffer ones, stopping and starting): the designs are built around its
-        # speed limit and return at half the speed limit, as after the position ramp that was the
-        # first trial before, and the predicted force keeps the stiff specimens' trials slow
-        pace, back = FIRST_SPEED_SHARE * fastest, 0.5 * fastest
+        # the first trial's pace was what its force loop needed on this specimen (stopping and
+        # starting, slower on stiffer ones): the designs are built around 15 % of the speed limit
+        # and return at half of it, as after the position ramp that was the first trial before,
+        # and the predicted force keeps the stiff specimens' trials slow
+        pace, back = PACE_SHARE * fastest, 0.5 * fastest
     try:
         home_m_s = min(back or shape_of(f.trials).return_m_s, fastest)
     except RigError:
