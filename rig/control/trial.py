@@ -670,11 +670,10 @@ class Trial:
         L.cell_watch = CellWatch(noise)
         L.contact = Contact.for_noise(noise, k.pos)
         L.motion = MotionAnswer(noise.effective_sigma_N)
-        est = self.config.estimator
-        L.loop_rls = StiffnessRLS(rate_Hz=self.rate, law=est.law, memory_s=est.memory_s,
-                                  smoothing_s=est.smoothing_s, lambda_min=est.lambda_min,
-                                  lambda_max=est.lambda_max, noise_N=noise.effective_sigma_N,
-                                  initial_std_N_per_m=est.initial_std_N_per_m, contact_mm=0.0, contact_N=0.0)
+        # the logged estimator's settings, on the measured noise, gated by `Contact` instead of its own test
+        L.loop_rls = StiffnessRLS.from_config(
+            replace(self.config.estimator, noise_N=noise.effective_sigma_N, initial_stiffness_N_per_m=0.0,
+                    contact_mm=0.0, contact_N=0.0), self.rate)
         data = {"sigma_N": noise.sigma_N, "diff_sigma_N": noise.diff_sigma_N,
                 "repeat_share": noise.repeat_share, "step_N": noise.step_N, "readings": noise.readings,
                 "contact_threshold_N": L.contact.threshold_N, "frozen_run": noise.frozen_run,
