@@ -158,7 +158,8 @@ def plot_residual_steps(fits: list[tuple[str, FitResult]], out: Path) -> Path:
 
 def write_report(res: FitResult, out_dir: str | Path, *, compare: list[FitResult] | None = None,
                  holdout: list[dict] | None = None, text: str = "", before: FitResult | None = None,
-                 steps: list[dict] | None = None, explain_text: str = "", creep_text: str = "") -> Path:
+                 steps: list[dict] | None = None, explain_text: str = "", creep_text: str = "",
+                 material_text: str = "") -> Path:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     figs = [plot_trial_fit(res, k, out / f"fit_{k + 1}.png") for k in range(len(res.trials))]
@@ -167,6 +168,8 @@ def write_report(res: FitResult, out_dir: str | Path, *, compare: list[FitResult
     md = [f"# Model analysis: {res.model.name}", "",
           f"Trials: {', '.join(t.name for t in res.trials)}", "",
           "```", res.report(), "```", ""]
+    if material_text:  # the material line the terminal prints: E, its errors, the contact, E by depth
+        md += ["## Material", "", "```", material_text, "```", ""]
     if creep_text:
         creep_pngs = [p for k in range(len(res.trials))
                       if (p := plot_creep(res, k, out / f"creep_{k + 1}.png")) is not None]

@@ -150,7 +150,8 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         out["report"] = str(write_report(res, req.report, compare=results, holdout=held, text=compare_text,
                                          before=before, steps=steps,
                                          explain_text=format_explain(ex) if ex else "",
-                                         creep_text=format_creep(creep_rows, res, inputs.indenter)))
+                                         creep_text=format_creep(creep_rows, res, inputs.indenter),
+                                         material_text=format_material(material, res) if material else ""))
 
     if req.row_only:
         return Analysis(out, "")
