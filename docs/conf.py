@@ -26,6 +26,11 @@ html_theme = "furo"
 html_title = "indentation-rig"
 myst_heading_anchors = 4
 myst_enable_extensions = ["colon_fence"]
+# no typographic dashes or quotes: a command's `--option` written in plain text (the reference pages
+# take the parser's help as it is) must stay two hyphens, not become an en dash a technician copies
+smartquotes = False
+# `name` in a docstring is code, as it is in Markdown (not the title reference reST makes of it)
+default_role = "literal"
 
 
 def _write_reference(app) -> None:

@@ -49,7 +49,8 @@ def _arguments(parser: argparse.ArgumentParser) -> list[str]:
         if a.option_strings and a.nargs != 0:
             name += f" `{a.metavar or a.dest.upper()}`" if not isinstance(a.metavar, tuple) else ""
         shown = a.option_strings and a.default not in (None, False, argparse.SUPPRESS)
-        default = f"`{a.default}`" if shown else ""
+        # an empty string is "empty", not a pair of backticks with nothing between them
+        default = ("empty" if a.default == "" else f"`{a.default}`") if shown else ""
         choices = f" (one of: {', '.join(map(str, a.choices))})" if a.choices and not isinstance(
             a.choices, dict) else ""
         helptext = (a.help or "").replace("%(default)s", str(a.default)).replace("%%", "%")

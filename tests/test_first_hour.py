@@ -1,0 +1,66 @@
+"""What a new technician and a new researcher met in their first hour with the README and the site
+(issue 45): each item with the check that it stays fixed."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import re
+import subprocess
+import sys
+
+import pytest
+
+from tests.pages import DOCS
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    """The site, built as .ci/run builds it (warnings are errors)."""
+    for name in ("sphinx", "myst_parser", "furo"):
+        if importlib.util.find_spec(name) is None:
+            pytest.skip(f"{name} is not installed: the docs extra builds the site (pip install '.[docs]')")
+    out = tmp_path_factory.mktemp("site") / "html"
+    done = subprocess.run([sys.executable, "-m", "sphinx", "-W", "--keep-going", "-q", "-b", "html",
+                           str(DOCS), str(out)], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    return out
+
+
+def _options(parser: argparse.ArgumentParser) -> set[str]:
+    found = set()
+    for action in parser._actions:
+        found.update(o for o in action.option_strings if o.startswith("--"))
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                found |= _options(sub)
+    return found
+
+
+# --- an option is written with two hyphens on every page --------------------------------------
+
+def test_no_option_of_rig_help_is_rendered_with_an_en_dash(site):
+    from rig.cli import build_parser
+
+    options = _options(build_parser())
+    assert {"--config", "--characterize", "--target-rse", "--save", "--each"} <= options
+    mangled = {}
+    for page in site.rglob("*.html"):
+        text = page.read_text()
+        hits = sorted({o for o in options if re.search("\u2013" + re.escape(o[2:]) + r"(?![\w-])", text)})
+        if hits:
+            mangled[str(page.relative_to(site))] = hits
+    assert mangled == {}, f"options rendered with an en dash instead of two hyphens: {mangled}"
+    cli = (site / "reference" / "cli.html").read_text()
+    assert "named by --config" in cli and "without --each" in cli
+    # a docstring's `rig analyze --add` is code on the API page, as it is in Markdown
+    api = (site / "api.html").read_text()
+    assert '<span class="pre">--add</span>' in api
+
+
+def test_an_empty_default_reads_empty_not_a_pair_of_backticks(site):
+    cli = (site / "reference" / "cli.html").read_text()
+    assert "<p>``</p>" not in cli
+    rows = re.findall(r"<td><p><code[^>]*><span class=\"pre\">--operator</span></code>.*?</tr>", cli,
+                      flags=re.S)
+    assert len(rows) == 2 and all("<td><p>empty</p></td>" in r for r in rows), rows
