@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -28,3 +30,40 @@ def shade_spans(ax, t: np.ndarray, labels: Sequence, colours: Mapping[str, str],
             if colour:
                 ax.axvspan(t[start], t[min(i, len(t) - 1)], color=colour, alpha=alpha, lw=0)
             start = i
+
+
+def figure(**kw):
+    """A matplotlib Figure of its own (not pyplot's: no global state, so a web server's threads
+    can each draw one); `kw` as for Figure, constrained layout by default. Save it with `save`."""
+    from matplotlib.figure import Figure
+
+    kw.setdefault("layout", "constrained")
+    return Figure(**kw)
+
+
+def save(fig, out, dpi: int = 110):
+    """Write `fig` (PNG, or the format `out`'s suffix names) and return `out`."""
+    fig.savefig(out, dpi=dpi)
+    return out
+
+
+_STAMP = re.compile(r"^(\d{8}-\d{6})_(.+?)(\.mcap)?$")
+
+
+def trial_labels(names: Sequence[str], width: int = 42) -> list[str]:
+    """Labels for trials that keep what tells them apart: a log's name less its start time
+    (`20261127-030017_pig-07_paper-ramp-hold-0-75-mm-s-to-30-mm.mcap` reads `pig-07
+    paper-ramp-hold-0-75-mm-s-to-30-mm`: specimen, protocol and speed), the time kept where two
+    would read alike; wrapped at `width` characters rather than cut."""
+    import textwrap
+
+    stems = []
+    for n in names:
+        m = _STAMP.match(Path(str(n)).name)
+        stems.append((m.group(2).replace("_", " "), m.group(1)) if m else (Path(str(n)).name, ""))
+    seen = [s for s, _ in stems]
+    out = []
+    for s, stamp in stems:
+        label = f"{s} ({stamp[9:11]}:{stamp[11:13]}:{stamp[13:15]})" if stamp and seen.count(s) > 1 else s
+        out.append("\n".join(textwrap.wrap(label, width, break_on_hyphens=True)) or label)
+    return out
