@@ -87,12 +87,23 @@ def blocks(page: Path) -> list[Block]:
     return out
 
 
+# files whose format has no comment: the page's `# notes.txt` above one is its label, not its
+# first line (a YAML or Python file keeps it, a comment there as it would be in the user's copy)
+NO_COMMENTS = (".txt", ".csv")
+
+
+def _content(block: Block) -> str:
+    """What a named block's file holds, as a reader who copies it from the page writes it."""
+    text = block.text[1:] if block.file.endswith(NO_COMMENTS) else block.text
+    return "\n".join(text) + "\n"
+
+
 def examples(page: Path) -> list[Example]:
     """Every console block of a page, and every Python block that is not a named file (run as a
     script: its output is the next block when that is a ```text block), each with the page's named
     code blocks."""
     found = blocks(page)
-    files = {b.file: "\n".join(b.text) + "\n" for b in found if b.file}
+    files = {b.file: _content(b) for b in found if b.file}
     out = []
     for k, b in enumerate(found):
         if b.kind == "console":

@@ -93,7 +93,7 @@ def test_bad_curves_never_stop_a_batch_and_the_exit_status_counts_them(tmp_path,
     named = main(["analyze", str(folder / "a.jpk-force-map"), str(folder / "notes.txt"), "--each", *HERTZ,
                   "--json"])
     rows = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
-    assert named == EXIT_CURVES_FAILED + 1 and "missing column(s)" in rows[-1]["error"]
+    assert named == EXIT_CURVES_FAILED + 1 and "not a file this tool can read" in rows[-1]["error"]
 
 
 def test_a_resume_keeps_its_settings_and_knows_a_file_however_it_is_named(tmp_path, monkeypatch, capsys):

@@ -64,3 +64,26 @@ def test_an_empty_default_reads_empty_not_a_pair_of_backticks(site):
     rows = re.findall(r"<td><p><code[^>]*><span class=\"pre\">--operator</span></code>.*?</tr>", cli,
                       flags=re.S)
     assert len(rows) == 2 and all("<td><p>empty</p></td>" in r for r in rows), rows
+
+
+# --- a plain text file is "not a file this tool can read", label or none -----------------------
+
+def test_notes_txt_without_its_label_is_not_a_file_this_tool_can_read(tmp_path):
+    from tests.pages import console
+
+    page = DOCS / "tutorials" / "afm-curve.md"
+    example = next(ex for ex in console().examples(page)
+                   if any(c == "rig analyze notes.txt" for c, _ in ex.commands))
+    # the page's `# notes.txt` is the block's label, not the file's first line
+    assert example.files["notes.txt"] == "lab notes, not a measurement\n"
+    (tmp_path / "notes.txt").write_text("lab notes, not a measurement\n")
+    done = subprocess.run([sys.executable, "-m", "rig", "analyze", "notes.txt"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert done.stderr.startswith("rig analyze: error: notes.txt: not a file this tool can read (looked for"), \
+        done.stderr
+    # a table with a column missing still says which
+    (tmp_path / "short.csv").write_text("t_s,position_mm\n0,1\n")
+    done = subprocess.run([sys.executable, "-m", "rig", "analyze", "short.csv"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=60)
+    assert "missing column(s) force_N" in done.stderr

@@ -190,7 +190,8 @@ def test_jpk_text_export(tmp_path):
 
 @pytest.mark.parametrize(("content", "fragment"), [
     (b"\x00\x01\x02binary junk" * 50, "a binary file this tool cannot read"),
-    (b"hello, this is\nnot a record\n", "missing column(s)"),
+    (b"hello, this is\nnot a record\n", "not a file this tool can read (looked for an MCAP log"),
+    (b"t_s,position_mm\n0,1\n", "missing column(s) force_N"),
     (b"just words\nno commas\n", "not a file this tool can read (looked for an MCAP log"),
     (b"PK\x03\x04notazip" * 10, "not a file this tool can read"),
 ])

@@ -20,8 +20,23 @@ CANONICAL = ("t_s", "position_mm", "force_N")
 
 
 def looks_like_csv(head: str) -> bool:
+    """A table: its first line has commas and either names a time, length, force or strain
+    column (a misspelt or missing one is then an error naming the columns) or is numbers. Prose
+    with a comma in its first line ("lab notes, not a measurement") is not a table."""
     first = next((ln for ln in head.splitlines() if ln.strip()), "")
-    return "," in first and not first.lstrip().startswith(("#", "<"))
+    if "," not in first or first.lstrip().startswith(("#", "<")):
+        return False
+    cells = [c.strip().strip('"') for c in first.split(",")]
+    return any(quantity(split_header(c)[0]) or quantity(c.replace(" ", "_").split("_")[0]) for c in cells) \
+        or all(_is_number(c) for c in cells if c)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def pick_columns(header: list[str], where: str) -> dict[str, tuple[int, float, str]]:
