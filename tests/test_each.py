@@ -51,7 +51,7 @@ def test_a_map_alone_gives_one_row_per_curve_each_as_analysed_alone(tmp_path, ca
         assert main(["analyze", str(MAP), *HERTZ, "--curve", r["curve"], "--json"]) == 0
         alone = json.loads(capsys.readouterr().out)
         assert float(r["E_Pa"]) == alone["material"]["E_Pa"]
-        assert float(r["E_Pa_stderr"]) == alone["material"]["E_Pa_stderr"]
+        assert float(r["E_Pa_stat"]) == alone["material"]["E_Pa_stat"]
         assert (r["adequate"] == "True") == alone["adequate"]
         assert float(r["contact_point_m"]) == alone["material"]["contact_point_m"][0]
 

@@ -47,10 +47,10 @@ def test_hertz_recovers_the_modulus_and_the_contact_point(tmp_path, seed):
     out = analyze(AnalyzeRequest([str(path)], model="hertz", indenter="paraboloid:R=5um")).json
     m = out["material"]
     assert m["indenter"] == "paraboloid:R=5um" and m["poisson"] == 0.5
-    E, se = m["E_Pa"], m["E_Pa_stderr"]
+    E, se = m["E_Pa"], m["E_Pa_stat"]
     assert 0 < se < 0.05 * E_TRUE, m
     assert abs(E - E_TRUE) < 2 * se, (E, se)
-    (cp,), cp_se = m["contact_point_m"], m["contact_point_m_stderr"]
+    (cp,), cp_se = m["contact_point_m"], m["contact_point_m_stat"]
     assert 0 < cp_se < 0.05e-6 and abs(cp - SURFACE) < 2 * cp_se, (cp, cp_se)
     assert out["adequate"], out["fit"]
     # the plateau check reads flat on a true paraboloid
@@ -174,7 +174,7 @@ def test_a_misfit_in_contact_is_not_taken_for_a_drifting_noise():
     out = analyze(AnalyzeRequest([str(CHIARO)], model="hertz", segment="approach"))
     m = out.json["material"]
     assert not out.json["adequate"]
-    assert m["E_Pa_stderr"] < 0.25 * m["E_Pa"], (m["E_Pa"], m["E_Pa_stderr"])
+    assert m["E_Pa_stat"] < 0.25 * m["E_Pa"], (m["E_Pa"], m["E_Pa_stat"])
     assert not any("random-walk drift" in w for w in out.json["warnings"]), out.json["warnings"]
 
 

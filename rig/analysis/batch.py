@@ -260,14 +260,17 @@ def _analyze(c: Curve, rec: Any, req: BatchRequest, read_s: float) -> dict:
     row = _place(c)
     for name, p in out["parameters"].items():
         row[name] = p["value"]
-        row[f"{name}_stderr"] = p["stderr"] if p["determined"] else math.inf
+        row[f"{name}_stat"] = p["stderr"] if p["determined"] else math.inf
+        if "sys" in p:
+            row[f"{name}_sys"] = p["sys"]
     m = out.get("material") or {}
     placed = out["records"][0]
     if "contact_point_m" in placed:
         row["contact_point_m"] = placed["contact_point_m"]
-        row["contact_point_m_stderr"] = placed.get("contact_point_m_stderr")
+        row["contact_point_m_stat"] = placed.get("contact_point_m_stderr")
+        row["contact_point_m_sys"] = m.get("contact_point_m_sys")
     if m:
-        row["E_Pa"], row["E_Pa_stderr"] = m["E_Pa"], m["E_Pa_stderr"]
+        row["E_Pa"], row["E_Pa_stat"], row["E_Pa_sys"] = m["E_Pa"], m["E_Pa_stat"], m.get("E_Pa_sys")
     fit = out["fit"]
     row.update(rmse_N=fit["rmse_N"], noise_N=fit["noise_N"], rmse_over_noise=fit["rmse_over_noise"],
                adequate=out["adequate"])

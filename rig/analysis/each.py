@@ -6,7 +6,7 @@ The Python API for notebooks is `analyze_curves` (a pandas DataFrame, one row pe
     >>> from rig.analysis.each import analyze_curves, on_grid
     >>> df = analyze_curves(["map.jpk-force-map"], model="hertz", indenter="paraboloid:R=10um",
     ...                     segment="approach")
-    >>> df[["curve", "x_m", "y_m", "E_Pa", "E_Pa_stderr", "adequate"]]
+    >>> df[["curve", "x_m", "y_m", "E_Pa", "E_Pa_stat", "E_Pa_sys", "adequate"]]
     >>> grid = on_grid(df)          # grid["E_Pa"].plot() draws the map
 """
 
@@ -161,7 +161,7 @@ def parameters(rows: list[dict]) -> list[str]:
     """The fitted parameters' columns (not their errors), in table order."""
     from rig.analysis.table import PLACE, TAIL
 
-    return [c for c in columns(rows) if c not in PLACE and c not in TAIL and not c.endswith("_stderr")]
+    return [c for c in columns(rows) if c not in PLACE and c not in TAIL and not c.endswith(("_stat", "_sys"))]
 
 
 def _n(count: int, what: str) -> str:

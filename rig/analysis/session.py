@@ -24,6 +24,7 @@ from rig.analysis.explain import auto, explain, format_auto, format_explain
 from rig.analysis.fit import FitResult, fit
 from rig.analysis.modulus import format_modulus, format_pa, modulus_vs_depth, plateau_drift
 from rig.analysis.report import write_report
+from rig.analysis.systematic import Systematic, interval, systematic
 from rig.errors import RigError
 from rig.models.catalogue import CONTACT, build_model
 from rig.records import ReadOptions
@@ -91,7 +92,14 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     creep_rows = creep_json(res, inputs.indenter, inputs.poisson) if any(t.creep for t in res.trials) else []
     if creep_rows:
         out["creep"] = creep_rows
-    material = material_json(res, inputs, depth=not req.row_only)
+    sys_err = None
+    if res.model.has(CONTACT) and inputs.indenter is not None:
+        sys_err = systematic(res)
+    if sys_err is not None:
+        out["systematic"] = sys_err.as_dict()
+        for k, p in out["parameters"].items():
+            p["sys"] = sys_err.error.get(k)
+    material = material_json(res, inputs, depth=not req.row_only, sys_err=sys_err)
     if material:
         out["material"] = material
     if before is not None:
@@ -212,20 +220,35 @@ def format_before_after(before: FitResult, after: FitResult) -> str:
     return "\n".join(lines)
 
 
-def material_json(res: FitResult, inputs, depth: bool = True) -> dict:
+def material_json(res: FitResult, inputs, depth: bool = True, sys_err: Systematic | None = None) -> dict:
     """The indenter, Poisson's ratio, the contact point and the modulus by depth (SI; `depth`
     False leaves it out), when the model holds the indenter's elastic contact; the instrument's
-    own result where a file has one."""
+    own result where a file has one.
+
+    Every error is named for what it is: `_stat` the statistical (the noise's, given the model),
+    `_sys` the systematic (how far the fit's own choices move the value beyond their noise:
+    rig.analysis.systematic; 0 where none did, None where not measured), `_interval` the two
+    together, value +/- (1.96 stat + sys)."""
     if not res.model.has(CONTACT) or inputs.indenter is None:
         return {}
+    e_stat = _finite(res.stderr.get("E_Pa"))
+    e_sys = sys_err.error.get("E_Pa") if sys_err is not None else None
     out: dict = {"indenter": inputs.indenter.spec(), "indenter_description": inputs.indenter.describe(),
                  "indenter_from": inputs.indenter_from, "poisson": inputs.poisson,
-                 "E_Pa": res.values["E_Pa"], "E_Pa_stderr": _finite(res.stderr.get("E_Pa"))}
+                 "E_Pa": res.values["E_Pa"], "E_Pa_stat": e_stat, "E_Pa_sys": e_sys,
+                 "E_Pa_interval": interval(res.values["E_Pa"], e_stat, e_sys),
+                 "E_Pa_sys_from": sys_err.why("E_Pa") if sys_err is not None else None,
+                 "E_Pa_refits": [{"choice": c.name, "E_Pa": c.values["E_Pa"],
+                                  "counted": c.counted.get("E_Pa", False)}
+                                 for c in sys_err.choices if "E_Pa" in c.values]
+                 if sys_err is not None else None}
     placed = record_placement(res)  # hertz fits one record
     if "contact_point_m" in placed[0]:
         # the contact point in the record's own travel from its first sample
         out["contact_point_m"] = [row["contact_point_m"] for row in placed]
-        out["contact_point_m_stderr"] = placed[0]["contact_point_m_stderr"]
+        out["contact_point_m_stat"] = placed[0]["contact_point_m_stderr"]
+        x_c = next((k for k in res.values if k.partition("@")[0] == "x_c_m"), None)
+        out["contact_point_m_sys"] = sys_err.error.get(x_c) if sys_err is not None and x_c else None
     if depth:
         rows = modulus_vs_depth(res)
         out["modulus_vs_depth"] = rows
@@ -238,16 +261,29 @@ def material_json(res: FitResult, inputs, depth: bool = True) -> dict:
 
 
 def format_material(m: dict, res: FitResult) -> str:
-    err = m["E_Pa_stderr"]
-    e = f" +/- {format_pa(err)}" if err is not None else ""  # finite or None (material_json)
+    err, sys = m["E_Pa_stat"], m.get("E_Pa_sys")
+    e = f" +/- {format_pa(err)} (stat)" if err is not None else ""  # finite or None (material_json)
+    if sys is not None:
+        e += f" +/- {format_pa(sys)} (sys)" if sys > 0 else " +/- 0 (sys)"
     lines = [f"material   E = {format_pa(m['E_Pa'])}{e}  ({m['indenter_description']}, "
              f"from {m['indenter_from']}; Poisson's ratio {m['poisson']:g})"]
+    iv = m.get("E_Pa_interval")
+    if iv is not None and sys is not None:
+        lines.append(f"           95 % interval {format_pa(iv[0])} to {format_pa(iv[1])} (1.96 stat + sys)")
+        refits = m.get("E_Pa_refits") or []
+        if refits:
+            lines.append("refits     " + ", ".join(f"{r['choice']} {format_pa(r['E_Pa'])}"
+                                                  + ("*" if r["counted"] else "") for r in refits))
+            lines.append("           (* moved beyond its noise: counted in sys; stat is the noise's, given the "
+                         "model)")
     if "contact_point_m" in m:
         k, u = res.trials[0].length_unit
         cp = ", ".join(f"{c / k:.4g}" for c in m["contact_point_m"])
-        ce = m.get("contact_point_m_stderr")
-        lines.append(f"contact    at {cp} {u} of travel" + (f" +/- {ce / k:.2g} {u}" if ce is not None else "")
-                     + " (fitted)")
+        ce, cs = m.get("contact_point_m_stat"), m.get("contact_point_m_sys")
+        lines.append(f"contact    at {cp} {u} of travel"
+                     + (f" +/- {ce / k:.2g} {u} (stat)" if ce is not None else "")
+                     + (f" +/- {cs / k:.2g} {u} (sys)" if cs else "")
+                     + " (fitted; x_c_m above counts it from the first estimate)")
     depth = format_modulus(m["modulus_vs_depth"], res.trials[0].length_unit)
     if depth:
         lines.append(depth)

@@ -8,7 +8,9 @@ order of the inputs, to a temporary file that then replaces it: what is on disk 
 table's name is always a whole table.
 
 Columns: where the curve is (`file`, `curve`, `x_m`, `y_m`, `grid_x`, `grid_y`), every parameter
-with its standard error (named as in `--json`: `E_Pa`, `E_Pa_stderr`), `contact_point_m`, the
+with its statistical error (the noise's, given the model: `E_Pa_stat`) and, for a contact fit, its
+systematic error (how far the fit's range and baseline move it beyond their noise: `E_Pa_sys`;
+rig.analysis.systematic), `contact_point_m` with the same two, the
 error and the noise (`rmse_N`, `noise_N`, `rmse_over_noise`), `adequate`, with `--explain` the
 missing effect and its dBIC, and `error`: why a curve could not be analysed (empty otherwise).
 """
@@ -25,8 +27,8 @@ from pathlib import Path
 from rig.errors import RigError
 
 PLACE = ["file", "curve", "x_m", "y_m", "grid_x", "grid_y"]
-TAIL = ["contact_point_m", "contact_point_m_stderr", "rmse_N", "noise_N", "rmse_over_noise", "adequate",
-        "effect", "effect_dbic", "error"]
+TAIL = ["contact_point_m", "contact_point_m_stat", "contact_point_m_sys", "rmse_N", "noise_N",
+        "rmse_over_noise", "adequate", "effect", "effect_dbic", "error"]
 FORMATS = {".csv": "csv", ".jsonl": "jsonl", ".json": "jsonl", ".parquet": "parquet"}
 
 
