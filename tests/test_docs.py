@@ -122,7 +122,7 @@ def test_the_readme_is_short_starts_with_the_two_commands_and_its_links_resolve(
     first = text.index("```")
     assert text[first:].startswith("```sh\n")
     block = text[first + len("```sh\n"):text.index("```", first + 3)].strip().splitlines()
-    assert block[0].startswith("python3 -m pip install . && python3 -m rig run ")
+    assert block[0].startswith("python3 -m pip install '.[afm]' && python3 -m rig run ")
     assert block[1] == "python3 -m pip install '.[test]' && python3 -m pytest -n 2 --dist loadgroup"
     # every link into the project names a file that is there
     targets = [t.split("#")[0] for t in re.findall(r"\]\(([^)\s]+)\)", text) if "://" not in t]

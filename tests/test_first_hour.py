@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import os
 import re
 import subprocess
 import sys
@@ -87,3 +88,38 @@ def test_notes_txt_without_its_label_is_not_a_file_this_tool_can_read(tmp_path):
     done = subprocess.run([sys.executable, "-m", "rig", "analyze", "short.csv"], cwd=tmp_path,
                           capture_output=True, text=True, timeout=60)
     assert "missing column(s) force_N" in done.stderr
+
+
+# --- the README's first command installs what its tour uses ------------------------------------
+
+def test_the_readmes_first_command_installs_every_extra_its_tour_needs(tmp_path):
+    """The tour's commands run where a package of an extra is missing name the extra they need;
+    the README's first set-up command installs each of them (and stays one of exactly two)."""
+    from tests.pages import README, ROOT, console
+
+    text = README.read_text()
+    first = text.index("```sh\n") + len("```sh\n")
+    setup = text[first:text.index("```", first)].strip().splitlines()
+    assert len(setup) == 2
+    installed = re.match(r"python3 -m pip install '\.\[([\w,]+)\]' && python3 -m rig run ", setup[0])
+    assert installed, f"the first set-up command installs no extra: {setup[0]}"
+    extras = set(installed.group(1).split(","))
+    (tour,) = console().examples(README)
+    analyses = [c.split(" | ")[0] for c, _ in tour.commands if c.startswith("rig analyze ")]
+    assert analyses
+    # an environment with what `pip install .` alone gives: the optional readers are not there
+    blocked = tmp_path / "without-extras"
+    blocked.mkdir()
+    (blocked / "afmformats.py").write_text("raise ImportError('not installed: the afm extra has it')\n")
+    work = tmp_path / "work"
+    work.mkdir()
+    if "../shared/" in " ".join(analyses) and not (ROOT.parent / "shared").is_dir():
+        pytest.skip("the tour reads ../shared/ (the real measurements), which is not beside the project")
+    (tmp_path / "shared").symlink_to(ROOT.parent / "shared")
+    needed = set()
+    for command in analyses:
+        done = subprocess.run(command, shell=True, cwd=work, capture_output=True, text=True, timeout=300,
+                              env={**os.environ, "PYTHONPATH": str(blocked)})
+        needed |= set(re.findall(r"indentation-rig\[(\w+)\]", done.stderr))
+    assert needed == {"afm"}, needed
+    assert needed <= extras, f"the tour needs the extras {sorted(needed)}; the first command installs {extras}"

@@ -16,7 +16,7 @@ def test_the_page_shows_what_the_command_prints(example, tmp_path):
 # Code blocks shown and not run: commands for the machine itself, which the suite cannot give on
 # the machine it runs on (installing the package, systemd). Each says where it is exercised.
 SHOWN_NOT_RUN = {
-    ("README.md", "python3 -m pip install . && python3 -m rig run protocols/demo.yaml"):
+    ("README.md", "python3 -m pip install '.[afm]' && python3 -m rig run protocols/demo.yaml"):
         "the set-up commands: .ci/run runs the second from a clean checkout; the first is the "
         "demo trial that tutorials/first-trial.md runs",
     ("daemon.md", "sudo cp config/rigd.service /etc/systemd/system/"):
