@@ -24,6 +24,9 @@ root_doc = "index"
 exclude_patterns = ["_build"]
 html_theme = "furo"
 html_title = "indentation-rig"
+# console and output blocks wrap at the text column (docs/_static/console.css)
+html_static_path = ["_static"]
+html_css_files = ["console.css"]
 myst_heading_anchors = 4
 myst_enable_extensions = ["colon_fence"]
 # no typographic dashes or quotes: a command's `--option` written in plain text (the reference pages

@@ -123,3 +123,38 @@ def test_the_readmes_first_command_installs_every_extra_its_tour_needs(tmp_path)
         needed |= set(re.findall(r"indentation-rig\[(\w+)\]", done.stderr))
     assert needed == {"afm"}, needed
     assert needed <= extras, f"the tour needs the extras {sorted(needed)}; the first command installs {extras}"
+
+
+# --- a console block fits the text column ------------------------------------------------------
+
+# After the page has laid out, the blocks of the article wider than their box: "OVERFLOW:n:widths".
+_MEASURE = """<script>window.addEventListener("load", () => {
+  const wide = [...document.querySelectorAll("article div[class^='highlight-'] pre")]
+    .filter(p => /highlight-(console|text|none)/.test(p.parentElement.parentElement.className))
+    .filter(p => p.scrollWidth > p.clientWidth + 1).map(p => p.scrollWidth + "/" + p.clientWidth);
+  const out = document.createElement("div");
+  out.textContent = "OVERFLOW" + ":" + wide.length + ":" + wide.join(",");
+  document.body.appendChild(out);
+});</script>"""
+
+
+@pytest.mark.parametrize("page", ["tutorials/force-map", "tutorials/afm-curve", "tutorials/first-trial"])
+def test_console_blocks_fit_the_text_column_in_a_browser(site, page, tmp_path):
+    import shutil
+
+    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    if browser is None:
+        pytest.skip("chromium is not installed (apt-get install chromium): the blocks are measured in a "
+                    "browser")
+    html = site / f"{page}.html"
+    probe = html.with_name(html.stem + "-measured.html")
+    probe.write_text(html.read_text().replace("</body>", _MEASURE + "</body>"))
+    done = subprocess.run([browser, "--headless", "--disable-gpu", "--no-sandbox", "--window-size=1280,900",
+                           f"--user-data-dir={tmp_path}", "--virtual-time-budget=3000", "--dump-dom",
+                           probe.as_uri()], capture_output=True, text=True, timeout=120)
+    found = re.search(r"OVERFLOW:(\d+):([^<]*)", done.stdout)
+    assert found, done.stderr[-2000:]
+    assert found.group(1) == "0", (f"{page}: console blocks wider than the column (scroll/box px): "
+                                   f"{found.group(2)}")
+    # the rule is the site's, on every page
+    assert "_static/console.css" in html.read_text()
