@@ -132,9 +132,23 @@ def cmd_characterize(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from rig.recording.logs import export_csv, read_log
-    from rig.views.replay import format_summary, plot_log, summarize
+    from rig.views.replay import format_summary, format_table, plot_compare, plot_log, summarize, table_row
 
-    log = read_log(args.log)
+    if len(args.log) > 1:
+        if args.csv:
+            raise RigError(f"--csv writes one log's samples: give one log, not {len(args.log)}")
+        logs = [read_log(p) for p in args.log]
+        rows = [table_row(summarize(log)) for log in logs]
+        if args.plot:
+            plot_compare(logs, args.plot)
+        if args.json:
+            print(json.dumps({"trials": rows, "plot": str(args.plot) if args.plot else None}, indent=2))
+        else:
+            print(format_table(rows))
+            if args.plot:
+                print(f"plot       {args.plot}")
+        return 0
+    log = read_log(args.log[0])
     summary = summarize(log)
     if args.csv:
         n = export_csv(log, args.csv)
@@ -424,14 +438,14 @@ def cmd_watch(args: argparse.Namespace) -> int:
 def cmd_logs(args: argparse.Namespace) -> int:
     from rig.recording.recovery import list_trials
     from rig.specs.config import load_config
-    from rig.views.watch import format_logs
+    from rig.views.watch import format_logs, trial_figures
 
     out_dir = Path(args.dir) if args.dir else Path(load_config(args.config).recorder.out_dir)
     entries = list_trials(out_dir)
     if args.json:
-        print(json.dumps([e.as_dict() for e in entries], indent=2))
+        print(json.dumps([{**e.as_dict(), **f} for e, f in zip(entries, figures, strict=True)], indent=2))
     else:
-        print(format_logs(entries, out_dir))
+        print(format_logs(entries, out_dir, figures))
     return 0
 
 
@@ -446,6 +460,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 def cmd_models(args: argparse.Namespace) -> int:
     from rig.models.catalogue import CATALOGUE, catalogue_json, format_catalogue
+    figures = trial_figures(entries)
     from rig.models.plugins import load_plugin
 
     if args.action:
@@ -689,12 +704,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     r.set_defaults(func=cmd_characterize)
 
-    r = sub.add_parser("replay", help="summarise a log; export CSV; plot",
+    r = sub.add_parser("replay", help="summarise a log (or compare several); export CSV; plot",
                        description="Summarise a trial log (also one cut short by a crash), re-run "
-                                   "the estimator on it, and optionally export CSV or plot.")
-    r.add_argument("log", help="MCAP log file")
-    r.add_argument("--csv", type=Path, help="write samples as CSV (t_s,position_mm,force_N,...)")
-    r.add_argument("--plot", type=Path, help="write a PNG of force, position and stiffness")
+                                   "the estimator on it, and optionally export CSV or plot. Given several "
+                                   "logs: a table of them (specimen, outcome, peak force, stiffness at the "
+                                   "hold's end, estimator error, duration) and one plot comparing them.")
+    r.add_argument("log", nargs="+", help="MCAP log file(s)")
+    r.add_argument("--csv", type=Path, help="write samples as CSV (t_s,position_mm,force_N,...); one log only")
+    r.add_argument("--plot", type=Path, help="write a PNG of force, position and stiffness (several logs: "
+                                             "their force against time and against indentation)")
     r.add_argument("--json", action="store_true", help="print the summary as JSON")
     r.set_defaults(func=cmd_replay)
 

@@ -74,7 +74,171 @@ def test_report_of_an_afm_curve_draws_force_against_indentation_with_the_fit(tmp
 def test_report_tells_approach_from_retract(tmp_path, monkeypatch):
     pytest.importorskip("afmformats", reason="reading JPK files needs the afm extra (afmformats)")
     contact = spy(monkeypatch, report_mod, "contact_figure")
-    assert main(["analyze", str(SPOT3), *HERTZ, "--report", str(tmp_path / "rep")]) == 0
+    assert main(["analyze", str(SPOT3), *HERTZ, "--segment", "all", "--report", str(tmp_path / "rep")]) == 0
     [fig] = contact
     labels = legend_texts(fig.axes[0])
     assert {"measured, approach", "measured, retract"} <= set(labels)
+
+
+# ---------------------------------------------------------------- the rig's trials
+SHORT = """name: short ramp-hold {v} mm/s to 6 mm
+steps:
+  - ramp: {{to_mm: 6, speed_mm_s: {v}}}
+  - hold: {{duration_s: 6}}
+  - return: {{to_mm: 0, speed_mm_s: 5}}
+"""
+
+
+@pytest.fixture(scope="module")
+def day(tmp_path_factory):
+    """A day's trials: three speeds on pig-07 (named as the recorder names them), a creep trial
+    and a trial that tripped the force limit on pig-08."""
+    from tests.conftest import PROTOCOLS, run_sim
+
+    tmp = tmp_path_factory.mktemp("day")
+    logs = [run_sim(SHORT.format(v=v), tmp_path=tmp, specimen="pig-07",
+                    name=f"20261128-0900{i}0_pig-07_short-ramp-hold-{v}-mm-s-to-6-mm.mcap").log_path
+            for i, v in enumerate((1, 2, 4))]
+    creep = run_sim(PROTOCOLS / "creep-hold.yaml", tmp_path=tmp, specimen="pig-08",
+                    name="20261128-100000_pig-08_creep-1-5-n-held-for-10-s.mcap").log_path
+    fault = (PROTOCOLS / "paper-3mm_s.yaml").read_text().replace("max_force_N: 15", "max_force_N: 5")
+    tripped = run_sim(fault, tmp_path=tmp, specimen="pig-08",
+                      name="20261128-110000_pig-08_paper-ramp-hold-3-mm-s.mcap")
+    assert tripped.outcome == "fault"
+    return {"speeds": logs, "creep": creep, "fault": tripped.log_path, "dir": tmp}
+
+
+def test_replay_of_several_logs_prints_a_table_and_draws_one_plot(day, tmp_path, capsys, monkeypatch):
+    from rig.views import replay
+
+    made = spy(monkeypatch, replay, "compare_figure")
+    png = tmp_path / "cmp.png"
+    logs = [*day["speeds"], day["fault"]]
+    assert main(["replay", *map(str, logs), "--plot", str(png)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split() == ["trial", "specimen", "protocol", "outcome", "peak", "force", "k", "at", "hold",
+                                "end", "est.", "error", "duration"]
+    rows = lines[1:1 + len(logs)]
+    assert [r.split()[0] for r in rows] == [p.name for p in logs]
+    for r, v in zip(rows[:3], (1, 2, 4), strict=True):
+        assert f"pig-07    short ramp-hold {v} mm/s to 6 mm" in r and "completed" in r
+        assert " N/m" in r and r.rstrip().endswith(" s")
+    assert "pig-08" in rows[3] and "fault" in rows[3] and "5.0" in rows[3]
+    assert lines[-1] == f"plot       {png}" and png.stat().st_size > 20_000
+    # one plot: every trial, told apart by specimen and protocol (its speed)
+    [fig] = made
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert labels[:3] == [f"pig-07  short ramp-hold {v} mm/s to 6 mm" for v in (1, 2, 4)]
+    assert [ax.get_xlabel() for ax in fig.axes] == ["time (s)", "indentation (mm)"]
+    # the figures of each row are the single log's summary's
+    assert main(["replay", *map(str, logs), "--json"]) == 0
+    import json
+
+    table = json.loads(capsys.readouterr().out)["trials"]
+    assert main(["replay", str(logs[0]), "--json"]) == 0
+    one = json.loads(capsys.readouterr().out)
+    assert table[0]["peak_force_N"] == one["peak_force_N"]
+    assert table[0]["hold_end_stiffness_N_per_m"] == one["estimator"]["hold_end"]["stiffness_N_per_m"]
+    # CSV is one log's samples: said in one line, exit status 2
+    assert main(["replay", *map(str, logs), "--csv", str(tmp_path / "x.csv")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--csv writes one log's samples: give one log" in err[0]
+
+
+def test_replay_tour_command_with_a_glob(day, tmp_path):
+    """The README tour's `rig replay trials/*_pig-07_*.mcap` once a folder holds several."""
+    import subprocess
+    import sys
+
+    from tests.conftest import ROOT
+
+    command = f"{sys.executable} -m rig replay {day['dir']}/*_pig-07_*.mcap --plot {tmp_path}/d.png"
+    proc = subprocess.run(command, shell=True, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "unrecognized arguments" not in proc.stderr
+    assert len([line for line in proc.stdout.splitlines() if "_pig-07_" in line]) == 3
+
+
+def test_logs_lists_peak_force_stiffness_and_estimator_error(day, capsys):
+    assert main(["logs", "--dir", str(day["dir"])]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    head = lines[0]
+    for col in ("peak force", "k at hold end", "est. error", "outcome", "duration"):
+        assert col in head
+    assert len(lines) == 1 + 5
+    creep_row = next(line for line in lines if "creep" in line)
+    assert " N/m " in creep_row  # the force hold's end counts as a hold's end
+    import json
+
+    assert main(["logs", "--dir", str(day["dir"]), "--json"]) == 0
+    entries = json.loads(capsys.readouterr().out)
+    fault = next(e for e in entries if e["outcome"] == "fault")
+    assert 5.0 <= fault["peak_force_N"] < 5.5
+    assert all(e["estimator_error_rms_N"] > 0 for e in entries)
+
+
+def test_fault_trial_legend_leaves_the_peak_in_sight(day, tmp_path, monkeypatch):
+    from rig.recording.logs import read_log
+    from rig.views import replay
+
+    made = spy(monkeypatch, replay, "log_figure")
+    assert main(["replay", str(day["fault"]), "--plot", str(tmp_path / "f.png")]) == 0
+    [fig] = made
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    log = read_log(day["fault"])
+    fault = next(e for e in log.events if e["kind"] == "fault")
+    peak = ax.transData.transform((fault["t_s"], fault["data"]["force_N"]))
+    box = ax.get_legend().get_window_extent()
+    assert not box.contains(*peak)  # the peak where the limit tripped is not under the legend
+    assert not box.overlaps(ax.get_window_extent())  # nor is any other sample
+    texts = legend_texts(ax)
+    assert any(t.startswith("fault: force ") and "above the limit of 5 N" in t for t in texts)
+
+
+def test_creep_trial_shades_force_steps_and_draws_the_setpoint(day, tmp_path, monkeypatch):
+    from rig.views import replay
+
+    made = spy(monkeypatch, replay, "log_figure")
+    assert main(["replay", str(day["creep"]), "--plot", str(tmp_path / "c.png")]) == 0
+    [fig] = made
+    ax = fig.axes[0]
+    texts = legend_texts(ax)
+    assert {"ramp_force", "hold_force", "force setpoint"} <= set(texts)
+    setpoint = next(line for line in ax.get_lines() if line.get_label() == "force setpoint")
+    assert np.nanmax(setpoint.get_ydata()) == pytest.approx(1.5)
+    from matplotlib.colors import to_rgb
+
+    shaded = [p.get_facecolor()[:3] for p in ax.patches]
+    for kind in ("ramp_force", "hold_force"):
+        assert any(np.allclose(c, to_rgb(replay._STEP_COLOURS[kind])) for c in shaded), kind
+
+
+def test_fe_and_before_after_labels_keep_specimen_protocol_and_speed(day, tmp_path, monkeypatch):
+    made_fe = spy(monkeypatch, report_mod, "fe_figure")
+    made_steps = spy(monkeypatch, report_mod, "residual_steps_figure")
+    assert main(["analyze", *map(str, day["speeds"]), "--model", "hooke", "--add", "relaxation",
+                 "--report", str(tmp_path / "rep")]) == 0
+    want = [f"pig-07 short-ramp-hold-{v}-mm-s-to-6-mm" for v in (1, 2, 4)]
+    [fe] = [f for f in made_fe if f is not None]
+    assert [t.replace("\n", "") for t in legend_texts(fe.axes[0])] == want
+    [steps] = made_steps
+    xlabels = [ax.get_xlabel() for ax in steps.axes if ax.get_xlabel()]
+    assert [x.split("\n", 1)[0] for x in xlabels] == ["time (s)"] * 3
+    assert [x.split("\n", 1)[1].replace("\n", "") for x in xlabels] == want
+
+
+def test_campaign_plot_has_no_offset_that_makes_a_flat_error_look_steep():
+    from rig.service.characterize import Campaign, Turn, campaign_figure
+
+    camp = Campaign("pig-07", status="done", turns=[
+        Turn("first look", "why", model="proposed", rmse_over_noise=1.0004, max_rse=0.05),
+        Turn("designed", "why", model="proposed", rmse_over_noise=0.9999, max_rse=0.02)])
+    fig = campaign_figure(camp)
+    fig.canvas.draw()
+    a = fig.axes[0]
+    assert a.get_ylabel() == "RMSE / noise"
+    assert a.yaxis.get_offset_text().get_text() == ""
+    lo, hi = a.get_ylim()
+    # the fall of 0.0005 is under a thousandth of the axis: drawn flat
+    assert lo == 0.0 and 0.0005 / (hi - lo) < 1e-3

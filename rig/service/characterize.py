@@ -849,25 +849,31 @@ def format_campaign(camp: Campaign) -> str:
     return "\n".join(lines)
 
 
-def plot_campaign(camp: Campaign, path: Path) -> Path:
-    """The error falling trial by trial: RMSE over the noise and the largest relative error."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def campaign_figure(camp: Campaign):
+    """The error falling trial by trial: RMSE over the noise and the largest relative error (a
+    matplotlib Figure). The error's axis starts at 0 with no offset, so 1.0004 -> 0.9999 reads as
+    the flat line it is."""
+    from rig.views.plots import figure
 
     done = [t for t in camp.turns if t.model]
-    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.4))
+    fig = figure(figsize=(9, 3.4))
+    a, b = fig.subplots(1, 2)
     n = range(1, len(done) + 1)
-    a.plot(n, [t.rmse_over_noise for t in done], "o-")
+    ratio = [t.rmse_over_noise for t in done]
+    a.plot(n, ratio, "o-")
     a.axhline(1.0, color="0.6", lw=0.8)
     a.set(xlabel="trial", ylabel="RMSE / noise", title="model error")
+    a.ticklabel_format(axis="y", style="plain", useOffset=False)
+    a.set_ylim(0.0, max([1.5, *(1.15 * r for r in ratio if math.isfinite(r))]))
     b.semilogy(n, [100 * t.max_rse for t in done], "o-")
     b.set(xlabel="trial", ylabel="largest relative error (%)", title="parameters")
     for ax in (a, b):
         ax.set_xticks(list(n))
     fig.suptitle(f"{camp.specimen}: {camp.status}")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
+
+
+def plot_campaign(camp: Campaign, path: Path) -> Path:
+    """campaign_figure, written to `path`."""
+    campaign_figure(camp).savefig(path, dpi=110)
     return path

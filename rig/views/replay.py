@@ -12,7 +12,7 @@ from rig.errors import RigError, SpecError
 from rig.recording.logs import TrialLog
 from rig.specs.config import RigConfig, parse_config
 from rig.specs.frames import Frame
-from rig.views.plots import pyplot, shade_spans
+from rig.views.plots import figure, save, shade_spans, trial_labels
 
 
 @dataclass
@@ -66,7 +66,7 @@ def rerun_estimator(log: TrialLog, config: RigConfig) -> np.ndarray:
 
 def hold_check(log: TrialLog, window_s: float = 1.0) -> HoldCheck | None:
     kinds = np.array(log.step_kind)
-    idx = np.flatnonzero(kinds == "hold")
+    idx = np.flatnonzero(np.isin(kinds, ("hold", "hold_force")))
     if len(idx) == 0:
         return None
     end = idx[-1]
@@ -111,6 +111,7 @@ def summarize(log: TrialLog) -> dict:
             "error_mean_N": float(np.mean(err)) if len(err) else None,
             "error_std_N": float(np.std(err)) if len(err) else None,
             "error_max_abs_N": float(np.max(np.abs(err))) if len(err) else None,
+            "error_rms_N": float(np.sqrt(np.mean(err ** 2))) if len(err) else None,
             "final_stiffness_N_per_m": float(s["stiffness_N_per_m"][-1]),
         },
         "peak_force_N": float(np.max(s["force_N"])),
@@ -228,7 +229,7 @@ def format_summary(d: dict) -> str:
 
 
 _STEP_COLOURS = {"tare": "#dddddd", "approach": "#f3e6c0", "ramp": "#cfe3f7", "hold": "#d8f0d2",
-                 "return": "#f7d9d4", "fault": "#ff9e9e"}
+                 "ramp_force": "#ddd0f2", "hold_force": "#c8ece6", "return": "#f7d9d4", "fault": "#ff9e9e"}
 
 
 def shade_steps(ax, t: np.ndarray, kinds: list[str]) -> None:
@@ -236,24 +237,42 @@ def shade_steps(ax, t: np.ndarray, kinds: list[str]) -> None:
     shade_spans(ax, t, kinds, _STEP_COLOURS, alpha=0.5)
 
 
-def plot_log(log: TrialLog, out: str | Path) -> None:
+def _legend_outside(ax, handles=None, labels=None) -> None:
+    """The legend right of the axes: it never covers a sample (the peak where a limit tripped)."""
+    if handles is None:
+        handles, labels = ax.get_legend_handles_labels()
+    ax.legend(handles, labels, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, borderaxespad=0.0)
+
+
+def log_figure(log: TrialLog):
+    """A trial's force (with a force-controlled step's setpoint), position and stiffness estimate
+    against time, its steps shaded, a fault marked where it tripped: a matplotlib Figure."""
     from matplotlib.patches import Patch
 
-    plt = pyplot()
     s = log.samples
     t = s["t_s"]
-    fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True, constrained_layout=True)
+    fig = figure(figsize=(11, 8))
+    axes = fig.subplots(3, 1, sharex=True)
     ax = axes[0]
     shade_steps(ax, t, log.step_kind)
     ax.plot(t, s["force_N"], lw=0.8, color="k", label="measured")
     ax.plot(t, s["force_pred_N"], lw=0.8, color="tab:orange", alpha=0.8,
             label="RLS prediction k(t-1) x(t-1)")
+    setpoint = s.get("force_cmd_N")
+    if setpoint is not None and np.any(np.isfinite(setpoint)):
+        ax.plot(t, setpoint, lw=1.4, color="tab:purple", ls="--", label="force setpoint")
+    faults = [e for e in log.events if e.get("kind") == "fault"]
+    for e in faults:
+        f = (e.get("data") or {}).get("force_N")
+        if f is None:
+            f = float(np.interp(e["t_s"], t, s["force_N"]))
+        ax.plot([e["t_s"]], [f], "X", ms=9, color="r", mec="k", label=f"fault: {e['message']}"[:70])
     ax.set_ylabel("force (N)")
     handles, labels = ax.get_legend_handles_labels()
     kinds_present = [k for k in _STEP_COLOURS if k in set(log.step_kind)]
     handles += [Patch(color=_STEP_COLOURS[k], alpha=0.5) for k in kinds_present]
     labels += kinds_present
-    ax.legend(handles, labels, loc="upper right", fontsize=8, ncol=2)
+    _legend_outside(ax, handles, labels)
     meta = log.trial
     ax.set_title(f"{meta.get('protocol_name', '')}  |  specimen {meta.get('specimen', '-')}\n"
                  f"{Path(log.path).name}", fontsize=9)
@@ -262,16 +281,103 @@ def plot_log(log: TrialLog, out: str | Path) -> None:
     ax.plot(t, log.position_mm(Frame.SURFACE), lw=1.0, label="feedback")
     ax.plot(t, log.position_cmd_mm(Frame.SURFACE), lw=0.8, ls="--", label="commanded")
     ax.set_ylabel("indentation (mm)")
-    ax.legend(loc="upper right", fontsize=8)
+    _legend_outside(ax)
     ax = axes[2]
     shade_steps(ax, t, log.step_kind)
     k = np.where(log.contact, s["stiffness_N_per_m"], np.nan)
     ax.plot(t, k, lw=1.0, color="tab:green")
     ax.set_ylabel("stiffness k (N/m)")
     ax.set_xlabel("time (s)")
-    for e in log.events:
-        if e.get("kind") == "fault":
-            for a in axes:
-                a.axvline(e["t_s"], color="r", lw=1.2)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    for e in faults:
+        for a in axes:
+            a.axvline(e["t_s"], color="r", lw=1.2)
+    return fig
+
+
+def plot_log(log: TrialLog, out: str | Path) -> None:
+    save(log_figure(log), out)
+
+
+# ---------------------------------------------------------------- several logs
+TABLE_COLUMNS = ("trial", "specimen", "protocol", "outcome", "peak force", "k at hold end", "est. error",
+                 "duration")
+
+
+def log_figures(log: TrialLog) -> dict:
+    """The figures a day's table compares, from the samples alone (no re-run): the peak force,
+    the stiffness estimate at the end of the last hold, the estimator's RMS error over the contact
+    samples (SI; None where the log has no hold or no contact)."""
+    s = log.samples
+    if log.n == 0:
+        return {"peak_force_N": None, "hold_end_stiffness_N_per_m": None, "estimator_error_rms_N": None}
+    contact = log.contact
+    err = s["error_N"][contact] if contact.any() else np.zeros(0)
+    hc = hold_check(log)
+    return {"peak_force_N": float(np.max(s["force_N"])),
+            "hold_end_stiffness_N_per_m": hc.stiffness_N_per_m if hc else None,
+            "estimator_error_rms_N": float(np.sqrt(np.mean(err ** 2))) if len(err) else None}
+
+
+def table_row(d: dict) -> dict:
+    """One row of the summary table of several logs, from `summarize`."""
+    e = d["estimator"]
+    return {"trial": Path(d["log"]).name, "specimen": d["specimen"], "protocol": d["protocol"],
+            "outcome": d["outcome"] + ("" if d["complete"] else " (cut short)"),
+            "peak_force_N": d["peak_force_N"],
+            "hold_end_stiffness_N_per_m": e["hold_end"]["stiffness_N_per_m"] if "hold_end" in e else None,
+            "estimator_error_rms_N": e.get("error_rms_N"), "duration_s": d["duration_s"]}
+
+
+def _num(v, fmt: str, unit: str) -> str:
+    return "-" if v is None else f"{v:{fmt}} {unit}"
+
+
+def format_table(rows: list[dict]) -> str:
+    """The summary table of several logs: one line per trial, aligned columns."""
+    lines = [TABLE_COLUMNS]
+    for r in rows:
+        lines.append((r["trial"], r["specimen"] or "-", r["protocol"] or "-", r["outcome"],
+                      _num(r["peak_force_N"], ".3f", "N"), _num(r["hold_end_stiffness_N_per_m"], ".1f", "N/m"),
+                      _num(r["estimator_error_rms_N"], ".4f", "N"), _num(r["duration_s"], ".2f", "s")))
+    widths = [max(len(str(row[i])) for row in lines) for i in range(len(TABLE_COLUMNS))]
+    right = {4, 5, 6, 7}  # numbers line up on the right
+    return "\n".join("  ".join(str(c).rjust(w) if i in right else str(c).ljust(w)
+                               for i, (c, w) in enumerate(zip(row, widths, strict=True))).rstrip()
+                     for row in lines)
+
+
+def log_labels(logs: list[TrialLog]) -> list[str]:
+    """What tells trials apart: specimen and protocol (its speed in its name), the start time
+    added where two would read alike; from the file's name for a log without that metadata."""
+    fallback = trial_labels([Path(log.path).name for log in logs], width=60)
+    base = [f"{log.trial.get('specimen') or '-'}  {log.trial.get('protocol_name')}"
+            if log.trial.get("protocol_name") else fallback[i] for i, log in enumerate(logs)]
+    return [f"{b}  ({log.trial.get('start_time', '')[11:19]})" if base.count(b) > 1 else b
+            for b, log in zip(base, logs, strict=True)]
+
+
+def compare_figure(logs: list[TrialLog]):
+    """Several logs on one Figure: force against time, and force against indentation (the
+    load-displacement curve), one colour per trial, labelled by specimen and protocol."""
+    names = log_labels(logs)
+    fig = figure(figsize=(12, 5.2))
+    ax_t, ax_x = fig.subplots(1, 2)
+    for i, (log, name) in enumerate(zip(logs, names, strict=True)):
+        s = log.samples
+        c = f"C{i % 10}"
+        ax_t.plot(s["t_s"], s["force_N"], lw=0.8, color=c, label=name)
+        ax_x.plot(log.position_mm(Frame.SURFACE), s["force_N"], lw=0.8, color=c, label=name)
+        for e in log.events:
+            if e.get("kind") == "fault":
+                ax_t.axvline(e["t_s"], color=c, lw=1.0, ls="--")
+    ax_t.set(xlabel="time (s)", ylabel="force (N)", title="force against time")
+    ax_x.set(xlabel="indentation (mm)", ylabel="force (N)", title="force against indentation")
+    for ax in (ax_t, ax_x):
+        ax.grid(alpha=0.3)
+    handles, labels = ax_t.get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=min(len(logs), 3), fontsize=8)
+    return fig
+
+
+def plot_compare(logs: list[TrialLog], out: str | Path) -> Path:
+    return save(compare_figure(logs), out)

@@ -122,16 +122,49 @@ class Watcher:
         self.out.flush()
 
 
-def format_logs(entries, out_dir: Path) -> str:
+def trial_figures(entries) -> list[dict]:
+    """Per entry of `list_trials`: its peak force, stiffness at the hold's end and estimator error
+    (rig.views.replay.log_figures), read from the log's samples; None each for a log being
+    written or one that cannot be read."""
+    import contextlib
+
+    from rig.errors import RigError
+    from rig.recording.logs import read_log
+    from rig.views.replay import log_figures
+
+    out = []
+    for e in entries:
+        figs = dict.fromkeys(("peak_force_N", "hold_end_stiffness_N_per_m", "estimator_error_rms_N"))
+        if e.outcome != "running":
+            with contextlib.suppress(RigError, OSError, ValueError):
+                figs = log_figures(read_log(e.path))
+        out.append(figs)
+    return out
+
+
+def _fig(v, fmt: str, unit: str) -> str:
+    return "-" if v is None else f"{v:{fmt}} {unit}"
+
+
+def format_logs(entries, out_dir: Path, figures: list[dict] | None = None) -> str:
+    """The trials as a table, newest first; with `figures` (trial_figures) the peak force, the
+    stiffness at the hold's end and the estimator's RMS error too."""
     if not entries:
         return f"no trial logs in {out_dir}"
-    rows = [("started", "specimen", "protocol", "duration", "outcome", "file")]
-    for e in entries:
+    head = ("started", "specimen", "protocol", "duration", "outcome")
+    more = ("peak force", "k at hold end", "est. error") if figures is not None else ()
+    rows = [(*head, *more, "file")]
+    for i, e in enumerate(entries):
         dur = f"{e.duration_s:.1f} s" if e.duration_s is not None else "-"
         outcome = e.outcome + (" (recovered)" if e.recovered else "")
         started = e.start_time[:19].replace("T", " ")
         # a campaign's trials lie in its folder: shown with it
         shown = str(e.path.relative_to(out_dir)) if e.path.is_relative_to(out_dir) else e.path.name
-        rows.append((started, e.specimen, e.protocol[:36], dur, outcome, shown))
+        extra = ()
+        if figures is not None:
+            f = figures[i]
+            extra = (_fig(f["peak_force_N"], ".3f", "N"), _fig(f["hold_end_stiffness_N_per_m"], ".1f", "N/m"),
+                     _fig(f["estimator_error_rms_N"], ".4f", "N"))
+        rows.append((started, e.specimen, e.protocol[:36], dur, outcome, *extra, shown))
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in rows)
