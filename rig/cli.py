@@ -862,9 +862,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: what the file's header says)")
     r.add_argument("--poisson", type=float, default=0.5, metavar="NU",
                    help="Poisson's ratio for the contact law (default 0.5: incompressible)")
-    r.add_argument("--segment", choices=["all", "approach"], default="all",
-                   help="fit the whole record (default) or the approach alone, as AFM tools fit an elastic "
-                        "contact")
+    r.add_argument("--segment", choices=["auto", "all", "approach"], default="auto",
+                   help="auto (default): the approach alone for an elastic contact (hertz and the other "
+                        "contact laws) on a curve whose file names its segments, as AFM tools fit it, "
+                        "else the whole record; all: the whole record (the retract too); approach: the "
+                        "approach alone")
     r.add_argument("--form", choices=["auto", "creep", "force"], default="auto",
                    help="auto (default): where a controller held the force (ramp_force, hold_force, an AFM "
                         "creep-compliance pause) the model predicts the indentation from the force (creep "

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from rig.analysis import criterion
-from rig.analysis.data import PHASES, TrialData, prepare
+from rig.analysis.data import PHASES, SEGMENTS, TrialData, prepare
 from rig.analysis.fit import FitResult, error_table, evaluate, fit, with_record_params
 from rig.analysis.noise import Noise
 from rig.errors import RigError, SpecError
@@ -17,6 +17,7 @@ from rig.models.catalogue import (
     CATALOGUE,
     CONTACT,
     CONTACT_POINT,
+    NAMED_MODELS,
     RECORD_ZERO,
     build_model,
     contact_effect,
@@ -24,7 +25,9 @@ from rig.models.catalogue import (
 )
 from rig.models.contact import Indenter, parse_indenter
 from rig.models.core import Effect, Model, Param
+from rig.models.instrument import ADHESION
 from rig.models.plugins import check_plugin_effect, load_plugin
+from rig.models.viscoelastic import MODELS as VISCOELASTIC_EFFECTS
 from rig.records import ReadOptions, Record, read_record
 
 
@@ -59,10 +62,12 @@ def _named_indenter(trials: list[Record]) -> tuple[Indenter, str] | None:
 def load_inputs(paths: list[str], holdout: list[str], plugins: list[str],
                 options: ReadOptions | int | None = None, *, indenter: str | None = None,
                 poisson: float = 0.5, segment: str = "all", records: list[Record] | None = None,
-                form: str = "auto") -> Inputs:
+                form: str = "auto", approach: bool = False) -> Inputs:
     """The records prepared, and the catalogue with the user's effects and, when the indenter
     is known (`indenter`, else the first record that names its own), its elastic contact.
-    `records`, when given, are the inputs already read (one per path: a batch reads a map once)."""
+    `records`, when given, are the inputs already read (one per path: a batch reads a map once).
+    `segment` "auto": an instrument's approach segment alone where the record has one and
+    `approach` says the model is an elastic contact alone (what AFM tools fit), else all of it."""
     if not (math.isfinite(poisson) and -1.0 < poisson <= 0.5):
         raise RigError(f"--poisson {poisson:g}: Poisson's ratio lies in (-1, 0.5] (0.5: incompressible, "
                        "the usual choice for tissue and cells)")
@@ -73,6 +78,8 @@ def load_inputs(paths: list[str], holdout: list[str], plugins: list[str],
                 raise RigError(f"{p}: effect '{e.name}' would replace the catalogue's; rename it")
             registry[e.name] = e
     recs = records if records is not None else [read_record(p, options) for p in paths]
+    if segment not in (*SEGMENTS, "auto"):
+        raise RigError(f"--segment {segment}: expected auto, {' or '.join(SEGMENTS)}")
     ind, source = None, ""
     named = _named_indenter(recs)
     shape = (indenter or "").strip().lower()
@@ -93,14 +100,45 @@ def load_inputs(paths: list[str], holdout: list[str], plugins: list[str],
         registry[CONTACT_POINT.name] = CONTACT_POINT
     # a pull on the way out is kept where adhesion can describe it: with an indenter's contact
     pull = ind is not None
-    trials = [prepare(r, str(p), segment, form, keep_pull=pull) for r, p in zip(recs, paths, strict=True)]
-    held = [prepare(read_record(p, options), str(p), segment, "force" if form == "force" else "auto",
-                    keep_pull=pull) for p in holdout]
+    trials = [prepare(r, str(p), _segment(r, segment, approach), form, keep_pull=pull)
+              for r, p in zip(recs, paths, strict=True)]
+    held = []
+    for p in holdout:
+        r = read_record(p, options)
+        held.append(prepare(r, str(p), _segment(r, segment, approach), "force" if form == "force" else "auto",
+                            keep_pull=pull))
     for e in registry.values():
         if e.source == "plugin":
             m = build_model("linear_elastic", [e.name], registry)
             check_plugin_effect(e, lambda m=m: m.predict({p.name: p.init for p in m.params}, trials[0].motion))
     return Inputs(trials, held, registry, ind, source, poisson)
+
+
+def _segment(rec: Record, segment: str, approach: bool) -> str:
+    """The segment `prepare` is given for `rec` (see `load_inputs`)."""
+    if segment != "auto":
+        return segment
+    has = rec.segment is not None and bool(np.any(rec.segment == "approach"))
+    return "approach" if approach and has else "all"
+
+
+# what a reader of the file recorded that qualifies every number fitted to it (rig.records): said in
+# the text, the table and the map report, not only in --json's notes
+CAVEAT_PHRASES = ("no spring constant", "t_s is the sample number", "does not mark the approach",
+                  "no time column")
+
+
+def caveats(t: TrialData) -> list[str]:
+    """The record's notes that qualify what is fitted to it (no spring constant, time as the
+    sample number, segments guessed)."""
+    return [n for n in t.notes if any(p in n for p in CAVEAT_PHRASES)]
+
+
+def elastic_only(model: str, add: list[str]) -> bool:
+    """Whether a model is an indenter's elastic contact with nothing that needs the way out: no
+    adhesion (the pull-off), no viscoelastic contact (the relaxation it shows on the retract)."""
+    names = NAMED_MODELS.get(model, [model]) + list(add)
+    return CONTACT in names and not any(n == ADHESION or n in VISCOELASTIC_EFFECTS.values() for n in names)
 
 
 def _finite(x: float | None) -> float | None:

@@ -65,7 +65,7 @@ class BatchRequest:
     explain: bool = False
     indenter: str | None = None
     poisson: float = 0.5
-    segment: str = "all"
+    segment: str = "auto"
     spring_constant_N_per_m: float | None = None
     sensitivity_m_per_V: float | None = None
     block: int | None = None
@@ -271,6 +271,8 @@ def _analyze(c: Curve, rec: Any, req: BatchRequest, read_s: float) -> dict:
         row["contact_point_m_sys"] = m.get("contact_point_m_sys")
     if m:
         row["E_Pa"], row["E_Pa_stat"], row["E_Pa_sys"] = m["E_Pa"], m["E_Pa_stat"], m.get("E_Pa_sys")
+        row["segment"] = m.get("segment")
+        row["caveats"] = "; ".join(m.get("caveats", []))
     fit = out["fit"]
     row.update(rmse_N=fit["rmse_N"], noise_N=fit["noise_N"], rmse_over_noise=fit["rmse_over_noise"],
                adequate=out["adequate"])

@@ -9,7 +9,9 @@ from typing import Any
 
 from rig.analysis.analyze import (
     _finite,
+    caveats,
     compare,
+    elastic_only,
     format_compare,
     format_holdout,
     format_placement,
@@ -47,7 +49,7 @@ class AnalyzeRequest:
     report: str | None = None
     indenter: str | None = None  # spec string; else the record's own header
     poisson: float = 0.5
-    segment: str = "all"  # or "approach"
+    segment: str = "auto"  # "approach", "all", or auto: the approach for an elastic contact (load_inputs)
     form: str = "auto"  # creep form where a controller held the force; "force": force form throughout
     curve: int | None = None  # an AFM map's curve, as the instrument numbers it
     spring_constant_N_per_m: float | None = None
@@ -69,7 +71,8 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     options = ReadOptions(curve=req.curve, spring_constant_N_per_m=req.spring_constant_N_per_m,
                           sensitivity_m_per_V=req.sensitivity_m_per_V, block=req.block)
     inputs = load_inputs(req.inputs, req.holdout, req.plugins, options, indenter=req.indenter,
-                         poisson=req.poisson, segment=req.segment, records=req.records, form=req.form)
+                         poisson=req.poisson, segment=req.segment, records=req.records, form=req.form,
+                         approach=elastic_only(req.model, req.add))
     model = build_model(req.model, req.add, inputs.registry)
     if req.save:
         from rig.models.saved import savable
@@ -242,6 +245,9 @@ def material_json(res: FitResult, inputs, depth: bool = True, sys_err: Systemati
                                   "counted": c.counted.get("E_Pa", False)}
                                  for c in sys_err.choices if "E_Pa" in c.values]
                  if sys_err is not None else None}
+    t0 = res.trials[0]
+    out["segment"] = "approach" if "the approach segment only" in t0.notes else "all"
+    out["caveats"] = caveats(t0)
     placed = record_placement(res)  # hertz fits one record
     if "contact_point_m" in placed[0]:
         # the contact point in the record's own travel from its first sample
@@ -260,6 +266,14 @@ def material_json(res: FitResult, inputs, depth: bool = True, sys_err: Systemati
     return out
 
 
+def _law_differs(theirs: str | None, spec: str) -> str:
+    """Why this fit's E and the instrument's may differ by law alone ('' when they use the same)."""
+    if not theirs or "hertz" not in theirs.lower() or not spec.startswith("sphere"):
+        return ""
+    return ("the instrument fitted Hertz's paraboloid; this fit uses the header's sphere through Sneddon's "
+            "exact law, which differs with depth over radius: give --indenter paraboloid to fit as it did")
+
+
 def format_material(m: dict, res: FitResult) -> str:
     err, sys = m["E_Pa_stat"], m.get("E_Pa_sys")
     e = f" +/- {format_pa(err)} (stat)" if err is not None else ""  # finite or None (material_json)
@@ -274,8 +288,9 @@ def format_material(m: dict, res: FitResult) -> str:
         if refits:
             lines.append("refits     " + ", ".join(f"{r['choice']} {format_pa(r['E_Pa'])}"
                                                   + ("*" if r["counted"] else "") for r in refits))
-            lines.append("           (* moved beyond its noise: counted in sys; stat is the noise's, given the "
-                         "model)")
+            if any(r["counted"] for r in refits):
+                lines.append("           (* moved beyond its noise: counted in sys; stat is the noise's, given "
+                             "the model)")
     if "contact_point_m" in m:
         k, u = res.trials[0].length_unit
         cp = ", ".join(f"{c / k:.4g}" for c in m["contact_point_m"])
@@ -284,7 +299,13 @@ def format_material(m: dict, res: FitResult) -> str:
                      + (f" +/- {ce / k:.2g} {u} (stat)" if ce is not None else "")
                      + (f" +/- {cs / k:.2g} {u} (sys)" if cs else "")
                      + " (fitted; x_c_m above counts it from the first estimate)")
-    depth = format_modulus(m["modulus_vs_depth"], res.trials[0].length_unit)
+    if m.get("segment"):
+        lines.append("fitted on  " + ("the approach (the default for an elastic contact on a curve with "
+                                      "segments; --segment all adds the retract)" if m["segment"] == "approach"
+                                      else "the whole record, approach and retract"))
+    for c in m.get("caveats", []):
+        lines.append(f"CAVEAT     {c}")
+    depth = format_modulus(m.get("modulus_vs_depth", []), res.trials[0].length_unit)
     if depth:
         lines.append(depth)
     for own in m.get("instrument_result", []):
@@ -295,5 +316,8 @@ def format_material(m: dict, res: FitResult) -> str:
             lines.append(f"instrument {own['trial']}: its own fit gives E = {format_pa(own['E_Pa'])}"
                          + (f" ({how})" if how else "")
                          + f"; this fit {ratio * 100:+.1f} %")
+            law = _law_differs(own.get("model"), m["indenter"])
+            if law:
+                lines.append(f"CAVEAT     {law}")
     return "\n".join(lines)
 

@@ -16,7 +16,9 @@ those refits show beyond what their own noise explains:
 of the difference of their variances; floored at a third of SE_c, where the two noise models
 differ). A choice counts when |shift_c| > SIGNIFICANT sd_c, and then adds |shift_c|: where the
 model fits, the shifts are the noise's and the systematic error is zero (about one curve in ten
-counts a choice by chance, at 2 sd); where it does not, the interval
+counts a choice by chance, at 2 sd); where it does not, it is |shift_c| + 1.96 sd_c (the refit's
+own noise on top: what is wanted is the value each choice gives on the noiseless curve), and the
+interval
 
     value +/- (1.96 stat + sys)
 
@@ -165,6 +167,8 @@ def systematic(res: FitResult) -> Systematic | None:
             sd = math.sqrt(max(se_c ** 2 - se ** 2, (FLOOR * se_c) ** 2))
             c.counted[k] = abs(shift) > SIGNIFICANT * sd
             if c.counted[k]:
-                error[k] = max(error[k], abs(shift))
+                # the refit's own noise on top: the interval must hold what the refit would give on
+                # the noiseless curve, not only the value it gave on this one
+                error[k] = max(error[k], abs(shift) + Z95 * sd)
         choices.append(c)
     return Systematic(error, choices, {k: res.values[k] for k in names})

@@ -28,7 +28,7 @@ from rig.errors import RigError
 
 PLACE = ["file", "curve", "x_m", "y_m", "grid_x", "grid_y"]
 TAIL = ["contact_point_m", "contact_point_m_stat", "contact_point_m_sys", "rmse_N", "noise_N",
-        "rmse_over_noise", "adequate", "effect", "effect_dbic", "error"]
+        "rmse_over_noise", "adequate", "segment", "caveats", "effect", "effect_dbic", "error"]
 FORMATS = {".csv": "csv", ".jsonl": "jsonl", ".json": "jsonl", ".parquet": "parquet"}
 
 
