@@ -242,3 +242,79 @@ def test_campaign_plot_has_no_offset_that_makes_a_flat_error_look_steep():
     lo, hi = a.get_ylim()
     # the fall of 0.0005 is under a thousandth of the axis: drawn flat
     assert lo == 0.0 and 0.0005 / (hi - lo) < 1e-3
+
+
+# ---------------------------------------------------------------- map reports
+def _map_rows(with_positions: bool = True) -> list[dict]:
+    """A 4 x 3 map, 5 µm pitch from (100 µm, -20 µm), E from 1 to 12 kPa, the surface rising
+    0.1 µm per column; one curve that could not be analysed."""
+    rows = []
+    for gy in range(3):
+        for gx in range(4):
+            r = {"file": "m.jpk-force-map", "curve": gy * 4 + gx, "grid_x": gx, "grid_y": gy,
+                 "x_m": (100 + 5 * gx) * 1e-6 if with_positions else None,
+                 "y_m": (-20 + 5 * gy) * 1e-6 if with_positions else None,
+                 "E_Pa": 1000.0 * (1 + gx + 4 * gy) / 1.0, "contact_point_m": 3e-6 - 0.1e-6 * gx,
+                 "rmse_over_noise": 1.05, "error": ""}
+            rows.append(r)
+    place = ("file", "curve", "grid_x", "grid_y", "x_m", "y_m")
+    rows[5] = {k: rows[5][k] for k in place} | {"error": "no contact"}
+    return rows
+
+
+def test_map_report_draws_um_axes_kpa_and_the_contact_height(tmp_path, monkeypatch):
+    from rig.analysis import map_report
+
+    made = spy(monkeypatch, map_report, "map_figure")
+    rows = _map_rows()
+    report = map_report.write_map_report(rows, tmp_path, ["E_Pa"], "12 curves")
+    names = {p.name for p in tmp_path.iterdir()}
+    assert {"map1_E_Pa.png", "map1_contact_height.png", "map1_rmse_over_noise.png", "hist_E_Pa.png"} <= names
+    assert "contact_height_m" not in rows[0]  # the caller's rows are left as they were
+    by_label = {f.axes[1].get_ylabel(): f for f in made if f is not None}  # the colour bar's label
+    assert {"E (kPa)", "contact height (µm)", "RMSE / noise"} <= set(by_label)
+    e = by_label["E (kPa)"].axes[0]
+    assert (e.get_xlabel(), e.get_ylabel()) == ("x (µm)", "y (µm)")
+    img = e.get_images()[0]
+    assert img.get_extent() == pytest.approx([97.5, 117.5, -22.5, -7.5])  # cells 5 µm wide around their centres
+    data = np.ma.filled(img.get_array(), np.nan)
+    assert data[0, 0] == pytest.approx(1.0) and data[2, 3] == pytest.approx(12.0)  # kPa
+    assert np.isnan(data[1, 1])  # the curve that failed is a hole, hatched
+    assert any(p.get_hatch() == "xxx" for p in e.patches)
+    h = np.ma.filled(by_label["contact height (µm)"].axes[0].get_images()[0].get_array(), np.nan)
+    assert h[0] == pytest.approx([0.0, 0.1, 0.2, 0.3])  # higher where the contact came sooner
+    assert "Contact height" in report.read_text()
+
+
+def test_map_report_without_positions_keeps_grid_numbers(tmp_path, monkeypatch):
+    from rig.analysis import map_report
+
+    made = spy(monkeypatch, map_report, "map_figure")
+    map_report.write_map_report(_map_rows(with_positions=False), tmp_path, ["E_Pa"], "12 curves")
+    ax = next(f for f in made if f is not None).axes[0]
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("grid x", "grid y")
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_simulated_map_report_topography_follows_the_truth(tmp_path, monkeypatch):
+    """The contact-height map of a simulated map (every curve started at one piezo height) is
+    the surface the simulation drew, to a nanometre."""
+    import json
+
+    from rig.analysis import map_report
+
+    pytest.importorskip("afmformats", reason="reading the map needs the afm extra (afmformats)")
+    made = spy(monkeypatch, map_report, "map_figure")
+    h5 = tmp_path / "m.h5"
+    assert main(["sim-map", str(h5), "--grid", "5x4"]) == 0
+    assert main(["analyze", str(h5), *HERTZ, "--report", str(tmp_path / "rep")]) == 0
+    fig = next(f for f in made if f is not None and f.axes[1].get_ylabel() == "contact height (µm)")
+    got = np.ma.filled(fig.axes[0].get_images()[0].get_array(), np.nan)
+    truth = json.loads(h5.with_suffix(".truth.json").read_text())["curves"]
+    want = np.full(got.shape, np.nan)
+    for c in truth:
+        gx, gy = c["grid_index"]
+        want[gy, gx] = c["contact_height_piezo_m"] / 1e-6
+    want -= np.nanmin(want)
+    assert np.nanmax(np.abs(got - want)) < 0.005  # µm
+    assert fig.axes[0].get_xlabel() == "x (µm)"
