@@ -890,9 +890,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="redraw the record N times from the fitted model and the measured noise and "
                         "analyse each as this one: each parameter's bias, scatter against its standard "
                         "error, how often +/-1.96 SE held it, how often the verdict stays (100 is a start)")
-    r.add_argument("--profile", action="store_true",
-                   help="profile-likelihood 95 %% intervals for the parameters that trade off (|correlation| "
-                        ">= 0.9 with another): each end where the cost has risen, the others refitted")
+    r.add_argument("--profile", nargs="*", metavar="PARAM",
+                   help="profile-likelihood 95 %% intervals: of the parameters named (any of the model's, "
+                        "e.g. --profile E_Pa), or with no name of those that trade off (|correlation| >= 0.9 "
+                        "with another); each end where the cost has risen, the others refitted")
     r.add_argument("--report", metavar="DIR", help="write figures and report.md here")
     r.add_argument("--save", metavar="MODEL.json",
                    help="save the fitted model (effects, parameters, what it was fitted on) to run it "

@@ -579,6 +579,7 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
         warnings += _undetermined(model, values, stderr_named)
     else:
         warnings += _undetermined(model, values, stderr)
+    warnings += physics(model, values, trials)
     if noise.note:
         warnings.append(f"noise: {noise.note}")
     unsolved = [w.message.residual_N for w in caught if isinstance(w.message, NotConverged)]
@@ -604,6 +605,7 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
         warnings.append(f"only {n_eff:.0f} independent residuals for {free} fitted parameters (fewer than "
                         f"{FEW_PER_PARAM} each): the standard errors rest on too little to be trusted "
                         "(--bootstrap N shows how they hold if the model is right)")
+    warnings += combinations(model, values, cov)
     # the sandwich's own doubts (a bound or a clip hit, a drift allowed for); its count of
     # independent samples is said once, above, when it is the residual's
     warnings += [f"standard errors: {d}" for d in doubts if not (few and "independent sample" in d)]
@@ -752,6 +754,68 @@ def _undetermined(model: Model, values: dict[str, float], stderr: dict[str, floa
         elif err is not None and err > abs(v) and not _owner(model, p).of_record:
             out.append(f"{_owner(model, p).name}.{p.name} = {v:.4g} +/- {err:.3g} {p.unit}: not determined "
                        "by these trials (its standard error exceeds its value)")
+    return out
+
+
+ELASTIC = ("linear_elastic", "poly_elastic", "power_elastic")  # drive terms of the depth alone
+NEGATIVE_SHARE = 0.05  # of the indentation: an elastic force below nought over more is flagged
+COMBINED = 0.99  # |correlation| from which a pair is reported as the combination the data determine
+
+
+def physics(model: Model, values: dict[str, float], trials: list[TrialData]) -> list[str]:
+    """An elastic term that pulls: its force below nought over more than NEGATIVE_SHARE of the
+    indentation the records reach. The tissue cannot pull, so the model's no-pull clamp holds the
+    force at nought there and, where that is at the start, sets the contact instead of the
+    model's own zero: a fit that is not physical however small its error."""
+    out = []
+    depth = 0.0
+    for i, t in enumerate(trials):
+        x = t.motion.x_m
+        for e in model.effects:
+            if e.name == CONTACT_POINT.name:
+                x = x - values[model.key(e.params[0], i)]
+        depth = max(depth, float(np.max(x, initial=0.0)))
+    if not depth > 0.0:
+        return out
+    d = np.linspace(0.0, depth, 401)[1:]
+    for e in model.effects:
+        if e.name not in ELASTIC or e.stage != "drive":
+            continue
+        kw = {p.name: values[p.name] for p in e.params}
+        f = np.asarray(e.fn(d, np.zeros_like(d), **kw), dtype=float)
+        share = float(np.mean(f < 0.0))
+        if share <= NEGATIVE_SHARE:
+            continue
+        rises = np.flatnonzero((f[:-1] < 0.0) & (f[1:] >= 0.0))
+        where = (f"; its force first rises from nought at {d[rises[0] + 1]:.4g} m of indentation, which the "
+                 "no-pull clamp makes the contact" if len(rises) and f[0] < 0.0 else "")
+        params = ", ".join(f"{k} = {v:.4g}" for k, v in kw.items())
+        out.append(f"physics: {e.name} ({e.equation}) is negative over {share * 100:.0f} % of the indentation "
+                   f"the records reach ({params}){where}: the tissue cannot pull, so this fit is not "
+                   "physical, whatever its error (a model that misses a shape bends its elastic term to "
+                   "follow it)")
+    return out
+
+
+def combinations(model: Model, values: dict[str, float], cov: np.ndarray | None) -> list[str]:
+    """Pairs of parameters correlated beyond COMBINED, said as what the data determine: with
+    correlation rho, a - beta b (beta = rho sd_a / sd_b) has the standard error
+    sd_a sqrt(1 - rho^2), a fraction of either alone."""
+    if cov is None:
+        return []
+    names = model.param_names
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    out = []
+    for a, b, rho in notable_correlations(names, correlation(cov), COMBINED):
+        i, j = names.index(a), names.index(b)
+        if not (np.isfinite(sd[i]) and np.isfinite(sd[j]) and sd[j] > 0):
+            continue
+        beta = rho * sd[i] / sd[j]
+        value = values[a] - beta * values[b]
+        se = sd[i] * math.sqrt(max(1.0 - rho ** 2, 0.0))
+        out.append(f"{a} and {b} trade off (correlation {rho:+.4f}): the records determine "
+                   f"{a} - {beta:.4g} x {b} = {value:.4g} +/- {se:.2g} (stat), not each alone; "
+                   f"--profile {a} shows the range each takes")
     return out
 
 

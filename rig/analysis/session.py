@@ -27,7 +27,7 @@ from rig.analysis.fit import FitResult, fit
 from rig.analysis.modulus import format_modulus, format_pa, modulus_vs_depth, plateau_drift
 from rig.analysis.report import write_report
 from rig.analysis.systematic import Systematic, interval, systematic
-from rig.errors import RigError
+from rig.errors import RigError, did_you_mean
 from rig.models.catalogue import CONTACT, build_model
 from rig.records import ReadOptions
 
@@ -55,7 +55,8 @@ class AnalyzeRequest:
     spring_constant_N_per_m: float | None = None
     sensitivity_m_per_V: float | None = None
     bootstrap: int | None = None  # draws of the parametric bootstrap (rig.analysis.bootstrap)
-    profile: bool = False  # profile-likelihood intervals of the parameters that trade off
+    # profile-likelihood intervals: of the parameters named, or (True, or no names) of those that trade off
+    profile: bool | list[str] | None = None
     progress: Any = None  # called with (draws done, draws) as the bootstrap goes
     records: list | None = None  # the inputs already read (rig.records.Record, one per input): a batch's
     row_only: bool = False  # a batch's row: the JSON without the modulus by depth, and no text
@@ -126,7 +127,14 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     if req.profile:
         from rig.analysis.profile import intervals
 
-        profiled = intervals(res)
+        asked = req.profile if isinstance(req.profile, list) and req.profile else None
+        if asked:
+            unknown = [n for n in asked if n not in res.values]
+            if unknown:
+                raise RigError(f"--profile {unknown[0]}: not a parameter of the {res.model.name} model"
+                               f"{did_you_mean(unknown[0], list(res.values))} (its parameters: "
+                               f"{', '.join(res.values)})")
+        profiled = intervals(res, asked)
         out["profile"] = {iv.name: iv.as_dict() for iv in profiled}
     ex = explain(res, inputs.registry) if req.explain else None
     if ex is not None:

@@ -6,7 +6,7 @@ thin layer, a substrate underneath, a tip that is not the paraboloid it is taken
 modulus depends on how much of the curve is fitted: on real AFM curves dropping the deepest
 18 of 4141 samples moved E by 55 standard errors, and keeping less of a tilted baseline by
 more. No standard error can show that, since it is not noise. So the fit is repeated over the
-defensible choices (`CHOICES`: the approach up to 50 % and up to 75 % of its peak force, and the
+defensible choices (the approach up to 50 % and up to 75 % of its peak force, and the
 baseline's first half left out) and each parameter's systematic error is the largest shift
 those refits show beyond what their own noise explains:
 
@@ -14,16 +14,15 @@ those refits show beyond what their own noise explains:
 
 (a refit on part of the same samples: the difference of two nested estimates has the variance
 of the difference of their variances; floored at a third of SE_c, where the two noise models
-differ). A choice counts when |shift_c| > SIGNIFICANT sd_c, and then adds |shift_c|: where the
-model fits, the shifts are the noise's and the systematic error is zero (about one curve in ten
-counts a choice by chance, at 2 sd); where it does not, it is |shift_c| + 1.96 sd_c (the refit's
-own noise on top: what is wanted is the value each choice gives on the noiseless curve), and the
-interval
+differ). A choice counts when |shift_c| > SIGNIFICANT sd_c, and then adds |shift_c| + 1.96 sd_c
+(its own noise on top: what is wanted is the value the choice gives on the noiseless curve).
+Where the model fits, the shifts are the noise's and the systematic error is nought (a curve
+counts a choice by chance about once in a hundred, at 3 sd); where it does not, the interval
 
     value +/- (1.96 stat + sys)
 
-holds the value that each of the fits would give on the noiseless curve. The two are added, not
-combined in quadrature: the systematic error is the range over choices, not a standard deviation.
+holds the value each of the fits would give on the noiseless curve. The two are added, not
+combined in quadrature: the systematic error is a range over choices, not a standard deviation.
 """
 
 from __future__ import annotations
@@ -37,7 +36,10 @@ from rig.analysis.data import TrialData
 from rig.analysis.fit import FitResult, fit
 from rig.models.core import Motion
 
-SIGNIFICANT = 2.0  # a choice's shift counts beyond this many of its own noise's SD
+# a choice's shift counts beyond this many of its own noise's SD: at 2 about one curve in seven that
+# the model fits counted a choice by chance over the three, and its interval grew three- to
+# fourfold; at 3 one in a hundred or so, while a misfit that matters moves E by tens of SDs
+SIGNIFICANT = 3.0
 FLOOR = 1.0 / 3.0  # the shift's noise is at least this share of the refit's standard error
 MIN_SAMPLES = 40  # a refit on fewer samples than this (or a baseline shorter) is not made
 DEPTH_SHARES = (0.5, 0.75)  # of the peak force: where the shallower fits end
@@ -74,7 +76,8 @@ class Systematic:
     values: dict[str, float]
 
     def as_dict(self) -> dict:
-        return {"rule": "the largest shift over the choices that exceeds twice its own noise; "
+        return {"rule": f"the largest shift over the choices that exceeds {SIGNIFICANT:g} times its own "
+                        "noise's SD, plus 1.96 times that SD; "
                         "interval: value +/- (1.96 stat + sys)",
                 "error": self.error, "choices": [c.as_dict(self.values) for c in self.choices]}
 
