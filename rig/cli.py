@@ -435,6 +435,24 @@ def cmd_watch(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_web(args: argparse.Namespace) -> int:
+    try:
+        from rig.web.app import WebOptions
+        from rig.web.server import serve
+    except ImportError as exc:
+        raise RigError(f"rig web needs the web extra ({exc.name} is missing): "
+                       "python3 -m pip install 'indentation-rig[web]'") from None
+    from rig.service.daemon import default_socket_path
+    from rig.specs.config import load_config
+
+    config = load_config(args.config)
+    sock = Path(args.socket) if args.socket else default_socket_path(config)
+    opts = WebOptions(socket_path=sock, logs=Path(args.logs or config.recorder.out_dir),
+                      protocols=Path(args.protocols), tables=Path(args.tables), config=config,
+                      host=args.host, port=args.port, exposed=args.expose)
+    return serve(opts)
+
+
 def cmd_logs(args: argparse.Namespace) -> int:
     from rig.recording.recovery import list_trials
     from rig.specs.config import load_config
@@ -808,6 +826,28 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--config")
     r.add_argument("--json", action="store_true")
     r.set_defaults(func=cmd_logs)
+
+    r = sub.add_parser("web", help="the lab in a browser: live console, trial history, maps",
+                       description="Serve the web application: the console (the live trial, a start from "
+                                   "the protocol library after its check, STOP / HOLD / ESTOP), the history "
+                                   "of the trials in the log folder, and batch tables (rig analyze --each "
+                                   "--table) as maps. A client of the daemon: it never opens a device. "
+                                   "Prints its URL with a token (also written to a file only you can read); "
+                                   "every page needs it.")
+    r.add_argument("--port", type=int, default=8750, help="TCP port (default 8750; 0: a free one)")
+    r.add_argument("--logs", metavar="DIR", help="the log folder (default: the config's recorder.out_dir)")
+    r.add_argument("--protocols", metavar="DIR", default="protocols",
+                   help="the protocol library the console starts from (default: ./protocols)")
+    r.add_argument("--tables", metavar="DIR", default=".",
+                   help="where the maps page finds batch tables (default: the current directory)")
+    r.add_argument("--host", default="127.0.0.1",
+                   help="address to serve on (default 127.0.0.1: this machine only); another needs --expose")
+    r.add_argument("--expose", action="store_true",
+                   help="allow --host beyond loopback: anyone reaching it with the token can watch, read the "
+                        "logs, start trials and stop the rig (plain HTTP)")
+    r.add_argument("--socket", help="the daemon's control socket (default: daemon.socket, $RIG_SOCKET, ...)")
+    r.add_argument("--config", help="rig config (the socket, the log folder, the limits drawn)")
+    r.set_defaults(func=cmd_web)
 
     r = sub.add_parser("sim", help="start the simulated slider and load cell on real wires",
                        description="Serve the simulated drive over Modbus TCP (loopback) and Modbus RTU "

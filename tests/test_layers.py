@@ -13,6 +13,7 @@
     analysis    the model lab: fits, explain, design, reports
     service     the daemon and its clients, a trial in the foreground, the live view
     diagnostics probe, ports, benchmarks
+    web         the lab in a browser: a client of the daemon's socket, a reader of logs and tables
     cli         argument parsing and printing
 
 Imports inside functions count too: a lazy import is still a dependency.
@@ -25,7 +26,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 LAYERS = ["base", "drivers", "sim", "models", "specs", "recording", "records", "control", "views",
-          "analysis", "service", "diagnostics", "cli"]
+          "analysis", "service", "diagnostics", "web", "cli"]
 BASE = {"rig", "rig.errors", "rig.clock", "rig.realtime"}
 FOLDERS = {"rig": ROOT / "rig", "rig.drivers": ROOT / "drivers", "rig.sim": ROOT / "sim_device"}
 

@@ -1,0 +1,202 @@
+"""The maps page's data: a batch table (`rig analyze ... --each --table T`) on its grid, and one curve.
+
+A table's rows are put on the map's grid (`grid_x`, `grid_y`), with the axes in um from the
+rows' `x_m` and `y_m` (the grid's indices where a table has no places). The maps: E in kPa,
+the contact height in um (the contact point's place in the curve's travel: the sample's
+topography, up to the sign of the instrument's axis), RMSE over noise and the verdict. A curve
+is opened by reading it again from its file and fitting it again as the batch did (the request
+kept beside the table, `T.request.json`): force against indentation with the fit, the residual,
+the contact point, its verdict and the effect the batch found missing.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+
+from rig.analysis.batch import BatchRequest
+from rig.analysis.table import read_rows
+from rig.errors import RigError
+
+TABLE_SUFFIXES = (".csv", ".jsonl", ".parquet")
+CURVE_POINTS = 3000
+
+
+def _f(v) -> float | None:
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        return None
+    return x if math.isfinite(x) else None
+
+
+def _axis(values: list[float | None], index: list[int]) -> list[float]:
+    """A grid axis in um: each index's place (the median of the rows there), or the index."""
+    out = []
+    for i in range(max(index) + 1 if index else 0):
+        at = [v for v, j in zip(values, index, strict=True) if j == i and v is not None]
+        out.append(round(float(np.median(at)) * 1e6, 4) if at else float("nan"))
+    if any(math.isnan(v) for v in out):
+        return [float(i) for i in range(len(out))]
+    return out
+
+
+class Maps:
+    def __init__(self, folder: Path) -> None:
+        self.folder = Path(folder)
+        self._rows: dict[str, tuple[tuple, list[dict]]] = {}
+        self._lock = threading.Lock()
+
+    def resolve(self, rel: str) -> Path:
+        root = self.folder.resolve()
+        path = (root / rel).resolve()
+        if (root != path.parent and root not in path.parents) or path.suffix not in TABLE_SUFFIXES \
+                or not path.is_file():
+            raise RigError(f"no batch table {rel!r} in {self.folder}")
+        return path
+
+    def tables(self) -> list[dict]:
+        """Tables in the folder (and one level down) that `--table` wrote: a request beside them."""
+        out = []
+        if not self.folder.is_dir():
+            return out
+        for path in sorted([*self.folder.glob("*"), *self.folder.glob("*/*")]):
+            if path.suffix in TABLE_SUFFIXES and Path(str(path) + ".request.json").is_file():
+                out.append({"table": str(path.relative_to(self.folder)), "bytes": path.stat().st_size})
+        return out
+
+    def rows(self, rel: str) -> list[dict]:
+        path = self.resolve(rel)
+        st = path.stat()
+        key = (st.st_mtime_ns, st.st_size)
+        with self._lock:
+            hit = self._rows.get(str(path))
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        rows = read_rows(path)
+        with self._lock:
+            self._rows[str(path)] = (key, rows)
+        return rows
+
+    def request(self, rel: str) -> BatchRequest | None:
+        path = Path(str(self.resolve(rel)) + ".request.json")
+        try:
+            asked = json.loads(path.read_text())
+        except (OSError, ValueError):
+            return None
+        known = {f.name for f in fields(BatchRequest)}
+        kwargs = {k: (tuple(v) if isinstance(v, list) else v) for k, v in asked.items() if k in known}
+        return BatchRequest(**kwargs)
+
+    def map(self, rel: str) -> dict:
+        t0 = time.perf_counter()
+        rows = self.rows(rel)
+        if not rows:
+            raise RigError(f"{rel}: no rows")
+        gx = [r.get("grid_x") for r in rows]
+        gy = [r.get("grid_y") for r in rows]
+        if any(v is None or _f(v) is None for v in gx + gy):
+            n = math.ceil(math.sqrt(len(rows)))  # no grid in the table: rows in reading order
+            gx, gy = [i % n for i in range(len(rows))], [i // n for i in range(len(rows))]
+        gx, gy = [int(v) for v in gx], [int(v) for v in gy]
+        nx, ny = max(gx) + 1, max(gy) + 1
+        xs = _axis([_f(r.get("x_m")) for r in rows], gx)
+        ys = _axis([_f(r.get("y_m")) for r in rows], gy)
+        in_um = any(_f(r.get("x_m")) is not None for r in rows) and xs != [float(i) for i in range(nx)]
+
+        def grid(value) -> list[list]:
+            z: list[list] = [[None] * nx for _ in range(ny)]
+            for i, r in enumerate(rows):
+                z[gy[i]][gx[i]] = value(r)
+            return z
+
+        def kpa(r):
+            v = _f(r.get("E_Pa"))
+            return None if v is None else round(v / 1e3, 6)
+
+        def height(r):
+            v = _f(r.get("contact_point_m"))
+            return None if v is None else round(v * 1e6, 6)
+
+        def ratio(r):
+            v = _f(r.get("rmse_over_noise"))
+            return None if v is None else round(v, 4)
+
+        def verdict(r):
+            if r.get("error"):
+                return None
+            a = r.get("adequate")
+            return 1 if a in (True, "True", "true", 1) else 0
+
+        rowid = grid(lambda r: None)
+        for i in range(len(rows)):
+            rowid[gy[i]][gx[i]] = i
+        req = self.request(rel)
+        return {"table": rel, "rows": len(rows), "nx": nx, "ny": ny, "x_um": xs, "y_um": ys,
+                "axes_unit": "um" if in_um else "grid index",
+                "maps": {"E_kPa": grid(kpa), "contact_height_um": grid(height),
+                         "rmse_over_noise": grid(ratio), "adequate": grid(verdict)},
+                "row": rowid, "request": req.__dict__ if req else None,
+                "failed": sum(1 for r in rows if r.get("error")),
+                "adequate": sum(1 for r in rows if verdict(r) == 1),
+                "seconds": round(time.perf_counter() - t0, 3)}
+
+    def curve(self, rel: str, index: int) -> dict:
+        """One curve of the table, fitted again as the batch fitted it."""
+        from rig.analysis.analyze import load_inputs
+        from rig.analysis.fit import fit
+        from rig.models.catalogue import CONTACT_POINT, build_model
+        from rig.records import ReadOptions
+
+        t0 = time.perf_counter()
+        rows = self.rows(rel)
+        if not 0 <= index < len(rows):
+            raise RigError(f"{rel}: no row {index}")
+        row = rows[index]
+        base = {"row": index, "file": row.get("file"), "curve": row.get("curve"),
+                "x_um": None if _f(row.get("x_m")) is None else _f(row.get("x_m")) * 1e6,
+                "y_um": None if _f(row.get("y_m")) is None else _f(row.get("y_m")) * 1e6,
+                "table_row": {k: v for k, v in row.items() if not k.startswith("_")}}
+        if row.get("error"):
+            return {**base, "error": f"this curve could not be analysed: {row['error']}"}
+        req = self.request(rel)
+        if req is None:
+            return {**base, "error": f"no {rel}.request.json beside the table: what the batch asked is unknown"}
+        curve = row.get("curve")
+        curve = int(curve) if _f(curve) is not None else None
+        options = ReadOptions(curve=curve, spring_constant_N_per_m=req.spring_constant_N_per_m,
+                              sensitivity_m_per_V=req.sensitivity_m_per_V, block=req.block)
+        inputs = load_inputs([str(row["file"])], [], list(req.plugins), options, indenter=req.indenter,
+                             poisson=req.poisson, segment=req.segment)
+        model = build_model(req.model, list(req.add), inputs.registry)
+        res = fit(model, inputs.trials)
+        t = res.trials[0]
+        x_c = 0.0
+        (p,) = CONTACT_POINT.params
+        name = res.model.key(p, 0)
+        if res.model.has(CONTACT_POINT.name) and name in res.values:
+            x_c = res.values[name]
+        k_len, u_len = t.length_unit
+        k_f, u_f = t.force_unit
+        depth = (t.motion.x_m - x_c) / 1e-6
+        every = max(1, math.ceil(len(depth) / CURVE_POINTS))
+
+        def col(a, scale=1.0) -> list:
+            values = np.asarray(a)[::every]
+            return [None if not math.isfinite(v) else round(float(v) / scale, 6) for v in values]
+
+        return {**base, "model": res.model.name, "segment": req.segment,
+                "indentation_um": col(depth), "force": col(t.force_N, k_f), "fit": col(res.predictions[0], k_f),
+                "residual": col(res.residuals[0], k_f), "force_unit": u_f, "length_unit": u_len,
+                "phase": [str(v) for v in np.asarray(t.phase)[::every]],
+                "contact_point_um": None if t.contact_m is None else (t.contact_m + x_c) / 1e-6,
+                "rmse_over_noise": _f(row.get("rmse_over_noise")), "adequate": row.get("adequate"),
+                "effect": row.get("effect") or "", "E_kPa": None if _f(row.get("E_Pa")) is None
+                else _f(row.get("E_Pa")) / 1e3, "length_scale": k_len,
+                "seconds": round(time.perf_counter() - t0, 3)}

@@ -1,0 +1,67 @@
+"use strict";
+rigHeader("/maps");
+const timing = window.rigMaps = {};
+let current = null;
+const CFG = {displaylogo: false, responsive: false};
+function heat(div, m, z, title, unit, opts = {}) {
+  const trace = {type: "heatmap", x: m.x_um, y: m.y_um, z, colorscale: opts.colorscale || "Viridis",
+    colorbar: {title: {text: unit, side: "right"}, thickness: 10, ...(opts.colorbar || {})}, hoverongaps: false,
+    zmin: opts.zmin, zmax: opts.zmax, hovertemplate: `x %{x} ${m.axes_unit}<br>y %{y} ${m.axes_unit}<br>${title} %{z}<extra></extra>`};
+  Plotly.newPlot(div, [trace], {title: {text: title, font: {size: 13}}, margin: {l: 46, r: 8, t: 28, b: 36},
+    xaxis: {title: {text: `x (${m.axes_unit})`}, constrain: "domain"}, yaxis: {title: {text: `y (${m.axes_unit})`}, scaleanchor: "x"}}, CFG);
+  document.getElementById(div).on("plotly_click", ev => {
+    const p = ev.points[0];
+    const ix = m.x_um.indexOf(p.x), iy = m.y_um.indexOf(p.y);
+    const row = (m.row[iy] || [])[ix];
+    if (row !== null && row !== undefined) openCurve(row);
+  });
+}
+async function openMap(table) {
+  const t0 = performance.now();
+  const m = await RIG.get("/api/map?table=" + encodeURIComponent(table));
+  if (!m.ok) { document.getElementById("summary").textContent = m.error; return; }
+  current = m;
+  heat("m-E", m, m.maps.E_kPa, "E", "kPa");
+  heat("m-h", m, m.maps.contact_height_um, "contact height", "um", {colorscale: "Cividis"});
+  heat("m-r", m, m.maps.rmse_over_noise, "RMSE / noise", "", {colorscale: "Magma"});
+  heat("m-v", m, m.maps.adequate, "verdict", "", {colorscale: [[0, "#dc2626"], [0.5, "#dc2626"], [0.5, "#16a34a"], [1, "#16a34a"]],
+    zmin: 0, zmax: 1, colorbar: {tickvals: [0.25, 0.75], ticktext: ["not adequate", "adequate"]}});
+  const req = m.request || {};
+  document.getElementById("summary").textContent = `${m.rows} curves on ${m.nx} x ${m.ny}; model ${req.model || "?"}` +
+    `${req.indenter ? ", " + req.indenter : ""}; adequate ${m.adequate} of ${m.rows}${m.failed ? `, ${m.failed} could not be analysed` : ""}`;
+  timing.mapMs = performance.now() - t0;
+}
+async function openCurve(row) {
+  const t0 = performance.now();
+  document.getElementById("curve-title").textContent = "fitting the curve again...";
+  const c = await RIG.get(`/api/curve?table=${encodeURIComponent(current.table)}&row=${row}`);
+  const where = c.x_um !== null && c.x_um !== undefined ? ` at (${RIG.fmt(c.x_um)}, ${RIG.fmt(c.y_um)}) um` : "";
+  document.getElementById("curve-title").textContent = `curve ${c.curve ?? row}${where}: ${c.file || ""}`;
+  if (!c.ok || c.error) { document.getElementById("verdict").innerHTML = `<p class="bad">${RIG.esc(c.error)}</p>`; Plotly.purge("curve"); timing.curveMs = performance.now() - t0; return; }
+  const adequate = c.adequate === true || c.adequate === "True";
+  document.getElementById("verdict").innerHTML = `<p><b class="${adequate ? "ok" : "bad"}">${adequate ? "adequate" : "NOT adequate"}</b>` +
+    ` (RMSE / noise ${RIG.fmt(c.rmse_over_noise)}), model ${RIG.esc(c.model)}, E ${RIG.fmt(c.E_kPa)} kPa` +
+    (c.effect ? `; missing: <b>${RIG.esc(c.effect)}</b> (try rig analyze ... --add ${RIG.esc(c.effect)})` : "") + "</p>";
+  const u = c.force_unit;
+  Plotly.newPlot("curve", [
+    {x: c.indentation_um, y: c.force, mode: "markers", name: "measured", marker: {size: 3, color: "#2563eb"}},
+    {x: c.indentation_um, y: c.fit, mode: "lines", name: "fit", line: {color: "#dc2626", width: 2}},
+    {x: c.indentation_um, y: c.residual, mode: "markers", name: "residual", xaxis: "x", yaxis: "y2", marker: {size: 3, color: "#6b7280"}}],
+    {margin: {l: 60, r: 10, t: 10, b: 40}, legend: {orientation: "h", y: 1.08},
+     xaxis: {title: {text: "indentation (um): travel past the contact point"}, anchor: "y2"},
+     yaxis: {domain: [0.32, 1], title: {text: `force (${u})`}}, yaxis2: {domain: [0, 0.25], title: {text: `residual (${u})`}},
+     shapes: [{type: "line", x0: 0, x1: 0, xref: "x", yref: "paper", y0: 0, y1: 1, line: {color: "#111", dash: "dot"}}],
+     annotations: [{x: 0, xref: "x", y: 1, yref: "paper", text: "contact point", showarrow: false, xanchor: "left", font: {size: 11}}]},
+    {displaylogo: false, responsive: true});
+  timing.curveMs = performance.now() - t0;
+}
+(async () => {
+  const r = await RIG.get("/api/tables");
+  const sel = document.getElementById("table");
+  sel.innerHTML = r.tables.map(t => `<option>${RIG.esc(t.table)}</option>`).join("") || "<option disabled>no batch tables in " + RIG.esc(r.folder) + "</option>";
+  sel.addEventListener("change", () => openMap(sel.value));
+  const want = new URLSearchParams(location.search).get("table");
+  if (want) sel.value = want;
+  if (sel.value && r.tables.length) await openMap(sel.value);
+  window.rigMapsReady = true;
+})();
