@@ -369,7 +369,8 @@ def cmd_start(args: argparse.Namespace) -> int:
         req = {"cmd": "start", "specimen": args.specimen, "operator": args.operator,
                "characterize": {"model": args.fit_model, "indenter": args.indenter,
                                 "max_trials": args.max_trials, "budget_min": args.budget_min,
-                                "target_rse": args.target_rse, "rest_s": args.rest_s}}
+                                "target_rse": args.target_rse, "rest_s": args.rest_s},
+               "from_contact": args.from_contact}
         if args.protocol:
             path = Path(args.protocol).resolve()
             req.update(protocol_text=read_text(path, "protocol file"), protocol_path=str(path))
@@ -384,7 +385,7 @@ def cmd_start(args: argparse.Namespace) -> int:
     path = Path(args.protocol).resolve()
     text = read_text(path, "protocol file")
     req = {"cmd": "start", "protocol_text": text, "protocol_path": str(path), "specimen": args.specimen,
-           "operator": args.operator, "notes": args.notes}
+           "operator": args.operator, "notes": args.notes, "from_contact": args.from_contact}
     if args.model:
         req.update(model_text=read_text(Path(args.model).resolve(), "model file"), model_path=args.model)
     reply = _reply(request(_socket(args), req))
@@ -409,6 +410,15 @@ def cmd_estop(args: argparse.Namespace) -> int:
 
     reply = _reply(request(_socket(args), {"cmd": "estop"}))
     print(f"emergency stop: {reply.get('message', 'sent')}")
+    return 0
+
+
+def cmd_return(args: argparse.Namespace) -> int:
+    from rig.service.client import request
+
+    # a return moves the slider: the reply comes when it has arrived (or was stopped)
+    reply = _reply(request(_socket(args), {"cmd": "return"}, 120.0))
+    print(reply["message"])
     return 0
 
 
@@ -807,6 +817,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--operator", default="", help="default: your user name")
     r.add_argument("--notes", default="")
     r.add_argument("--model", metavar="MODEL.json", help="run this saved model in the loop")
+    r.add_argument("--from-contact", action="store_true",
+                   help="start although a trial cut short (an estop, a fault) left the probe in the specimen: "
+                        "run from there, its preload counted (without it such a start is refused; "
+                        "`rig return` raises the probe instead)")
     g = r.add_argument_group("campaign (rig characterize on the daemon; rig watch shows it, rig stop ends it)")
     g.add_argument("--characterize", action="store_true",
                    help="run, fit, diagnose and design trials until the model is right")
@@ -816,6 +830,8 @@ def build_parser() -> argparse.ArgumentParser:
     r = client("stop", "stop the running trial, then return to the start position", cmd_stop)
     r.add_argument("--hold", action="store_true", help="stop and stay where it is")
     client("estop", "emergency stop: stop the motor now, nothing else", cmd_estop)
+    client("return", "move the probe back out of the specimen after an estop or a fault left it in contact "
+           "(to where that trial started)", cmd_return)
     r = client("status", "what the daemon is doing", cmd_status)
     r.add_argument("--json", action="store_true")
     r = client("watch", "live view of the running trial until it ends", cmd_watch)

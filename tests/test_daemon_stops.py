@@ -299,3 +299,66 @@ def test_a_campaigns_specimen_name_cannot_put_its_files_outside_the_log_folder(d
     assert st["campaign"]["specimen"] == specimen
     listed = daemon.req({"cmd": "logs"})["trials"]
     assert [(e["path"], e["campaign"]) for e in listed] == [(str(log), out.name)]
+
+
+# ------------------------------------------------------------------ 5. after an estop, the probe in the tissue
+def _estop_in_contact(d: InProcessDaemon, depth_past_mm: float = 6.0) -> dict:
+    r = d.req({"cmd": "start", "protocol_text": RAMP, "protocol_path": "ramp.yaml"})
+    assert r["ok"], r
+    deadline = time.monotonic() + 10
+    while d.sim.rig.slider.position_mm < depth_past_mm and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert d.req({"cmd": "estop"})["ok"]
+    st = _idle(d)
+    assert st["last"]["outcome"] == "estopped"
+    return st
+
+
+def test_a_start_after_an_estop_left_the_probe_in_contact_is_refused_until_returned_or_confirmed(
+        daemon, capsys):
+    """The estop leaves the probe in the tissue (the simulated surface is at about 4.3 mm): the next
+    `rig start` says so, with the depth, and refuses; `--from-contact` confirms and runs from there;
+    `rig return` raises the probe to where the cut-short trial started, and a start then runs as usual."""
+    sock = ["--socket", str(daemon.sock)]
+    st = _estop_in_contact(daemon)
+    left = st["probe_in_contact"]
+    assert left["depth_mm"] > 1.0 and left["force_N"] > 0
+    assert left["return_to_mm"] == pytest.approx(0.0, abs=0.05)
+    ramp, short = daemon.sock.parent / "ramp.yaml", daemon.sock.parent / "short.yaml"
+    ramp.write_text(RAMP)
+    short.write_text(SHORT)
+    logs_before = len(_logs(daemon.sock.parent))
+    assert main(["start", str(ramp), *sock]) == 2
+    err = capsys.readouterr().err
+    assert "not started: the probe is in contact, " in err
+    assert f"{left['depth_mm']:.2f} mm into the specimen" in err and "where the estop of trial 'ramp'" in err
+    assert "`rig return`" in err and "--from-contact" in err
+    assert len(_logs(daemon.sock.parent)) == logs_before  # refused: no trial, no log
+    assert daemon.sim.rig.slider.position_mm == pytest.approx(left["position_mm"], abs=0.05)  # nothing moved
+    # confirmed: it runs from there, says so, and ends where it started, still in contact
+    assert main(["start", str(short), "--from-contact", *sock]) == 0
+    assert "starting in contact, as confirmed (--from-contact): the probe is " in capsys.readouterr().err
+    st = _idle(daemon)
+    assert st["last"]["outcome"] == "completed" and st["probe_in_contact"]["surface_mm"] == left["surface_mm"]
+    assert main(["start", str(ramp), *sock]) == 2
+    assert "the probe is in contact" in capsys.readouterr().err
+    # returned: out of the specimen, and a start runs as usual
+    assert main(["return", *sock]) == 0
+    assert capsys.readouterr().out.startswith("returned the probe to 0.000 mm (from ")
+    assert daemon.sim.rig.slider.position_mm < left["surface_mm"]
+    assert "probe_in_contact" not in _idle(daemon)
+    assert main(["start", str(short), *sock]) == 0
+    assert "in contact" not in capsys.readouterr().err
+    assert _idle(daemon)["last"]["outcome"] == "completed"
+
+
+def test_a_trial_stopped_and_returned_leaves_nothing_to_return(daemon):
+    r = daemon.req({"cmd": "start", "protocol_text": RAMP, "protocol_path": "ramp.yaml"})
+    assert r["ok"], r
+    deadline = time.monotonic() + 10
+    while daemon.sim.rig.slider.position_mm < 6.0 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert daemon.req({"cmd": "stop", "mode": "abort"})["ok"]
+    assert "probe_in_contact" not in _idle(daemon)
+    r = daemon.req({"cmd": "return"})
+    assert not r["ok"] and "no trial has left the probe in contact" in r["error"]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
 
 from rig.clock import RealClock
 from rig.control.devices import Devices, open_devices
@@ -44,18 +45,36 @@ def position(config: RigConfig) -> dict:
 def move(config: RigConfig, to_mm: float, speed_mm_s: float, *, home: bool = False,
          out=sys.stderr) -> dict:
     """Move (or home) under the same limit check and deadline as a trial's moves."""
-    lim = config.limits
+    _check_target(config, to_mm, speed_mm_s, home)
+    dev = _open(config)
+    try:
+        for w in dev.warnings:
+            print(w, file=out, flush=True)
+        return move_on(dev, config, to_mm, speed_mm_s, home=home, out=out)
+    finally:
+        dev.close()
+
+
+def _check_target(config: RigConfig, to_mm: float, speed_mm_s: float, home: bool) -> tuple[float, float]:
     target, speed = (0.0, config.slider.home_speed_mm_s) if home else (to_mm, speed_mm_s)
-    why = check_move(target, speed, lim)
+    why = check_move(target, speed, config.limits)
     if why is not None:
         what = "home (slider.home_speed_mm_s, home at 0 mm)" if home else "--to-mm/--speed-mm-s"
         raise LimitError(f"{what}: {why}")
-    dev = _open(config)
-    for w in dev.warnings:
-        print(w, file=out, flush=True)
+    return target, speed
+
+
+def move_on(dev: Devices, config: RigConfig, to_mm: float, speed_mm_s: float, *, home: bool = False,
+            out=None, interrupted: Callable[[], str | None] | None = None) -> dict:
+    """The move of `move` on devices already open (the daemon's): watched as a trial's moves are.
+    `interrupted`, asked every 10 ms, names a reason to stop (a stop from another client): the
+    slider then stops where it is and the move ends in an error saying why."""
+    lim = config.limits
+    target, speed = _check_target(config, to_mm, speed_mm_s, home)
     slider = dev.slider
     tol = config.slider.position_tolerance_mm
     commanded = stop_sent = False
+    shown = out is not None and out.isatty()
     try:
         first = slider.position()
         if not first.fresh:
@@ -87,17 +106,19 @@ def move(config: RigConfig, to_mm: float, speed_mm_s: float, *, home: bool = Fal
                                     sr.value.alarm_code if sr.value.alarm else 0,
                                     bool(r and r.over_range), r.force_N if r else 0.0), lim)
             why = fault.message if fault else watch.check(now, pos if pr.fresh else None, moving)
+            if why is None and interrupted is not None:
+                why = interrupted()
             if why is not None:
                 stop_sent = True
                 stopped = slider.stop()
                 raise DeviceError(f"stopped: {why}" + ("" if stopped else
                                                        "; the drive did not acknowledge STOP"))
-            if out.isatty():
+            if shown:
                 out.write(f"\r  position {pos:8.3f} mm   force {force:7.3f} N")
                 out.flush()
             if pr.fresh and watch.arrived(pos, moving):
                 break
-        if out.isatty():
+        if shown:
             out.write("\n")
         return {"from_mm": start, "position_mm": pos, "alarm_code": sr.value.alarm_code,
                 "seconds": round(now, 3)}
@@ -106,8 +127,6 @@ def move(config: RigConfig, to_mm: float, speed_mm_s: float, *, home: bool = Fal
         if commanded and not stop_sent:
             _stop_after(slider, exc)
         raise
-    finally:
-        dev.close()
 
 
 def _stop_after(slider, exc: BaseException) -> None:

@@ -91,6 +91,22 @@ class Snapshot:
     force_steps: tuple = ()  # the figures of each force step ended so far (`StepFigures.as_dict`)
 
 
+@dataclass(frozen=True)
+class EndPlace:
+    """Where the probe was on the trial's last tick, and whether it pressed on the specimen (the
+    contact watch of `sensorwatch.Contact`): a trial cut short by an estop or a fault leaves the
+    probe where it stopped, which may be in the tissue."""
+
+    position_mm: float  # the slider's position (the drive's frame)
+    surface_mm: float  # where the probe was on the last tick out of contact
+    in_contact: bool
+    force_N: float  # the force the tissue carried, preload included
+
+    @property
+    def depth_mm(self) -> float:
+        return self.position_mm - self.surface_mm
+
+
 @dataclass
 class TrialResult:
     outcome: str  # completed, fault, aborted, stopped, estopped
@@ -254,6 +270,7 @@ class Trial:
         self.live = None  # a rig.service.live.LiveView publishing the same messages, if any
         self.warnings: list[str] = []
         self.notices: list[str] = []  # a completed trial's news for the operator (a force not held)
+        self.end_place: EndPlace | None = None  # set on the last tick, once the load cell was tared
         if loadcell is not None and self.zero is None:
             self.warnings.append(
                 "no free-air zero known for the load cell: this trial's tare is assumed to be taken "
@@ -509,6 +526,9 @@ class Trial:
             self._record(rec, L, k, est)
             done = L.ending.result(k.t, self.post_fault_s, L.seq.done and L.watch is None)
             if done is not None:
+                if L.contact is not None:
+                    self.end_place = EndPlace(k.pos, L.contact.surface_mm, L.in_contact,
+                                              k.checked)
                 return done
 
     def _start_loop(self, rec: Recorder, t0: float) -> _Loop:

@@ -8,7 +8,7 @@ stops it makes.
 Requests: {"cmd": "ping"}, {"cmd": "status"}, {"cmd": "logs"},
 {"cmd": "start", "protocol_text": ..., "protocol_path": ..., "specimen": ..., "operator": ..., "notes": ...},
 {"cmd": "stop", "mode": "abort" | "hold"}, {"cmd": "estop"}, {"cmd": "reset_alarm"},
-{"cmd": "watch", "rate_Hz": 10}.
+{"cmd": "return"}, {"cmd": "watch", "rate_Hz": 10}.
 Replies carry "ok": true, or "ok": false with "error". Every field is checked before it is
 used: a field of the wrong type (a `rate_Hz` that is not a number > 0, a `mode` or a
 `specimen` that is not a string) is refused with an error naming it and what is expected.
@@ -28,6 +28,14 @@ before the stop gets the stop itself (before its first tick it sends the STOP at
 on that tick without moving). So no trial starts after a stop that was acknowledged, whatever
 it met. The latch cancels only what was under way when it came: a start that arrives after the
 stop is answered starts normally (the latch never has to be cleared).
+
+A trial cut short by an estop or a fault leaves the probe where it stopped, which may be in the
+specimen. The daemon keeps where (the depth below the surface the trial's contact watch saw, the
+force, the trial that left it), and the next start, or campaign, is refused while the probe is
+still below that surface: its reply says so and offers the two ways on, `{"cmd": "return"}`
+(`rig return`: back to where that trial started, watched as any move) or the start again with
+`"from_contact": true` (`rig start --from-contact`: run from here, the operator's confirmation).
+`status` carries it as "probe_in_contact" until the probe is out.
 
 A stop or estop is answered once the STOP has gone out on the bus and the drive acknowledged
 it; "ok": false says it did not. With a trial running, the trial sends it (from its loop's next
@@ -60,8 +68,9 @@ from pathlib import Path
 from rig import __version__
 from rig.clock import RealClock
 from rig.control.devices import Devices, open_devices
+from rig.control.manual import move_on
 from rig.control.stopping import StopMode
-from rig.control.trial import Snapshot, Trial, TrialResult, default_log_path
+from rig.control.trial import EndPlace, Snapshot, Trial, TrialResult, default_log_path
 from rig.errors import RigError
 from rig.recording.names import file_part, inside
 from rig.recording.recorder import TrialInfo
@@ -71,6 +80,7 @@ from rig.service.sdnotify import Watchdog, healthy, notify, watchdog_interval_s
 from rig.specs.config import RigConfig
 from rig.specs.protocol import check_limits, parse_protocol
 
+RETURN_SPEED_MM_S = 5.0  # `rig return`, as a stopped trial's return (under the rig's speed limit)
 LOG_NAMED_S = 5.0  # a start waits this long at most for its log to be named
 HAND_OVER_S = 2.0  # a start waits this long at most for the devices (a status read holds them briefly)
 STOP_SENT_S = 1.0  # a stop waits this long at most for the STOP to go out
@@ -125,6 +135,41 @@ def _name(req: dict, key: str, default: str) -> str:
     return value
 
 
+def _flag(req: dict, key: str) -> bool:
+    """A yes-or-no field: absent or null is no; anything but true or false is refused."""
+    value = req.get(key)
+    if value is None:
+        return False
+    if not isinstance(value, bool):
+        raise RequestError(f'"{key}" must be true or false, not {_shown(value)}')
+    return value
+
+
+# ---------------------------------------------------------------------- the probe left in contact
+CUT_SHORT = {"estopped": "the estop", "fault": "the fault"}  # outcomes that leave the probe where it stopped
+
+
+def _left_in_contact(trial: Trial, result: TrialResult, tolerance_mm: float) -> dict | None:
+    """Where a trial cut short left the probe, when that is in the specimen: below the surface its
+    contact watch last saw, and pressing on it. None otherwise (a trial that completed, or was
+    stopped and returned, or held at the operator's word: `rig stop --hold`)."""
+    end: EndPlace | None = trial.end_place
+    if result.outcome not in CUT_SHORT or end is None or not end.in_contact or end.depth_mm <= tolerance_mm:
+        return None
+    # back to where the trial started, or to the surface if it started below it (a preload)
+    start = trial._start_mm if trial._start_mm is not None else end.surface_mm
+    return {"depth_mm": round(end.depth_mm, 4), "position_mm": round(end.position_mm, 4),
+            "surface_mm": round(end.surface_mm, 4), "force_N": round(end.force_N, 4),
+            "return_to_mm": round(min(start, end.surface_mm), 4), "protocol": trial.proto.name,
+            "by": f"{CUT_SHORT[result.outcome]} of trial '{trial.proto.name}' at {time.strftime('%H:%M:%S')}",
+            "log": str(result.log_path)}
+
+
+def _where(left: dict) -> str:
+    return (f"{left['depth_mm']:.2f} mm into the specimen (the slider at {left['position_mm']:.3f} mm, the "
+            f"surface at {left['surface_mm']:.3f} mm, {left['force_N']:.3g} N), where {left['by']} left it")
+
+
 def _number(value: object) -> float | None:
     """A JSON number as a float (a finite one), else None; true and false are not numbers."""
     if isinstance(value, bool) or not isinstance(value, int | float):
@@ -142,6 +187,7 @@ class _SetUp:
     id: int
     what: str  # as a reply names it: "the start of 'demo' (specimen pig-07, by ann)"
     gen: int  # the stop generation when it began: any later stop cancels it
+    moves: bool = False  # it moves the slider itself (`rig return`): a stop halts it where it is
 
 
 @dataclass
@@ -152,9 +198,11 @@ class _Cut:
     protocol: str
     cancelled: list[str] = field(default_factory=list)  # starts being set up: now cancelled
     campaign: bool = False  # a campaign was running: it starts no further trial
+    halted: list[str] = field(default_factory=list)  # moves of the daemon's own (a return): stopped
 
     def notes(self, trial_running: bool) -> list[str]:
         out = [f"{what} was cancelled: nothing moved" for what in self.cancelled]
+        out += [f"{what} was stopped where it stood" for what in self.halted]
         if self.campaign:
             out.append("the campaign ends with this trial" if trial_running else
                        "the campaign ends before its next trial (the probe stays where it is)")
@@ -183,6 +231,7 @@ class Daemon:
         self.trial_thread: threading.Thread | None = None
         self.trial_meta: dict = {}
         self.zero = None  # the load cell's free-air zero the last trial used: the next one counts from it
+        self.left_in: dict | None = None  # where a trial cut short left the probe in contact (docstring)
         self.last: dict | None = None
         self.beat: float | None = None
         self.recovered: list[str] = []
@@ -351,6 +400,8 @@ class Daemon:
                 out["state"] = "fault"
         else:
             out["snapshot"] = self._idle_snapshot()
+        if self.left_in is not None:
+            out["probe_in_contact"] = dict(self.left_in)
         return out
 
     def _idle_snapshot(self) -> dict | None:
@@ -387,10 +438,10 @@ class Daemon:
             raise RequestError(f"busy: {what} is being set up")
 
     # ------------------------------------------------------------------ set-up and hand-over
-    def _begin_setup(self, what: str, gen: int | None = None) -> _SetUp:
+    def _begin_setup(self, what: str, gen: int | None = None, moves: bool = False) -> _SetUp:
         """The caller holds state_lock. `gen`: the generation the set-up answers to (a campaign's
         trial: the campaign's), else now's."""
-        setup = _SetUp(next(self._setup_ids), what, self.stop_gen if gen is None else gen)
+        setup = _SetUp(next(self._setup_ids), what, self.stop_gen if gen is None else gen, moves)
         self.setting_up[setup.id] = setup
         return setup
 
@@ -430,6 +481,7 @@ class Daemon:
         specimen = _name(req, "specimen", "specimen")
         operator = _name(req, "operator", user)
         notes = _text(req, "notes", "")
+        from_contact = _flag(req, "from_contact")
         with self.state_lock:
             self._refuse_if_busy()
             setup = self._begin_setup(f"the start of a trial (specimen {specimen}, by {user})")
@@ -437,10 +489,12 @@ class Daemon:
             proto = parse_protocol(text, path)  # SpecError -> error reply
             setup.what = f"the start of '{proto.name}' (specimen {specimen}, by {user})"
             # From where the slider is now: the trial's zero is there, not at 0.
-            check_limits(proto, self.config, start_mm=self._read_position())  # LimitError -> error reply
+            here = self._read_position()
+            in_contact = self._in_contact(here, from_contact)  # RequestError while it is, unconfirmed
+            check_limits(proto, self.config, start_mm=here)  # LimitError -> error reply
             log_path = inside(self.out_dir, default_log_path(self.out_dir, proto, specimen))
             trial = self._new_trial(proto, specimen, operator, notes, user, log_path, self._model(req))
-            warnings = [*self.devices.warnings, *trial.warnings]
+            warnings = [*in_contact, *self.devices.warnings, *trial.warnings]
             meta = {"protocol": proto.name, "specimen": specimen, "user": user, "operator": operator,
                     "log": str(log_path), "started": time.strftime("%H:%M:%S")}
             thread = threading.Thread(target=self._run_trial, args=(trial,), name="trial", daemon=True)
@@ -488,6 +542,7 @@ class Daemon:
                 raise RequestError('"protocol_text" must be the protocol file\'s contents')
             parse_protocol(text, _text(req, "protocol_path", "<protocol>"))  # refused here, not later
         _name(req, "operator", user)  # checked now: each trial takes it
+        in_contact = self._in_contact(self._read_position(), _flag(req, "from_contact"))
         kw = {}
         for name in ("max_trials", "budget_min", "target_rse", "rest_s"):
             if opts.get(name) is None:
@@ -508,7 +563,7 @@ class Daemon:
         # its file-name form, inside the log folder (characterize names them from Request.specimen).
         stem = file_part(specimen, default="specimen")
         out = inside(self.out_dir, self.out_dir / f"characterize-{stem}")
-        warnings = list(self.devices.warnings)
+        warnings = [*in_contact, *self.devices.warnings]
         if stem != specimen:
             warnings.append(f"specimen {specimen!r} is not a file name: the campaign's folder, journal and "
                             f"logs are named '{stem}' ({out})")
@@ -652,6 +707,19 @@ class Daemon:
         finally:
             sys.setswitchinterval(old)
         self.zero = trial.zero or self.zero
+        tol = self.config.slider.position_tolerance_mm
+        left, before, end = _left_in_contact(trial, result, tol), self.left_in, trial.end_place
+        if left is None and before is not None:
+            # a trial run from contact (--from-contact) ends where it started, still in: the
+            # surface found before is still the one to return above
+            if end is None:
+                left = before
+            elif end.position_mm > before["surface_mm"] + tol:
+                left = {**before, "position_mm": round(end.position_mm, 4),
+                        "depth_mm": round(end.position_mm - before["surface_mm"], 4)}
+        self.left_in = left
+        if left is not None:
+            self.say(f"the probe is left in contact: {_where(left)}")
         self.last = {"outcome": result.outcome, "log": str(result.log_path), "samples": result.samples,
                      "duration_s": round(result.duration_s, 3), "fault": result.fault,
                      **{k: self.trial_meta[k] for k in ("protocol", "specimen", "user")}}
@@ -679,7 +747,8 @@ class Daemon:
             self.campaign_stop.set()  # no further trial of a campaign (a rest in progress ends now)
         t = self.trial if self.trial is not None and self.trial.phase != "ended" else None
         return _Cut(t, self.trial_meta.get("protocol", "") if t is not None else "",
-                    [s.what for s in self.setting_up.values()], campaign)
+                    [s.what for s in self.setting_up.values() if not s.moves], campaign,
+                    [s.what for s in self.setting_up.values() if s.moves])
 
     def _unlatch(self) -> None:
         with self.state_lock:
@@ -730,12 +799,65 @@ class Daemon:
                 reply.update(message=_joined(head, notes), cancelled=cut.cancelled, campaign_ends=cut.campaign)
                 return reply
         notes = cut.notes(trial_running=False)
-        if mode != "estop" and not (cut.cancelled or cut.campaign):
+        if mode != "estop" and not (cut.cancelled or cut.campaign or cut.halted):
             raise RequestError("no trial is running" + (" (it has just ended)" if cut.trial else ""))
         self._send_stop(mode, notes)
         return {"ok": True, "mode": mode, "acknowledged": True, "trial_running": False,
                 "cancelled": cut.cancelled, "campaign_ends": cut.campaign,
                 "message": _joined("STOP acknowledged by the drive (no trial was running)", notes)}
+
+    # ------------------------------------------------------------------ the probe in contact
+    def _in_contact(self, here_mm: float, confirmed: bool) -> list[str]:
+        """Refuse a start while a trial cut short has left the probe in the specimen (it is still
+        below the surface), unless the operator confirmed it (`from_contact`): then the warning
+        the start's reply carries. A probe since raised above the surface is out: forgotten."""
+        left = self.left_in
+        if left is None:
+            return []
+        tol = self.config.slider.position_tolerance_mm
+        if here_mm <= left["surface_mm"] + tol:
+            self.left_in = None
+            return []
+        now = {**left, "position_mm": round(here_mm, 4), "depth_mm": round(here_mm - left["surface_mm"], 4)}
+        if not confirmed:
+            raise RequestError(
+                f"not started: the probe is in contact, {_where(now)}; return it first (`rig return` moves it "
+                f"back to {left['return_to_mm']:.3f} mm, where that trial started) or, to run from there, "
+                "start again with --from-contact")
+        return [f"starting in contact, as confirmed (--from-contact): the probe is {_where(now)}; the "
+                "trial's zero is there and its preload counts against the force limit"]
+
+    def cmd_return(self, req: dict, user: str, received: float) -> dict:
+        """`rig return`: the probe back to where the trial that left it in contact started, watched
+        as any move (force, travel, speed, alarm, deadline); a stop or an estop halts it."""
+        left = self.left_in
+        if left is None:
+            raise RequestError("return: no trial has left the probe in contact; nothing to return "
+                               "(`rig move --to-mm` moves it without the daemon)")
+        to_mm = left["return_to_mm"]
+        with self.state_lock:
+            self._refuse_if_busy()
+            setup = self._begin_setup(f"the return of the probe to {to_mm:.3f} mm (by {user})", moves=True)
+
+        def stopped() -> str | None:
+            with self.state_lock:
+                return f"{self.last_stop} arrived" if self.stop_gen != setup.gen else None
+
+        speed = min(RETURN_SPEED_MM_S, self.config.limits.max_speed_mm_s)
+        self.say(f"{user} asked the probe back out of contact: from {left['position_mm']:.3f} to "
+                 f"{to_mm:.3f} mm")
+        try:
+            with self._idle_devices("return: the devices are busy (a status read or a stop); try again") as dev:
+                moved = move_on(dev, self.config, to_mm, speed, interrupted=stopped)
+        except RigError as exc:
+            raise RequestError(f"return: {exc}") from None
+        finally:
+            self._end_setup(setup)
+        self.left_in = None
+        message = (f"returned the probe to {moved['position_mm']:.3f} mm (from {moved['from_mm']:.3f} mm, "
+                   f"{moved['seconds']:.1f} s): out of contact")
+        self.say(f"{user}: {message}")
+        return {"ok": True, "message": message, **moved}
 
     def cmd_stop(self, req: dict, user: str, received: float) -> dict:
         mode = req.get("mode", "abort")
