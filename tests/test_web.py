@@ -225,8 +225,6 @@ def _map_table(tmp: Path) -> Path:
 
 
 def test_the_console_in_a_browser_runs_the_demo_and_estops_it_within_100_ms(tmp_path):
-    from rig.sim.params import SimParams
-    from rig.sim.server import WireSim
     from selenium.webdriver.common.by import By
 
     driver = _browser()
@@ -234,20 +232,13 @@ def test_the_console_in_a_browser_runs_the_demo_and_estops_it_within_100_ms(tmp_
     figures: dict = {}
     try:
         tables = _map_table(tmp_path)
-        with WireSim(SimParams(), rtu=False) as sim:
-            d = _daemon(tmp_path, sim)
-            slider = sim.drive.rig.slider
-            stop_ms: list[float] = []
-            real_stop = slider.stop
-
-            def seen_stop(*a, **k):  # the simulated drive acting on the STOP bit off the wire
-                stop_ms.append(time.time() * 1000)
-                return real_stop(*a, **k)
-
-            slider.stop = seen_stop
+        d = RigProcess(tmp_path)
+        with contextlib.ExitStack() as closing:
+            closing.callback(d.close)
             web = WebProcess(tmp_path, d.sock, tables)
             try:
-                driver.set_window_size(1280, 800)
+                driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride",  # the screenshots' size
+                                       {"width": 1280, "height": 800, "deviceScaleFactor": 1, "mobile": False})
                 driver.get(f"{web.base}/?token={web.token}")
                 _wait(lambda: "OK" in driver.find_element(By.ID, "check").text, what="the check shown")
                 assert "token" not in driver.current_url  # the cookie carries it from here
@@ -264,8 +255,10 @@ def test_the_console_in_a_browser_runs_the_demo_and_estops_it_within_100_ms(tmp_
                 figures["updates_per_s"] = (draws1[0] - draws0[0]) / ((draws1[1] - draws0[1]) / 1000)
                 delays = driver.execute_script("return window.rigLive.delays.slice(-100)")
                 figures["viewer_delay_p95_ms"] = sorted(delays)[int(0.95 * (len(delays) - 1))]
+                _wait(lambda: driver.execute_script(  # in the specimen: a force worth seeing
+                    "return Math.max(...document.getElementById('ts').data[0].y)") > 0.5, 10, "contact")
                 driver.save_screenshot(str(shots / "web-console.png"))
-                latencies = [_estop(driver, stop_ms)]
+                latencies = [_estop(driver, d)]
                 st = d.wait_idle()
                 _wait(lambda: "trial ended: estopped" in driver.find_element(By.ID, "banner").text,
                       what=f"the page saying estopped (it says {driver.find_element(By.ID, 'banner').text!r}; "
@@ -275,8 +268,9 @@ def test_the_console_in_a_browser_runs_the_demo_and_estops_it_within_100_ms(tmp_
                     reply = d.req({"cmd": "start", "protocol_text": FAST.format(to=-2 * (-1) ** i),
                                    "protocol_path": "fast.yaml", "specimen": f"try-{i}", "from_contact": True})
                     assert reply["ok"], reply
-                    _wait(lambda: slider.moving, 5, "the slider moving")
-                    latencies.append(_estop(driver, stop_ms))
+                    _wait(lambda: (d.req({"cmd": "status"}).get("snapshot") or {}).get("step_kind") == "ramp",
+                          5, "the ramp")
+                    latencies.append(_estop(driver, d))
                     st = d.wait_idle()
                     assert st["last"]["outcome"] == "estopped", st["last"]
                 latencies.sort()
@@ -310,7 +304,6 @@ def test_the_console_in_a_browser_runs_the_demo_and_estops_it_within_100_ms(tmp_
                 driver.save_screenshot(str(shots / "web-maps.png"))
             finally:
                 web.close()
-                d.close()
     finally:
         driver.quit()
     print(f"\nrig web in chromium: {json.dumps({k: round(v, 1) for k, v in figures.items()})}")
@@ -319,37 +312,76 @@ def test_the_console_in_a_browser_runs_the_demo_and_estops_it_within_100_ms(tmp_
     assert figures["map_open_ms"] < 2000 and figures["curve_open_ms"] < 1000, figures
 
 
-def _daemon(tmp: Path, sim):
-    """The daemon in this process on the WireSim (as test_stop_anytime's), its load cell's stale limit
-    at 400 ms: this test shares two cores with a browser drawing 25 times a second, and what it measures
-    is the way from the page to the drive, not the load cell's timing (test_safety's)."""
-    import yaml
+RIG = """
+import sys, threading, time
+from pathlib import Path
 
-    from rig.service.daemon import Daemon
-    from rig.specs.config import parse_config
-    from tests.test_stop_anytime import InProcessDaemon
+import yaml
+from rig.sim.params import SimParams
+from rig.sim.server import WireSim
 
-    d = InProcessDaemon.__new__(InProcessDaemon)
+from rig.service.daemon import Daemon
+from rig.specs.config import parse_config
+
+tmp = Path(sys.argv[1])
+with WireSim(SimParams(), rtu=False) as sim, open(tmp / "stops.txt", "a", buffering=1) as stops, \\
+        open(tmp / "daemon.log", "w") as log:
+    slider = sim.drive.rig.slider
+    real_stop = slider.stop
+
+    def seen_stop(*a, **k):  # the simulated drive acting on the STOP bit it read off the wire
+        stops.write(f"{time.time() * 1000:.3f}\\n")
+        return real_stop(*a, **k)
+
+    slider.stop = seen_stop
     cfg = {"slider": {"profile": "oriental_az_sim", "comm_timeout_s": 0.3, "backend": "modbus-tcp",
                       "host": "127.0.0.1", "tcp_port": int(sim.endpoints.modbus_tcp.split(":")[1])},
            "loadcell": {"backend": "serial", "port": sim.endpoints.loadcell},
-           "limits": {"loadcell_stale_ms": 400}, "loop": {"tare_s": 0.2},
-           "recorder": {"out_dir": str(tmp / "trials")}}
-    d.sim, d.sock = sim, tmp / "rigd.sock"
-    d.log = open(tmp / "daemon.log", "w")  # noqa: SIM115 - closed by InProcessDaemon.close
-    d.daemon = Daemon(parse_config(yaml.safe_dump(cfg)), d.sock, log=d.log)
-    d.daemon.start()
-    d.thread = threading.Thread(target=d.daemon.serve_forever, daemon=True)
-    d.thread.start()
-    return d
+           "loop": {"tare_s": 0.2}, "recorder": {"out_dir": str(tmp / "trials")}}
+    d = Daemon(parse_config(yaml.safe_dump(cfg)), tmp / "rigd.sock", log=log)
+    d.start()
+    threading.Thread(target=lambda: (sys.stdin.read(), d.request_shutdown()), daemon=True).start()
+    d.serve_forever()
+"""
 
 
-def _estop(driver, stop_ms: list[float]) -> float:
+class RigProcess:
+    """The simulated rig (Modbus TCP drive, serial load cell) and its daemon in a process of their own,
+    as a lab runs them: this test's browser and its driver share no interpreter with the loop. The
+    simulated drive writes the time it acts on each STOP to stops.txt."""
+
+    def __init__(self, tmp: Path) -> None:
+        from rig.service.client import request
+
+        self.tmp, self.sock, self.request = tmp, tmp / "rigd.sock", request
+        self.proc = subprocess.Popen([sys.executable, "-c", RIG, str(tmp)], stdin=subprocess.PIPE, cwd=ROOT)
+        _wait(lambda: self.sock.exists() and self.req({"cmd": "ping"})["ok"], 30, "the daemon")
+
+    def req(self, obj: dict) -> dict:
+        return self.request(self.sock, obj, 10.0)
+
+    def stops_ms(self) -> list[float]:
+        path = self.tmp / "stops.txt"
+        return [float(x) for x in path.read_text().split()] if path.exists() else []
+
+    def wait_idle(self, timeout_s: float = 30.0) -> dict:
+        return _wait(lambda: (st := self.req({"cmd": "status"}))["state"] == "idle" and st, timeout_s, "idle")
+
+    def close(self) -> None:
+        self.proc.stdin.close()
+        try:
+            self.proc.wait(30)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(5)
+
+
+def _estop(driver, rig: RigProcess) -> float:
     """Click ESTOP; the time from the click (in the page) to the STOP on the simulated drive."""
     from selenium.webdriver.common.by import By
 
-    seen = len(stop_ms)
+    seen = len(rig.stops_ms())
     driver.find_element(By.ID, "btn-estop").click()
-    _wait(lambda: len(stop_ms) > seen, 5, "the STOP on the drive")
+    stops = _wait(lambda: (got := rig.stops_ms())[seen:] and got, 5, "the STOP on the drive")
     clicked = driver.execute_script("return window.rigClicks[window.rigClicks.length - 1].clicked_ms")
-    return stop_ms[seen] - clicked
+    return stops[seen] - clicked

@@ -10,6 +10,29 @@ let stepsDirty = false;
 const STEP_COLOURS = {ramp: "rgba(37,99,235,0.07)", hold: "rgba(22,163,74,0.08)", return: "rgba(217,119,6,0.08)",
   tare: "rgba(107,114,128,0.08)"};
 
+// the force and position axes follow the data (a limit far above would flatten it); a limit
+// beyond the range is said in words at the top instead of drawn
+let ranges = {y: null, y2: null};
+function grow(axis, values, floor) {
+  let lo = Infinity, hi = -Infinity;
+  for (const v of values) if (v !== null) { if (v < lo) lo = v; if (v > hi) hi = v; }
+  if (!isFinite(lo)) return false;
+  const r = ranges[axis];
+  if (r && lo >= r[0] && hi <= r[1]) return false;
+  const span = Math.max(hi - lo, floor);
+  ranges[axis] = [Math.min(lo, r ? r[0] : lo) - 0.15 * span, Math.max(hi, r ? r[1] : hi) + 0.3 * span];
+  return true;
+}
+function limitNotes(lim) {
+  const notes = [];
+  const [fr, xr] = [ranges.y, ranges.y2];
+  if (lim.max_force_N) notes.push({xref: "paper", x: 1, yref: "y domain", y: 1, showarrow: false, xanchor: "right", yanchor: "top",
+    text: `force limit ${lim.max_force_N} N` + (fr && lim.max_force_N > fr[1] ? " (above)" : ""), font: {size: 10, color: "#dc2626"}});
+  if (lim.travel_mm) notes.push({xref: "paper", x: 1, yref: "y2 domain", y: 1, showarrow: false, xanchor: "right", yanchor: "top",
+    text: `travel [${lim.travel_mm[0]}, ${lim.travel_mm[1]}] mm` + (xr && (lim.travel_mm[1] > xr[1] || lim.travel_mm[0] < xr[0]) ? " (beyond)" : ""),
+    font: {size: 10, color: "#dc2626"}});
+  return notes;
+}
 function tsLayout() {
   const lim = limits || cfgLimits || {};
   const shapes = [];
@@ -22,18 +45,16 @@ function tsLayout() {
     shapes.push({type: "rect", xref: "x", yref: "paper", x0: s[0], x1: t1, y0: 0, y1: 1, line: {width: 0},
       fillcolor: STEP_COLOURS[s[2]] || "rgba(0,0,0,0.04)", layer: "below"});
   });
-  return {margin: {l: 60, r: 10, t: 20, b: 36}, showlegend: false, shapes,
-    annotations: lim.max_force_N ? [{xref: "paper", x: 1, y: lim.max_force_N, yref: "y", text: `limit ${lim.max_force_N} N`,
-      showarrow: false, xanchor: "right", yanchor: "bottom", font: {size: 10, color: "#dc2626"}}] : [],
+  return {margin: {l: 60, r: 10, t: 20, b: 36}, showlegend: false, shapes, annotations: limitNotes(lim),
     xaxis: {title: {text: "t (s)"}, anchor: "y3"},
-    yaxis: {domain: [0.68, 1], title: {text: "force (N)"}},
-    yaxis2: {domain: [0.35, 0.65], title: {text: "position (mm)"}},
+    yaxis: {domain: [0.68, 1], title: {text: "force (N)"}, range: ranges.y, autorange: !ranges.y},
+    yaxis2: {domain: [0.35, 0.65], title: {text: "position (mm)"}, range: ranges.y2, autorange: !ranges.y2},
     yaxis3: {domain: [0, 0.32], title: {text: "k (N/m)"}}};
 }
 function fxLayout() {
   const lim = limits || cfgLimits || {};
   return {margin: {l: 60, r: 10, t: 10, b: 36}, showlegend: false,
-    xaxis: {title: {text: "position (mm)"}}, yaxis: {title: {text: "force (N)"}},
+    xaxis: {title: {text: "position (mm)"}}, yaxis: {title: {text: "force (N)"}, range: ranges.y, autorange: !ranges.y},
     shapes: lim.max_force_N ? [{type: "line", xref: "paper", x0: 0, x1: 1, y0: lim.max_force_N, y1: lim.max_force_N,
       line: {color: "#dc2626", dash: "dash", width: 1.5}}] : []};
 }
@@ -55,9 +76,15 @@ function draw() {
   if (!pending.t.length) return;
   const p = pending;
   pending = {t: [], f: [], x: [], k: []};
+  const regrown = grow("y", p.f, 0.5) | grow("y2", p.x, 1);
   Plotly.extendTraces("ts", {x: [p.t, p.t, p.t], y: [p.f, p.x, p.k]}, [0, 1, 2]);
   Plotly.extendTraces("fx", {x: [p.x], y: [p.f]}, [0]);
-  if (stepsDirty) { stepsDirty = false; Plotly.relayout("ts", {shapes: tsLayout().shapes}); }
+  if (stepsDirty || regrown) {
+    stepsDirty = false;
+    const l = tsLayout();
+    Plotly.relayout("ts", {shapes: l.shapes, annotations: l.annotations, "yaxis.range": ranges.y, "yaxis2.range": ranges.y2});
+    if (regrown) Plotly.relayout("fx", {"yaxis.range": ranges.y});
+  }
   live.draws += 1;
   live.drawTimes.push(performance.now());
   if (live.drawTimes.length > 400) live.drawTimes.splice(0, 200);
@@ -82,22 +109,32 @@ function showStatus(st) {
         snap.force_N === null || snap.force_N === undefined ? "bad" : "ok"]);
     }
   } else if (snap.fault) pairs.push(["fault", snap.fault, "bad"]);
-  if (zero) pairs.push(["zero", zero.zero_N === null ? zero.source : `${RIG.fmt(zero.zero_N)} N, ${zero.age_s === null ? "" : ageText(zero.age_s) + " old, "}${zero.source}`,
-    zero.zero_N === null ? "bad" : ""]);
+  pairs.push(...zeroPair());
+  if (st.campaign) pairs.push(["campaign", `${st.campaign.specimen}: ${st.campaign.phase}, ${st.campaign.trials} trials`]);
+  liveDevices = "";
   kv("devices", pairs);
   if (st.state === "idle" && !document.getElementById("banner").dataset.ended) banner("idle: no trial running", "");
-  if (st.campaign) pairs.push(["campaign", `${st.campaign.specimen}: ${st.campaign.phase}, ${st.campaign.trials} trials`]);
 }
 function ageText(s) { return s < 120 ? `${Math.round(s)} s` : s < 7200 ? `${Math.round(s / 60)} min` : s < 172800 ? `${Math.round(s / 3600)} h` : `${Math.round(s / 86400)} d`; }
 function newTrial(trial) {
   trialMeta = trial;
   limits = trial && trial.limits ? trial.limits : null;
-  buf = {t: [], f: [], x: [], k: []}; pending = {t: [], f: [], x: [], k: []}; steps = [];
+  buf = {t: [], f: [], x: [], k: []}; pending = {t: [], f: [], x: [], k: []}; steps = []; ranges = {y: null, y2: null};
   delete document.getElementById("banner").dataset.ended;
   resetPlots();
 }
+let liveDevices = "";
+function zeroPair() {
+  return zero ? [["zero", zero.zero_N === null ? zero.source : `${RIG.fmt(zero.zero_N)} N, ${zero.age_s === null ? "" : ageText(zero.age_s) + " old, "}${zero.source}`,
+    zero.zero_N === null ? "bad" : ""]] : [];
+}
 function showLive(m) {
   const p = m.p;
+  const key = `${m.state}|${m.fault}`;
+  if (key !== liveDevices) {  // the devices as the trial's loop sees them
+    liveDevices = key;
+    kv("devices", [["daemon", `${m.state} (a trial owns the devices)`], ["fault", m.fault || "none", m.fault ? "bad" : "ok"], ...zeroPair()]);
+  }
   const meta = trialMeta || {};
   banner(`running '${meta.protocol || "?"}' (specimen ${meta.specimen || "?"}): step ${m.step + 1}/${m.steps_total} ${m.step_kind}, ` +
     `${RIG.fmt(m.time_left_s, 2)} s left` + (m.fault ? ` FAULT: ${m.fault}` : ""), m.fault ? "fault" : "running");
@@ -114,7 +151,10 @@ function connect() {
     if (m.kind === "hello") {
       showStatus(m.status);
       newTrial(m.trial);
-      if (m.trial) { steps = m.steps || []; take(m.points || []); pending = {t: [], f: [], x: [], k: []}; resetPlots(); }
+      if (m.trial) {
+        steps = m.steps || []; take(m.points || []); pending = {t: [], f: [], x: [], k: []};
+        grow("y", buf.f, 0.5); grow("y2", buf.x, 1); resetPlots();
+      }
     } else if (m.kind === "status") { if (!trialMeta || m.status.state === "idle") showStatus(m.status); }
     else if (m.kind === "trial") newTrial(m.trial);
     else if (m.kind === "live") {

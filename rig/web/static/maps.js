@@ -2,13 +2,18 @@
 rigHeader("/maps");
 const timing = window.rigMaps = {};
 let current = null;
-const CFG = {displaylogo: false, responsive: false};
+const CFG = {displaylogo: false, displayModeBar: false, responsive: false};
+function span(v) {  // an axis over the pixels' centres, half a pixel beyond each end
+  const half = v.length > 1 ? Math.abs(v[1] - v[0]) / 2 : 0.5;
+  return [Math.min(...v) - half, Math.max(...v) + half];
+}
 function heat(div, m, z, title, unit, opts = {}) {
   const trace = {type: "heatmap", x: m.x_um, y: m.y_um, z, colorscale: opts.colorscale || "Viridis",
     colorbar: {title: {text: unit, side: "right"}, thickness: 10, ...(opts.colorbar || {})}, hoverongaps: false,
     zmin: opts.zmin, zmax: opts.zmax, hovertemplate: `x %{x} ${m.axes_unit}<br>y %{y} ${m.axes_unit}<br>${title} %{z}<extra></extra>`};
   Plotly.newPlot(div, [trace], {title: {text: title, font: {size: 13}}, margin: {l: 46, r: 8, t: 28, b: 36},
-    xaxis: {title: {text: `x (${m.axes_unit})`}, constrain: "domain"}, yaxis: {title: {text: `y (${m.axes_unit})`}, scaleanchor: "x"}}, CFG);
+    xaxis: {title: {text: `x (${m.axes_unit})`}, range: span(m.x_um), constrain: "domain"},
+    yaxis: {title: {text: `y (${m.axes_unit})`}, range: span(m.y_um), scaleanchor: "x", constrain: "domain"}}, CFG);
   document.getElementById(div).on("plotly_click", ev => {
     const p = ev.points[0];
     const ix = m.x_um.indexOf(p.x), iy = m.y_um.indexOf(p.y);
