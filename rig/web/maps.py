@@ -172,8 +172,20 @@ class Maps:
         curve = int(curve) if _f(curve) is not None else None
         options = ReadOptions(curve=curve, spring_constant_N_per_m=req.spring_constant_N_per_m,
                               sensitivity_m_per_V=req.sensitivity_m_per_V, block=req.block)
-        inputs = load_inputs([str(row["file"])], [], list(req.plugins), options, indenter=req.indenter,
-                             poisson=req.poisson, segment=req.segment)
+        file = Path(str(row["file"]))
+        if not file.is_absolute() and not file.exists():  # named from where the batch ran: beside the table
+            file = self.resolve(rel).parent / file
+        records = None
+        if curve is not None and not req.block:  # the one curve read from the file, as the batch reads
+            from rig.records import each_record
+
+            got = dict(each_record(str(file), options, {curve}))
+            rec = got.get(curve, RigError(f"curve {curve} is no longer in {file}"))
+            if isinstance(rec, Exception):
+                return {**base, "error": f"curve {curve} cannot be read: {rec}"}
+            records = [rec]
+        inputs = load_inputs([str(file)], [], list(req.plugins), options, indenter=req.indenter,
+                             poisson=req.poisson, segment=req.segment, records=records)
         model = build_model(req.model, list(req.add), inputs.registry)
         res = fit(model, inputs.trials)
         t = res.trials[0]

@@ -36,6 +36,11 @@ async function openMap(table) {
     `${req.indenter ? ", " + req.indenter : ""}; adequate ${m.adequate} of ${m.rows}${m.failed ? `, ${m.failed} could not be analysed` : ""}`;
   timing.mapMs = performance.now() - t0;
 }
+function focus(depth) {  // the contact, and as much of the approach before it as the indentation is deep
+  const deepest = Math.max(...depth.filter(v => v !== null));
+  const first = Math.min(...depth.filter(v => v !== null));
+  return deepest > 0 ? [Math.max(first, -1.5 * deepest), 1.05 * deepest] : undefined;
+}
 async function openCurve(row) {
   const t0 = performance.now();
   document.getElementById("curve-title").textContent = "fitting the curve again...";
@@ -53,7 +58,7 @@ async function openCurve(row) {
     {x: c.indentation_um, y: c.fit, mode: "lines", name: "fit", line: {color: "#dc2626", width: 2}},
     {x: c.indentation_um, y: c.residual, mode: "markers", name: "residual", xaxis: "x", yaxis: "y2", marker: {size: 3, color: "#6b7280"}}],
     {margin: {l: 60, r: 10, t: 10, b: 40}, legend: {orientation: "h", y: 1.08},
-     xaxis: {title: {text: "indentation (um): travel past the contact point"}, anchor: "y2"},
+     xaxis: {title: {text: "indentation (um): travel past the contact point"}, anchor: "y2", range: focus(c.indentation_um)},
      yaxis: {domain: [0.32, 1], title: {text: `force (${u})`}}, yaxis2: {domain: [0, 0.25], title: {text: `residual (${u})`}},
      shapes: [{type: "line", x0: 0, x1: 0, xref: "x", yref: "paper", y0: 0, y1: 1, line: {color: "#111", dash: "dot"}}],
      annotations: [{x: 0, xref: "x", y: 1, yref: "paper", text: "contact point", showarrow: false, xanchor: "left", font: {size: 11}}]},
