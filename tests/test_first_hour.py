@@ -158,3 +158,44 @@ def test_console_blocks_fit_the_text_column_in_a_browser(site, page, tmp_path):
                                    f"{found.group(2)}")
     # the rule is the site's, on every page
     assert "_static/console.css" in html.read_text()
+
+
+# --- --design agrees with the verdict and with itself ------------------------------------------
+
+def test_every_designed_candidate_says_what_its_steps_do():
+    from rig.analysis.design import Shape, candidate_steps
+
+    for c in candidate_steps(Shape(0.03, 0.003, 60.0, 0.005, 106.0), 0.01, 0.05):
+        holds = [p for kind, p in c.steps if kind == "hold"]
+        assert not ("without a hold" in c.why and holds), (c.name, c.why)
+    cycles = next(c for c in candidate_steps(Shape(0.03, 0.003, 60.0, 0.005, 106.0), 0.01, 0.05)
+                  if c.name == "load-unload cycles")
+    assert "hold" in cycles.why and any(kind == "hold" for kind, _ in cycles.steps)
+
+
+def test_design_on_the_what_is_missing_trials_warns_that_nothing_settles_the_tie(tmp_path):
+    """The walk-through's trials (a second relaxation hidden): the verdict's look-alike cannot be
+    separated within the rig's reach; --design says so, in its output and its file, and says how the
+    verdict's own proposal (a longer hold) fared."""
+    from rig.specs.protocol import load_protocol
+    from tests.pages import ROOT
+
+    (tmp_path / "hidden.yaml").write_text("sim: {effects: {relaxation2: {k_N_per_m: 60, tau_s: 40}}}\n")
+    for v in ("0.75", "1.5", "3"):
+        subprocess.run([sys.executable, "-m", "rig", "run", str(ROOT / "protocols" / f"paper-{v}mm_s.yaml"),
+                        "--config", "hidden.yaml", "--speed", "0", "--quiet", "--out", "mystery"],
+                       cwd=tmp_path, check=True, capture_output=True, timeout=300)
+    logs = sorted(str(p) for p in (tmp_path / "mystery").glob("*.mcap"))
+    done = subprocess.run([sys.executable, "-m", "rig", "analyze", *logs, "--explain", "--design",
+                           "separate.yaml"], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    verdict = next(line for line in done.stdout.splitlines() if line.startswith("=> "))
+    assert "look-alike: fractional_relaxation" in verdict and "to separate them, try: a longer hold" in verdict
+    shown = done.stdout[done.stdout.index("design: "):]
+    assert "warning: no candidate settles the tie" in shown
+    assert "the verdict's proposal, a longer hold, is 'long hold' here" in shown
+    text = (tmp_path / "separate.yaml").read_text()
+    assert text.startswith("# WARNING: no candidate settles the tie")
+    proto = load_protocol(tmp_path / "separate.yaml")
+    if any(s.kind == "hold" for s in proto.steps):
+        assert "without a hold" not in (proto.description or "")

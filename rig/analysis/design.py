@@ -45,6 +45,21 @@ CHECKED = 12  # leaders by predicted difference that are refitted the hard way
 SCREEN_SAMPLES = 1500  # per trial, for the refits (the effects live on time scales of many samples)
 REFIT_NFEV = 40
 NOTHING_TO_SETTLE = "nothing to settle: the diagnosis has no look-alikes (no protocol written)"
+# A candidate settles the tie when the wrong model, refitted to it, still misses it by the noise or
+# more: below that, the two models describe the new trial alike too.
+SETTLES = 1.0
+# The candidates that carry out what the verdict proposes for a pair (`explain.SEPARATE_BY`), by
+# the start of their names: what `--design` says of the verdict's own proposal.
+PROPOSED = {
+    frozenset({"compliance", "poly_elastic"}): ("ramp to ", "staircase", "slow to ", "oscillation"),
+    frozenset({"compliance", "relaxation2"}): ("staircase",),
+    frozenset({"delay", "viscous"}): ("ramp at ",),
+    frozenset({"delay", "friction"}): ("ramp at ",),
+    frozenset({"drift", "relaxation2"}): ("long hold", "rest before and after"),
+    frozenset({"offset", "drift"}): ("rest before and after",),
+    frozenset({"fractional_relaxation", "relaxation2"}): ("long hold",),
+    frozenset({"speed_relaxation", "relaxation2"}): ("ramp at ",),
+}
 
 
 @dataclass(frozen=True)
@@ -81,10 +96,47 @@ class Design:
     refused: list[str] = field(default_factory=list)  # candidates beyond the rig's limits, and why
     yaml: str = ""
     duration_s: float = 0.0
+    proposed: str = ""  # what the verdict proposed to separate the pair (`explain.SEPARATE_BY`)
+
+    @property
+    def settles(self) -> bool:
+        """Whether the best candidate tells the two apart: the wrong model, refitted with it,
+        still misses it by at least the noise (`SETTLES`)."""
+        return (self.best.separation_N or 0.0) >= SETTLES * self.noise_N
+
+    def warning(self) -> str:
+        """What the user must know when no candidate settles the tie ("" when one does)."""
+        if self.settles:
+            return ""
+        b = self.best
+        x, y = self.effects
+        return (f"no candidate settles the tie: on the best, '{b.name}', {b.wrong} refitted still misses by "
+                f"only {b.separation_N / self.noise_N:.2g}x the noise (at least {SETTLES:g}x tells them "
+                f"apart), so running it will not tell {x} from {y}: the two models predict every candidate "
+                f"trial within the rig's limits and {MAX_DURATION:g}x the trials' duration alike")
+
+    def proposal(self) -> str:
+        """How the verdict's own proposal fared among the candidates ("" when it is the best or
+        has no candidate here)."""
+        starts = PROPOSED.get(frozenset(self.effects), ())
+        if not self.proposed or not starts:
+            return ""
+        ran = [c for c in self.ranked if c.name.startswith(starts) and c.separation_N is not None]
+        if self.best in ran:
+            return ""
+        said = f"the verdict's proposal, {self.proposed.split(' (')[0]},"
+        if ran:
+            c = ran[0]
+            return (f"{said} is '{c.name}' here: refitted with it, {c.wrong} misses by "
+                    f"{c.separation_N:.3g} N RMS ({c.separation_N / self.noise_N:.2g}x the noise), less "
+                    f"than on '{self.best.name}'")
+        why = next((r for r in self.refused if r.startswith(starts)), "")
+        return f"{said} is not among the candidates run" + (f" ({why})" if why else "")
 
     def as_dict(self) -> dict:
         b = self.best
         return {"effects": list(self.effects), "protocol": b.name, "why": b.why,
+                "settles": self.settles, "warning": self.warning(), "proposal": self.proposal(),
                 "difference_N": b.difference_N, "difference_over_noise": b.difference_N / self.noise_N,
                 "separation_N": b.separation_N,
                 "separation_over_noise": (b.separation_N or 0.0) / self.noise_N, "wrong_model": b.wrong,
@@ -201,8 +253,8 @@ def candidate_steps(s: Shape, max_speed_m_s: float, max_depth_m: float) -> list[
     add("staircase", "a hold at a second depth", ramp(D / 2, V), hold(H / 2), ramp(D, V), hold(H / 2))
     add(f"staircase to {_mm(deep)} mm at two speeds", "holds at two depths, reached at two speeds",
         ramp(D / 2, V / 2), hold(H / 2), ramp(deep, 2 * V), hold(H / 2))
-    add("load-unload cycles", "two load-unload cycles without a hold",
-        ramp(D, V), ramp(D / 3, V), ramp(D, V), hold(H / 2))
+    add("load-unload cycles", "load, unload to a third of the depth and load again, then a hold half as "
+        "long at depth", ramp(D, V), ramp(D / 3, V), ramp(D, V), hold(H / 2))
     for amp, f in ((0.1, 2.0), (0.2, 1.0)):
         mid = D * (1 - amp)
         wiggle = [ramp(mid - amp * D if i % 2 == 0 else mid + amp * D, f * V) for i in range(6)]
@@ -407,7 +459,8 @@ def design(ex: Explanation, config: RigConfig | None = None,
     for c in cands[:CHECKED]:
         _separation(c, a, b, trials)
     cands.sort(key=lambda c: -(c.separation_N if c.separation_N is not None else -1.0))
-    d = Design((pair[0], pair[1]), (a, b), noise, cands[0], cands, refused)
+    d = Design((pair[0], pair[1]), (a, b), noise, cands[0], cands, refused,
+               proposed=ex.lookalikes[0].get("separate_with", ""))
     d.yaml = design_yaml(d, limits.max_force_N, room.travel_mm if room is not None else None)
     proto = parse_protocol(d.yaml, "<design>")
     check_limits(proto, config)  # as `rig run` will
@@ -463,7 +516,15 @@ def design_yaml(d: Design, force_limit_N: float, travel_mm: tuple[float, float] 
                f"{b.separation_N:.3g} N RMS ({b.separation_N / d.noise_N:.1f}x the noise).",
                f"Predicted peak force {b.peak_N:.3g} N. Depths are from the zero the analysis took as contact.",
                "Run it on the same specimen, then analyze it together with the trials given."]
+    if not d.settles:
+        comment = [*_wrapped(f"WARNING: {d.warning()}."), *comment]
     return protocol_text(b, f"separate {x} from {y}: {b.name}", limit, comment, travel_mm)
+
+
+def _wrapped(text: str, width: int = 100) -> list[str]:
+    import textwrap
+
+    return textwrap.wrap(text, width)
 
 
 def write_design(d: Design, path: str | Path) -> Path:
@@ -482,8 +543,12 @@ def format_design(d: Design, path: str | Path) -> str:
              f"  the two fitted models differ by {b.difference_N:.3g} N RMS on it "
              f"({b.difference_N / d.noise_N:.1f}x the noise); refitted with it, {b.wrong} still misses it "
              f"by {b.separation_N:.3g} N RMS "
-             f"({b.separation_N / d.noise_N:.1f}x the noise)",
-             f"  {'candidate':<44}{'differ N':>10}{'refit miss N':>14}"]
+             f"({b.separation_N / d.noise_N:.1f}x the noise)"]
+    if not d.settles:
+        lines.append(f"  warning: {d.warning()}")
+    if d.proposal():
+        lines.append(f"  {d.proposal()}")
+    lines.append(f"  {'candidate':<44}{'differ N':>10}{'refit miss N':>14}")
     for c in d.ranked[:8]:
         sep = f"{c.separation_N:>14.3g}" if c.separation_N is not None else f"{'-':>14}"
         lines.append(f"  {c.name[:43]:<44}{c.difference_N:>10.3g}{sep}")

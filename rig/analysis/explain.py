@@ -398,10 +398,10 @@ def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexpl
         if best is not None and best.effect in (a, b):
             other = b if a == best.effect else a
             parts.append(f"look-alike: {other} (on these trials {best.effect} and {other} cannot be told "
-                         f"apart: {t['why']}); to separate them: {t['separate_with']}")
+                         f"apart: {t['why']}); to separate them, try: {t['separate_with']}")
         else:
             parts.append(f"look-alikes: {a} and {b} cannot be told apart on these trials ({t['why']}); "
-                         f"to separate them: {t['separate_with']}")
+                         f"to separate them, try: {t['separate_with']}")
     if best is not None and unexplained:
         parts.append(f"still unexplained: {unexplained}")
     return "; ".join(parts)
