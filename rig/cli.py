@@ -547,7 +547,7 @@ def cmd_analyze_each(args: argparse.Namespace) -> int:
     from rig.analysis.each import format_rows, format_summary, run_each
     from rig.analysis.table import jsonable
 
-    given = [f for f in BATCH_REFUSED if getattr(args, f)]
+    given = [f for f in BATCH_REFUSED if getattr(args, f) not in (None, False)]
     if given:
         raise RigError(f"--{given[0].replace('_', '-')} is not for a batch: each curve is analysed on its own "
                        "(give one record, or --curve N of a map, to use it)")

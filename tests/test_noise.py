@@ -41,7 +41,7 @@ def test_noise_from_a_baseline_at_rest():
     est = from_baseline(base)
     assert est.std_N == pytest.approx(2e-10, rel=0.1)
     assert est.scale_samples == pytest.approx(integral_scale(base[0]), rel=0.3)
-    assert from_baseline([np.zeros(50)]) is None  # too short to say
+    assert from_baseline([np.zeros(20)]) is None  # too short to say
 
 
 def filtered_trials(tmp_path, cutoff_Hz: float, seed: int):

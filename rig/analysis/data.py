@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from rig.analysis.line import fit_line, off_line
-from rig.analysis.noise import MIN_BASELINE, from_baseline, quiet_length
+from rig.analysis.noise import MIN_BASELINE, MIN_REST, from_baseline, quiet_length
 from rig.errors import SpecError
 from rig.models.core import Motion
 from rig.records import ReadOptions, Record, read_record
@@ -192,6 +192,7 @@ def prepare(rec: Record, where: str = "", segment: str = "all", form: str = "aut
     notes = list(rec.notes)
     contact_m = None
     estimated = False
+    estimated_rest = False  # the baseline is the quiet part of the record's own approach
     if rec.frame is Frame.SURFACE:
         x = pos
         if np.max(x) <= 0.0:
@@ -204,6 +205,7 @@ def prepare(rec: Record, where: str = "", segment: str = "all", form: str = "aut
         notes.append(note)
         contact_m = float(-x[0])  # x counts from contact: its first value is minus the travel to it
         estimated = level is not None
+        estimated_rest = estimated
         end = _end_of_contact(x, f - (level or 0.0))
         # a pull on the way out (the tip stuck) only where the adhesion effect can describe it
         pull = _end_of_pull(f - (level or 0.0), end, baseline) if keep_pull else end
@@ -224,7 +226,11 @@ def prepare(rec: Record, where: str = "", segment: str = "all", form: str = "aut
     v = _velocity(x, dt)
     phase = _phases_from_steps(t, steps) if steps is not None else _phases_from_motion(t, x, v)
     base = np.asarray(baseline, dtype=float)
-    quiet = from_baseline([base]) if len(base) >= MIN_BASELINE else None
+    # a tare, or the rest before a surface the record knows, needs MIN_BASELINE; the quiet part of an
+    # approach is measured from MIN_REST on: below, the noise would be read off the residual, where a
+    # misfit shows too, and the errors jumped by orders of magnitude across 200 samples before contact
+    enough = MIN_REST if estimated_rest else MIN_BASELINE
+    quiet = from_baseline([base]) if len(base) >= enough else None
     noise = quiet.std_N if quiet else (float(np.std(_detrend(base))) if len(base) >= 20 else None)
     m = Motion(t, x, v, dt)
     scales = record_scales(m, f, phase)
@@ -242,7 +248,7 @@ def prepare(rec: Record, where: str = "", segment: str = "all", form: str = "aut
                          "predicted from the force, smoothed within each step); force form elsewhere")
     weight, held_ar = creep_weight(x, f, held, runs, noise, phase) if held is not None else (None, ())
     return TrialData(Path(rec.name).name, m, f, phase, noise, rec.source, len(base), scales,
-                     base if len(base) >= MIN_BASELINE else None, fu, lu, notes, dict(rec.meta), contact_m,
+                     base if len(base) >= enough else None, fu, lu, notes, dict(rec.meta), contact_m,
                      estimated, held, weight, smoothed, held_ar)
 
 

@@ -132,13 +132,14 @@ def intervals(res: FitResult, names: list[str] | None = None,
     return out
 
 
-def format_intervals(found: list[Interval], res: FitResult) -> str:
+def format_intervals(found: list[Interval], res: FitResult, asked: bool = False) -> str:
     if not found:
         return ("profile: no parameters trade off (|correlation| >= 0.9); --profile NAME profiles any of them "
                 f"(here: {', '.join(p.name for p in res.model.params)})")
     units = {p.name: p.unit for p in res.model.params}
-    lines = ["profile 95 % intervals (each end where the cost has risen by chi-square 3.84 with the others "
-             "refitted), beside +/-1.96 SE (stat):"]
+    which = "the parameters asked for" if asked else "parameters that trade off"
+    lines = [f"profile 95 % intervals ({which}; each end where the cost has risen by chi-square 3.84 with the "
+             "others refitted), beside +/-1.96 SE (stat):"]
     for iv in found:
         low = f"{iv.low:.4g}" if iv.low is not None else "(its bound)"
         high = f"{iv.high:.4g}" if iv.high is not None else "(its bound)"

@@ -124,7 +124,7 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         boot = bootstrap(res, req.bootstrap, progress=req.progress)
         out["bootstrap"] = boot.as_dict()
     profiled = None
-    if req.profile:
+    if req.profile is not None and req.profile is not False:
         from rig.analysis.profile import intervals
 
         asked = req.profile if isinstance(req.profile, list) and req.profile else None
@@ -189,7 +189,7 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     if profiled is not None:
         from rig.analysis.profile import format_intervals
 
-        parts.append(format_intervals(profiled, res))
+        parts.append(format_intervals(profiled, res, asked=bool(isinstance(req.profile, list) and req.profile)))
     if boot is not None:
         from rig.analysis.bootstrap import format_bootstrap
 
