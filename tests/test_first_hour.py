@@ -72,7 +72,7 @@ def test_an_empty_default_reads_empty_not_a_pair_of_backticks(site):
 def test_notes_txt_without_its_label_is_not_a_file_this_tool_can_read(tmp_path):
     from tests.pages import console
 
-    page = DOCS / "tutorials" / "afm-curve.md"
+    page = DOCS / "explanation" / "records.md"
     example = next(ex for ex in console().examples(page)
                    if any(c == "rig analyze notes.txt" for c, _ in ex.commands))
     # the page's `# notes.txt` is the block's label, not the file's first line
@@ -199,3 +199,27 @@ def test_design_on_the_what_is_missing_trials_warns_that_nothing_settles_the_tie
     proto = load_protocol(tmp_path / "separate.yaml")
     if any(s.kind == "hold" for s in proto.steps):
         assert "without a hold" not in (proto.description or "")
+
+
+# --- the tutorials teach one path; the detail is on the explanation pages they link to ----------
+
+# words of a reference or an explanation, not of a first walk through
+_DETAIL = ("NL2SOL", "Jacobian", "Newton", "AR(p)", "structure function", "variable projection", "sandwich",
+           "effective samples", "orthonormal", "banded", "solve_ivp")
+
+
+@pytest.mark.parametrize(("tutorial", "explained"), [
+    ("afm-curve.md", {"records.md": "NL2SOL", "elastic-contact.md": "## Against nanite",
+                      "reading-a-fit.md": "## The noise and adequacy"}),
+    ("model-comparison.md", {"reading-a-fit.md": "AR(p)", "models.md": "## The paper's negative damping"}),
+])
+def test_a_tutorial_is_one_path_and_links_to_its_detail(tutorial, explained):
+    text = (DOCS / "tutorials" / tutorial).read_text()
+    words = len(text.split())
+    assert words < 1000, f"{tutorial}: {words} words; a tutorial is one path a newcomer follows"
+    assert text.count("```console") == 1, f"{tutorial}: one command block, the path"
+    found = [w for w in _DETAIL if w in text]
+    assert not found, f"{tutorial} explains what belongs on an explanation page: {found}"
+    for page, detail in explained.items():
+        assert f"](../explanation/{page}" in text, f"{tutorial} does not link to {page}"
+        assert detail in (DOCS / "explanation" / page).read_text(), (page, detail)
