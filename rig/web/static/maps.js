@@ -46,7 +46,7 @@ async function openCurve(row) {
   document.getElementById("curve-title").textContent = "fitting the curve again...";
   const c = await RIG.get(`/api/curve?table=${encodeURIComponent(current.table)}&row=${row}`);
   const where = c.x_um !== null && c.x_um !== undefined ? ` at (${RIG.fmt(c.x_um)}, ${RIG.fmt(c.y_um)}) um` : "";
-  document.getElementById("curve-title").textContent = `curve ${c.curve ?? row}${where}: ${c.file || ""}`;
+  document.getElementById("curve-title").textContent = `curve ${c.curve ?? row}${where}: ${(c.file || "").split("/").pop()}`;
   if (!c.ok || c.error) { document.getElementById("verdict").innerHTML = `<p class="bad">${RIG.esc(c.error)}</p>`; Plotly.purge("curve"); timing.curveMs = performance.now() - t0; return; }
   const adequate = c.adequate === true || c.adequate === "True";
   document.getElementById("verdict").innerHTML = `<p><b class="${adequate ? "ok" : "bad"}">${adequate ? "adequate" : "NOT adequate"}</b>` +
