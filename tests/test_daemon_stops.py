@@ -334,6 +334,8 @@ def test_a_start_after_an_estop_left_the_probe_in_contact_is_refused_until_retur
     assert f"{left['depth_mm']:.2f} mm into the specimen" in err and "where the estop of trial 'ramp'" in err
     assert "`rig return`" in err and "--from-contact" in err
     assert len(_logs(daemon.sock.parent)) == logs_before  # refused: no trial, no log
+    campaign = daemon.req({"cmd": "start", "specimen": "pig", "characterize": {"max_trials": 1}})
+    assert not campaign["ok"] and campaign["error"].startswith("not started: the probe is in contact, ")
     assert daemon.sim.rig.slider.position_mm == pytest.approx(left["position_mm"], abs=0.05)  # nothing moved
     # confirmed: it runs from there, says so, and ends where it started, still in contact
     assert main(["start", str(short), "--from-contact", *sock]) == 0

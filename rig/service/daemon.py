@@ -542,7 +542,11 @@ class Daemon:
                 raise RequestError('"protocol_text" must be the protocol file\'s contents')
             parse_protocol(text, _text(req, "protocol_path", "<protocol>"))  # refused here, not later
         _name(req, "operator", user)  # checked now: each trial takes it
-        in_contact = self._in_contact(self._read_position(), _flag(req, "from_contact"))
+        from_contact, in_contact = _flag(req, "from_contact"), []
+        if self.left_in is not None:  # where the probe is, read only when a trial left it in contact
+            with self.state_lock:
+                self._refuse_if_busy()  # a running trial's devices are not free to read
+            in_contact = self._in_contact(self._read_position(), from_contact)
         kw = {}
         for name in ("max_trials", "budget_min", "target_rse", "rest_s"):
             if opts.get(name) is None:
