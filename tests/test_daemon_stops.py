@@ -333,6 +333,8 @@ def test_a_start_after_an_estop_left_the_probe_in_contact_is_refused_until_retur
     assert "not started: the probe is in contact, " in err
     assert f"{left['depth_mm']:.2f} mm into the specimen" in err and "where the estop of trial 'ramp'" in err
     assert "`rig return`" in err and "--from-contact" in err
+    assert main(["status", *sock]) == 0
+    assert f"CONTACT   the probe is {left['depth_mm']:.2f} mm into the specimen" in capsys.readouterr().out
     assert len(_logs(daemon.sock.parent)) == logs_before  # refused: no trial, no log
     campaign = daemon.req({"cmd": "start", "specimen": "pig", "characterize": {"max_trials": 1}})
     assert not campaign["ok"] and campaign["error"].startswith("not started: the probe is in contact, ")

@@ -61,6 +61,11 @@ def format_status(reply: dict) -> str:
             force = "-" if snap.get("force_N") is None else f"{snap['force_N']:.3f} N (untared)"
             alarm = f"   ALARM 0x{snap['alarm_code']:02X}" if snap.get("alarm_code") else ""
             lines.append(f"position  {snap['position_mm']:.3f} mm   force {force}{alarm}")
+    left = reply.get("probe_in_contact")
+    if left:
+        lines.append(f"CONTACT   the probe is {left['depth_mm']:.2f} mm into the specimen (surface at "
+                     f"{left['surface_mm']:.3f} mm), left there by {left['by']}: `rig return` raises it, "
+                     "`rig start --from-contact` runs from there")
     last = reply.get("last")
     if last:
         lines.append(f"last      {last.get('outcome')}: '{last.get('protocol', '')}' "
