@@ -34,7 +34,8 @@ from rig.web.live import Hub
 from rig.web.maps import Maps
 
 STATIC = Path(__file__).resolve().parent / "static"
-PAGES = {"/": "console.html", "/history": "history.html", "/trial": "trial.html", "/maps": "maps.html"}
+PAGES = {"/": "console.html", "/history": "history.html", "/trial": "trial.html", "/compare": "compare.html",
+         "/maps": "maps.html"}
 STOP_TIMEOUT_S = 5.0
 
 
@@ -78,8 +79,12 @@ class Web:
             Route("/api/reset-alarm", self.api_reset_alarm, methods=["POST"]),
             Route("/api/trials", self.api_trials),
             Route("/api/trials.csv", self.api_trials_csv),
+            Route("/api/trials.xlsx", self.api_trials_xlsx),
             Route("/api/trial", self.api_trial),
+            Route("/api/compare", self.api_compare),
+            Route("/api/journal", self.api_journal),
             Route("/files/log", self.file_log),
+            Route("/files/csv", self.file_csv),
             Route("/api/tables", self.api_tables),
             Route("/api/map", self.api_map),
             Route("/api/curve", self.api_curve),
@@ -224,6 +229,28 @@ class Web:
         return Response(text, media_type="text/csv",
                         headers={"content-disposition": 'attachment; filename="trials.csv"'})
 
+    async def api_trials_xlsx(self, req: Request) -> Response:
+        try:
+            data = await asyncio.to_thread(self.history.xlsx_bytes)
+        except RigError as exc:
+            return PlainTextResponse(str(exc), 501)
+        return Response(data, media_type="application/vnd.openxmlformats-officedocument.spreadsheetml.sheet",
+                        headers={"content-disposition": 'attachment; filename="trials.xlsx"'})
+
+    async def api_compare(self, req: Request) -> Response:
+        try:
+            out = await asyncio.to_thread(self.history.compare, req.query_params.getlist("file"))
+        except RigError as exc:
+            return JSONResponse({"ok": False, "error": str(exc)}, 404)
+        return Response(json.dumps({"ok": True, **out}, default=str), media_type="application/json")
+
+    async def api_journal(self, req: Request) -> Response:
+        """The campaign's journal: the running one's (or the last one's) as the daemon names it."""
+        camp = self.hub.status.get("campaign") or {}
+        out = await asyncio.to_thread(console.journal, self.opts.logs, camp.get("journal"))
+        out["campaign"] = camp or None
+        return JSONResponse(out)
+
     async def api_trial(self, req: Request) -> Response:
         try:
             out = await asyncio.to_thread(self.history.trial, req.query_params.get("file", ""))
@@ -237,6 +264,14 @@ class Web:
         except RigError as exc:
             return PlainTextResponse(str(exc), 404)
         return FileResponse(path, media_type="application/octet-stream", filename=path.name)
+
+    async def file_csv(self, req: Request) -> Response:
+        try:
+            name, data = await asyncio.to_thread(self.history.samples_csv, req.query_params.get("file", ""))
+        except RigError as exc:
+            return PlainTextResponse(str(exc), 404)
+        return Response(data, media_type="text/csv",
+                        headers={"content-disposition": f'attachment; filename="{name}"'})
 
     # ------------------------------------------------------------------ maps
     async def api_tables(self, req: Request) -> Response:

@@ -93,3 +93,65 @@ def zero_state(config: RigConfig) -> dict:
     value = entry.get("zero_N")
     return {"zero_N": value if isinstance(value, int | float) and math.isfinite(value) else None,
             "source": f"`rig tare` at {entry.get('measured', '?')}", "age_s": age}
+
+
+JOURNAL_LINES = 200  # the newest journal events shown
+
+
+def _short(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, list | tuple):
+        return ", ".join(_short(x) for x in v[:6]) + (" ..." if len(v) > 6 else "")
+    return str(v)
+
+
+def journal_line(e: dict) -> str:
+    """One journal event in words, as the campaign wrote it."""
+    ev = e.get("event", "?")
+    if ev == "start":
+        return f"started: specimen {e.get('specimen')}, model {e.get('model')}"
+    if ev == "trial":
+        return f"trial {e.get('n')}: {e.get('protocol')} ({e.get('why', '')})"
+    if ev == "ran":
+        return f"trial {e.get('n')} ran: {e.get('outcome')}" + (f" - log {Path(str(e['log'])).name}"
+                                                               if e.get("log") else "")
+    if ev == "fit":
+        ok = "adequate" if e.get("adequate") else "not adequate"
+        return f"fitted {e.get('trials')} trials: {e.get('model')} ({ok})"
+    if ev == "model":
+        return (f"model: added {_short(e.get('added') or '-')}, removed {_short(e.get('removed') or '-')}"
+                + (f": {e.get('why')}" if e.get("why") else ""))
+    if ev == "decision":
+        why = e.get("why") or ""
+        return f"decided: {e.get('kind')}" + (f" - {_short(why)}" if why else "")
+    if ev == "end":
+        return f"ended: {e.get('status')} - {e.get('reason', '')}"
+    skip = {"t", "event", "yaml", "considered", "refused", "summary", "sizing"}
+    rest = "  ".join(f"{k}={_short(v)}" for k, v in e.items() if k not in skip and not isinstance(v, dict))
+    return f"{ev}: {rest}" if rest else ev
+
+
+def journal(folder: Path, path: str | None) -> dict:
+    """A campaign's journal (JSON lines in the log folder), its newest events in words."""
+    if not path:
+        return {"ok": False, "error": "no campaign journal yet"}
+    root = Path(folder).resolve()
+    p = Path(path)
+    p = (p if p.is_absolute() else root / p).resolve()
+    if root not in p.parents or p.suffix != ".jsonl":
+        return {"ok": False, "error": f"the journal {path} is not in the log folder {folder}"}
+    try:
+        text = p.read_text(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        return {"ok": False, "error": f"cannot read the journal {path}: {exc.strerror or exc}"}
+    events = []
+    for line in text.splitlines():
+        with contextlib.suppress(ValueError):
+            e = json.loads(line)
+            if isinstance(e, dict):
+                events.append(e)
+    lines = [{"t": e.get("t"), "event": e.get("event"), "text": journal_line(e)}
+             for e in events[-JOURNAL_LINES:]]
+    return {"ok": True, "journal": str(p.relative_to(root)), "events": len(events), "lines": lines,
+            "ended": any(e.get("event") == "end" for e in events)}

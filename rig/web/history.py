@@ -4,6 +4,10 @@ A row is read from the log's metadata (`rig logs`) and, once per file (kept whil
 unchanged), its samples: peak force, the stiffness estimate at the end of the last hold, the
 estimator's error (RMS over the contact samples) and the samples' count. A log still being
 written gets its metadata only. Paths given by the page are names inside the log folder.
+
+The table is exported as CSV and as an Excel workbook (openpyxl, the web extra's); a trial's
+samples as the CSV `rig replay --csv` writes; several trials as one plot's data (force against
+time and against indentation, labelled as `rig replay` labels them).
 """
 
 from __future__ import annotations
@@ -11,18 +15,26 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
+import re
+import tempfile
 import threading
 from pathlib import Path
 
 import numpy as np
 
 from rig.errors import RigError
-from rig.recording.logs import read_log
+from rig.recording.logs import export_csv, read_log
 from rig.recording.recovery import list_trials
 
 COLUMNS = ["start_time", "specimen", "protocol", "outcome", "peak_force_N", "stiffness_hold_end_N_per_m",
            "estimator_rms_error_N", "duration_s", "samples", "requested_by", "campaign", "file"]
 PLOT_POINTS = 4000  # a trial's plot is drawn from at most this many samples (every n-th)
+COMPARE_MAX = 12  # trials on one comparison plot
+HEADINGS = {"start_time": "started", "peak_force_N": "peak force (N)",
+            "stiffness_hold_end_N_per_m": "stiffness at the hold's end (N/m)",
+            "estimator_rms_error_N": "estimator error, RMS (N)", "duration_s": "duration (s)",
+            "requested_by": "requested by"}
 
 
 def _num(x) -> float | None:
@@ -83,6 +95,66 @@ class History:
             w.writerow({k: "" if r.get(k) is None else r.get(k) for k in COLUMNS})
         return buf.getvalue()
 
+    def xlsx_bytes(self) -> bytes:
+        """The table as an Excel workbook: numbers as numbers, the heading frozen and filtered."""
+        try:
+            from openpyxl import Workbook
+            from openpyxl.styles import Font
+        except ImportError:
+            raise RigError("Excel export needs openpyxl: python3 -m pip install '.[web]'") from None
+        wb = Workbook()
+        ws = wb.active
+        ws.title = "trials"
+        ws.append([HEADINGS.get(k, k) for k in COLUMNS])
+        for cell in ws[1]:
+            cell.font = Font(bold=True)
+        rows = self.rows()
+        for r in rows:
+            ws.append([r.get(k) for k in COLUMNS])
+        ws.freeze_panes = "A2"
+        ws.auto_filter.ref = ws.dimensions
+        for i, k in enumerate(COLUMNS):
+            width = max([len(HEADINGS.get(k, k))] + [len(str(r.get(k) or "")) for r in rows[:500]])
+            ws.column_dimensions[ws.cell(1, i + 1).column_letter].width = min(width + 2, 60)
+        buf = io.BytesIO()
+        wb.save(buf)
+        return buf.getvalue()
+
+    def samples_csv(self, rel: str) -> tuple[str, bytes]:
+        """One trial's samples as `rig replay LOG --csv OUT` writes them: (file name, CSV)."""
+        path = self.resolve(rel)
+        log = read_log(path)
+        fd, tmp = tempfile.mkstemp(suffix=".csv")
+        os.close(fd)
+        try:
+            export_csv(log, tmp)
+            return re.sub(r"[^A-Za-z0-9._-]", "_", path.stem) + ".csv", Path(tmp).read_bytes()
+        finally:
+            os.unlink(tmp)
+
+    def compare(self, rels: list[str]) -> dict:
+        """Several trials for one plot: force against time and against indentation (the position
+        from the surface, as `rig replay LOG LOG ...` draws them), labelled as it labels them."""
+        from rig.specs.frames import Frame
+        from rig.views.replay import log_labels
+
+        if not rels:
+            raise RigError("no trials to compare: select some in the history")
+        if len(rels) > COMPARE_MAX:
+            raise RigError(f"{len(rels)} trials: at most {COMPARE_MAX} on one plot")
+        logs = [read_log(self.resolve(r)) for r in rels]
+        out = []
+        for rel, log, label in zip(rels, logs, log_labels(logs), strict=True):
+            n = log.n
+            every = max(1, math.ceil(n / PLOT_POINTS))
+            s = log.samples
+            depth = log.position_mm(Frame.SURFACE) if n else np.zeros(0)
+            out.append({"file": rel, "label": label, "outcome": log.outcome, "samples": n, "every": every,
+                        "t_s": _col(s.get("t_s"), every), "force_N": _col(s.get("force_N"), every),
+                        "indentation_mm": _col(depth, every),
+                        "faults": [e.get("t_s") for e in log.events if e.get("kind") == "fault"]})
+        return {"trials": out}
+
     def trial(self, rel: str) -> dict:
         path = self.resolve(rel)
         log = read_log(path)
@@ -112,6 +184,12 @@ class History:
                 "position_cmd_mm": col("position_cmd_mm"), "stiffness_N_per_m": col("stiffness_N_per_m"),
                 "force_pred_N": col("force_pred_N"), "spans": spans, "events": events,
                 "limits": _limits(log)}
+
+
+def _col(a, every: int) -> list:
+    if a is None:
+        return []
+    return [None if not math.isfinite(v) else round(float(v), 6) for v in np.asarray(a)[::every]]
 
 
 def _limits(log) -> dict | None:

@@ -1,11 +1,14 @@
 """One poller of the daemon, fanned out to every viewer.
 
 A thread asks the daemon for its status (twice a second while idle) and, while a trial or a
-campaign runs, follows its `watch` stream (50 updates a second). Each message is encoded once
-and handed to every viewer's bounded queue on the server's event loop (the oldest dropped for a
-viewer that falls behind), so ten viewers cost the daemon what one does, and a slow viewer
-delays nobody. The running trial's points so far are kept, so a viewer who arrives late sees the
-whole trial. The thread never touches a device: it is a client of the daemon's socket.
+campaign runs, follows its `watch` stream (50 updates a second). The updates are handed on 25
+times a second, each message carrying the points since the last (the page draws 25 times a
+second: twice the messages would show nothing more and cost every viewer twice the wake-ups).
+Each message is encoded once and handed to every viewer's bounded queue on the server's event
+loop (the oldest dropped for a viewer that falls behind), so ten viewers cost the daemon what
+one does, and a slow viewer delays nobody. The running trial's points so far are kept, so a
+viewer who arrives late sees the whole trial. The thread never touches a device: it is a client
+of the daemon's socket.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from rig.service.client import request, stream
 
 IDLE_PERIOD_S = 0.5
 WATCH_RATE_HZ = 50.0
+PUSH_PERIOD_S = 0.04  # the viewers are sent the new points at most this often (a new step at once)
 QUEUE = 256  # messages a viewer may fall behind by before its oldest are dropped
 MAX_POINTS = 200_000  # the running trial's points kept for late viewers (over an hour at 50 Hz)
 
@@ -46,6 +50,9 @@ class Hub:
         self.steps: list[list] = []  # [t_s, step, kind] where each step began
         self.last_end: dict | None = None
         self.limits_by_log: dict[str, dict] = {}
+        self.campaign: dict | None = None  # the running campaign as the watch stream last said
+        self._unsent: list[list] = []  # points not yet sent to the viewers
+        self._pushed = 0.0  # when they were last sent (time.monotonic())
         self.messages = 0
 
     # ------------------------------------------------------------------ viewers
@@ -134,18 +141,29 @@ class Hub:
         if self.trial is None or self.trial.get("log") != log:
             self.trial = {**meta, "limits": self.limits_by_log.get(log) or self.limits_by_log.get(
                 meta.get("protocol", ""))}
-            self.points, self.steps = [], []
+            self.points, self.steps, self._unsent = [], [], []
             self._publish({"kind": "trial", "trial": self.trial})
+        camp = msg.get("campaign")
+        if camp is not None and camp != self.campaign:  # between a campaign's trials too (no snapshot)
+            self.campaign = camp
+            self._publish({"kind": "campaign", "campaign": camp})
         if not snap:
             return
         point = _point(snap)
         if self.points and point[0] <= self.points[-1][0] and point[4] == self.points[-1][4]:
             return  # the same tick again (the stream is faster than the loop, or it paused)
-        if not self.steps or self.steps[-1][1] != point[4]:
+        new_step = not self.steps or self.steps[-1][1] != point[4]
+        if new_step:
             self.steps.append([point[0], point[4], snap.get("step_kind", "")])
         if len(self.points) < MAX_POINTS:
             self.points.append(point)
-        self._publish({"kind": "live", "p": point, "state": snap.get("state"),
+        self._unsent.append(point)
+        now = time.monotonic()
+        if not (new_step or snap.get("fault") or now - self._pushed >= PUSH_PERIOD_S):
+            return
+        self._pushed = now
+        batch, self._unsent = self._unsent, []
+        self._publish({"kind": "live", "p": point, "ps": batch, "state": snap.get("state"),
                        "step_kind": snap.get("step_kind"), "step": snap.get("step"),
                        "steps_total": snap.get("steps_total"),
                        "time_left_s": snap.get("time_left_s"), "fault": snap.get("fault"),

@@ -151,7 +151,8 @@ class Maps:
         """One curve of the table, fitted again as the batch fitted it."""
         from rig.analysis.analyze import load_inputs
         from rig.analysis.fit import fit
-        from rig.models.catalogue import CONTACT_POINT, build_model
+        from rig.analysis.report import contact_curve
+        from rig.models.catalogue import build_model
         from rig.records import ReadOptions
 
         t0 = time.perf_counter()
@@ -189,26 +190,69 @@ class Maps:
         model = build_model(req.model, list(req.add), inputs.registry)
         res = fit(model, inputs.trials)
         t = res.trials[0]
-        x_c = 0.0
-        (p,) = CONTACT_POINT.params
-        name = res.model.key(p, 0)
-        if res.model.has(CONTACT_POINT.name) and name in res.values:
-            x_c = res.values[name]
+        c = contact_curve(res, 0)
         k_len, u_len = t.length_unit
         k_f, u_f = t.force_unit
-        depth = (t.motion.x_m - x_c) / 1e-6
-        every = max(1, math.ceil(len(depth) / CURVE_POINTS))
+        if c is None:  # no contact to measure from: against the travel
+            d = np.asarray(t.motion.x_m)
+            c = {"indentation_m": d, "separation_m": None, "force_N": t.force_N,
+                 "model_N": res.predictions[0], "residual_N": res.residuals[0],
+                 "branch": np.full(len(d), "approach"), "contact_travel_m": None}
+        shift = float(c["indentation_m"][0] - np.asarray(t.motion.x_m)[0])  # the analysed travel to indentation
+        every = max(1, math.ceil(len(c["indentation_m"]) / CURVE_POINTS))
 
-        def col(a, scale=1.0) -> list:
-            values = np.asarray(a)[::every]
+        def col(a, scale=1.0, step=every) -> list:
+            values = np.asarray(a, dtype=float)[::step]
             return [None if not math.isfinite(v) else round(float(v) / scale, 6) for v in values]
 
-        return {**base, "model": res.model.name, "segment": req.segment,
-                "indentation_um": col(depth), "force": col(t.force_N, k_f), "fit": col(res.predictions[0], k_f),
-                "residual": col(res.residuals[0], k_f), "force_unit": u_f, "length_unit": u_len,
-                "phase": [str(v) for v in np.asarray(t.phase)[::every]],
-                "contact_point_um": None if t.contact_m is None else (t.contact_m + x_c) / 1e-6,
-                "rmse_over_noise": _f(row.get("rmse_over_noise")), "adequate": row.get("adequate"),
-                "effect": row.get("effect") or "", "E_kPa": None if _f(row.get("E_Pa")) is None
-                else _f(row.get("E_Pa")) / 1e3, "length_scale": k_len,
-                "seconds": round(time.perf_counter() - t0, 3)}
+        out = {**base, "model": res.model.name, "segment": req.segment,
+               "indentation_um": col(c["indentation_m"], 1e-6), "force": col(c["force_N"], k_f),
+               "fit": col(c["model_N"], k_f), "residual": col(c["residual_N"], k_f),
+               "branch": [str(v) for v in np.asarray(c["branch"])[::every]],
+               "separation": c["separation_m"] is not None,
+               "force_unit": u_f, "length_unit": u_len,
+               "contact_point_um": None if c["contact_travel_m"] is None else c["contact_travel_m"] / 1e-6,
+               "rmse_over_noise": _f(row.get("rmse_over_noise")), "adequate": row.get("adequate"),
+               "effect": row.get("effect") or "", "E_kPa": None if _f(row.get("E_Pa")) is None
+               else _f(row.get("E_Pa")) / 1e3, "length_scale": k_len}
+        out.update(self._retract(records[0] if records else None, t, shift, col, k_f))
+        out["seconds"] = round(time.perf_counter() - t0, 3)
+        return out
+
+    @staticmethod
+    def _retract(rec, t, shift_m: float, col, k_f: float) -> dict:
+        """The record's retract (which an approach fit leaves out), on the fit's indentation axis:
+        the analysed approach is the raw approach turned and shifted (`prepare` flips the signs so
+        that loading is positive and counts the travel from contact), and that same turn and shift,
+        read off the approach's samples, carries the raw retract onto the axis (`shift_m` then
+        moves it from the analysed travel to the indentation past the fitted contact point)."""
+        from rig.analysis.data import approach_only
+
+        if rec is None:
+            return {"retract_note": "the retract is drawn only for a curve read on its own"}
+        try:
+            app = approach_only(rec, rec.name)
+        except RigError:
+            return {"retract_note": "the record has no approach to place its retract by"}
+        end = int(np.flatnonzero(rec.t_s == app.t_s[-1])[-1]) + 1
+        if end >= rec.n:
+            return {"retract_note": "the record has no retract"}
+        tp = np.asarray(t.motion.t_s, dtype=float) - float(app.t_s[0])
+        ta = np.asarray(app.t_s, dtype=float) - float(app.t_s[0])
+        inside = (tp >= 0) & (tp <= ta[-1])
+        turn = {}
+        for name, raw, analysed in (("x", app.position_m, t.motion.x_m), ("f", app.force_N, t.force_N)):
+            r = np.interp(tp[inside], ta, np.asarray(raw, dtype=float))
+            a = np.asarray(analysed, dtype=float)[inside]
+            ok = np.isfinite(r) & np.isfinite(a)
+            if ok.sum() < 10 or np.ptp(r[ok]) <= 0:
+                return {"retract_note": "the retract could not be put on the fit's axis"}
+            slope, icpt = np.polyfit(r[ok], a[ok], 1)
+            if abs(abs(slope) - 1.0) > 0.02:  # not a turn and a shift: said, not drawn wrong
+                return {"retract_note": "the retract could not be put on the fit's axis"}
+            turn[name] = (float(round(slope)), float(icpt))
+        (sx, bx), (sf, bf) = turn["x"], turn["f"]
+        x = sx * np.asarray(rec.position_m[end:], dtype=float) + bx + shift_m
+        f = sf * np.asarray(rec.force_N[end:], dtype=float) + bf
+        step = max(1, math.ceil(len(x) / CURVE_POINTS))
+        return {"retract_indentation_um": col(x, 1e-6, step), "retract_force": col(f, k_f, step)}

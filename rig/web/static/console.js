@@ -89,7 +89,13 @@ function draw() {
   live.drawTimes.push(performance.now());
   if (live.drawTimes.length > 400) live.drawTimes.splice(0, 200);
 }
-setInterval(draw, 40);
+// 25 draws a second; a draw that takes long (a loaded machine) spaces the next one out, so that the
+// page keeps at least half its time for the buttons (an ESTOP click is never queued behind draws)
+(function drawLoop() {
+  const t0 = performance.now();
+  draw();
+  setTimeout(drawLoop, Math.max(40, 2 * (performance.now() - t0)));
+})();
 
 function banner(text, cls) { const b = document.getElementById("banner"); b.textContent = text; b.className = "banner " + (cls || ""); }
 function kv(id, pairs) {
@@ -111,6 +117,7 @@ function showStatus(st) {
   } else if (snap.fault) pairs.push(["fault", snap.fault, "bad"]);
   pairs.push(...zeroPair());
   if (st.campaign) pairs.push(["campaign", `${st.campaign.specimen}: ${st.campaign.phase}, ${st.campaign.trials} trials`]);
+  followCampaign(st.campaign);
   liveDevices = "";
   kv("devices", pairs);
   if (st.state === "idle" && !document.getElementById("banner").dataset.ended) banner("idle: no trial running", "");
@@ -159,10 +166,14 @@ function connect() {
     else if (m.kind === "trial") newTrial(m.trial);
     else if (m.kind === "live") {
       if (!trialMeta) newTrial({});
-      take([m.p]);
-      const last = steps[steps.length - 1];
-      if (!last || last[1] !== m.p[4]) { steps.push([m.p[0], m.p[4], m.step_kind]); stepsDirty = true; }
+      const ps = m.ps || [m.p];  // the points since the last message (25 messages a second)
+      take(ps);
+      for (const p of ps) {
+        const last = steps[steps.length - 1];
+        if (!last || last[1] !== p[4]) { steps.push([p[0], p[4], p === m.p ? m.step_kind : ""]); stepsDirty = true; }
+      }
       showLive(m);
+      if (m.campaign) followCampaign(m.campaign);
     } else if (m.kind === "end") {
       const last = m.last || {};
       const outcome = last.outcome || "ended";
@@ -171,7 +182,8 @@ function connect() {
       live.lastOutcome = outcome;
       trialMeta = null;
       draw();
-    } else if (m.kind === "error") banner("daemon: " + m.error, "error");
+    } else if (m.kind === "campaign") followCampaign(m.campaign);
+    else if (m.kind === "error") banner("daemon: " + m.error, "error");
   };
   ws.onclose = () => { banner("connection to rig web lost; reconnecting...", "error"); setTimeout(connect, 1000); };
 }
@@ -207,5 +219,27 @@ async function doStart() {
 document.getElementById("btn-check").addEventListener("click", doCheck);
 document.getElementById("btn-start").addEventListener("click", doStart);
 document.getElementById("proto").addEventListener("change", () => { checked = null; document.getElementById("btn-start").disabled = true; document.getElementById("check").innerHTML = ""; });
+// a campaign's journal (rig start --characterize): its events in words, followed while it runs
+let campaign = null, journalAt = 0;
+async function loadJournal() {
+  journalAt = Date.now();
+  const j = await RIG.get("/api/journal");
+  const panel = document.getElementById("campaign-panel");
+  if (!j.campaign) { panel.style.display = "none"; return; }
+  panel.style.display = "";
+  const c = j.campaign;
+  document.getElementById("campaign-head").textContent = `specimen ${c.specimen}, started ${c.started} by ${c.user}: ${c.phase}` +
+    (j.ok ? ` - ${j.journal}` : ` (${j.error})`);
+  const ol = document.getElementById("journal");
+  const atEnd = ol.scrollTop + ol.clientHeight >= ol.scrollHeight - 4;
+  ol.innerHTML = (j.lines || []).map(l => `<li title="${RIG.esc(new Date(l.t * 1000).toLocaleTimeString())}">${RIG.esc(l.text)}</li>`).join("");
+  if (atEnd) ol.scrollTop = ol.scrollHeight;
+  window.rigJournal = j;
+}
+function followCampaign(c) {  // from the status or the live stream: again at most once a second while it runs
+  const key = c ? `${c.specimen}|${c.phase}|${c.trials}|${c.status}` : "";
+  const running = c && c.status === "running";
+  if (key !== campaign || (running && Date.now() - journalAt > 1000)) { campaign = key; loadJournal().catch(() => {}); }
+}
 async function loadState() { try { const s = await RIG.get("/api/state"); zero = s.zero; cfgLimits = s.limits; } catch (e) { banner(String(e), "error"); } }
 (async () => { await loadState(); resetPlots(); await loadProtocols(); doCheck(); connect(); setInterval(loadState, 5000); })();

@@ -13,6 +13,7 @@ const COLOURS = {ramp: "rgba(37,99,235,0.07)", hold: "rgba(22,163,74,0.08)", ret
     ["k at hold end", `${RIG.fmt(f.stiffness_hold_end_N_per_m)} N/m`], ["estimator error", `${RIG.fmt(f.estimator_rms_error_N)} N rms`],
     ["notes", tr.notes], ["file", d.file]].map(([k, v]) => `<dt>${k}</dt><dd>${RIG.esc(v ?? "-")}</dd>`).join("");
   document.getElementById("download").href = "/files/log?file=" + encodeURIComponent(d.file);
+  document.getElementById("download-csv").href = "/files/csv?file=" + encodeURIComponent(d.file);
   const shapes = d.spans.map(s => ({type: "rect", xref: "x", yref: "paper", x0: s[0], x1: s[1], y0: 0, y1: 1, line: {width: 0},
     fillcolor: COLOURS[s[2]] || "rgba(0,0,0,0.04)", layer: "below"}));
   const lim = d.limits;
