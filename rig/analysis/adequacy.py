@@ -54,8 +54,9 @@ class Limits:
 
 
 def simulate(noise: Noise, n: int, draws: int, rng: Draws | np.random.Generator) -> np.ndarray:
-    """`draws` stationary series of `n` samples of the noise before quantisation (its AR
-    spectrum, by spectral synthesis on a period long enough that the wrap does not matter)."""
+    """`draws` series of `n` samples of the noise before quantisation (its AR spectrum, by spectral
+    synthesis on a period long enough that the wrap does not matter), with the walk the rest
+    showed (`Noise.walk_N2`), if any."""
     span = int(min(max(4 * noise.scale_samples, 64), 1 << 16))
     m = 1 << int(np.ceil(np.log2(n + span)))
     key = (rng.position, draws, m, tuple(noise.ar)) if isinstance(rng, Draws) else None
@@ -73,7 +74,13 @@ def simulate(noise: Noise, n: int, draws: int, rng: Draws | np.random.Generator)
                 _SERIES.pop(next(iter(_SERIES)))
             _SERIES[key] = got
     x, root = got
-    return x[:, :n] * (noise.gauss_std_N / root)
+    x = x[:, :n] * (noise.gauss_std_N / root)
+    if noise.walk_N2 > 0.0:
+        # the walk the rest showed, from the record's start (its own draws: the same for the same
+        # record, apart from the stream the spectrum's come from)
+        steps = np.random.default_rng(n).standard_normal((draws, n))
+        x = x + np.cumsum(steps, axis=1) * math.sqrt(noise.walk_N2)
+    return x
 
 
 _SPECTRA: dict[tuple[int, int, int], np.ndarray] = {}

@@ -159,6 +159,8 @@ def result_json(res: FitResult, paths: list[str]) -> dict:
                 "noise_N": res.noise_N, "noise_source": res.noise_source, "bic": res.bic,
                 "effective_samples": res.bic_samples, "bic_definition": criterion.DEFINITION,
                 "residual_effective_samples": res.n_eff,
+                # the +/- ("stderr") are statistical: the noise's, given the model, this noise model's
+                "stderr_noise_model": res.error_noise,
                 "rmse_over_noise": res.overall.rmse_N / res.noise_N if res.noise_N > 0 else None,
                 "residual_correlation_samples": res.white_L, "noise_correlation_samples": res.noise_L,
                 "seconds": res.seconds},

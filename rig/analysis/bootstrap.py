@@ -146,4 +146,12 @@ def format_bootstrap(b: Bootstrap, res: FitResult) -> str:
                      f"{ratio:>11.2f}{100 * p.coverage:>9.0f}%")
     if b.failed:
         lines.append(f"  {len(b.failed)} draw(s) could not be analysed: {b.failed[0]}")
+    noise = res.noise.describe() if res.noise is not None else "unmeasured"
+    lines.append(f"  the draws' noise: {noise}")
+    if not res.adequate:
+        # redrawn from the fitted model, every draw is a record the model fits: what the model
+        # misses is in none of them, so "held" cannot speak for this record's own errors
+        lines.append("  the model is NOT adequate here: the draws come from it, so they check the statistical "
+                     "errors as if it were right; what it misses (the systematic error, sys) is in no draw, "
+                     "and this coverage cannot be checked on this record")
     return "\n".join(lines)

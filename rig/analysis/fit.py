@@ -95,6 +95,7 @@ class FitResult:
     # per parameter, the share of its variance that comes from the records' tared zeros
     # (`_zero_variances`): what no residual shows, and a profile's cost cannot see
     zero_variance: dict[str, float] = field(default_factory=dict)
+    error_noise: str = ""  # the noise model the standard errors were given (rig.analysis.uncertainty)
 
     @property
     def correlation(self) -> np.ndarray | None:
@@ -201,6 +202,9 @@ class FitResult:
                  f"std {self.f(self.overall.std_N)}; noise {self.f(self.noise_N)} ({self.noise_source}); "
                  f"residual correlation {self.white_L:.1f} samples (noise {self.noise_L:.1f}); "
                  f"{self.verdict()}",
+                 f"errors     +/- below: statistical, the noise's given the model (its noise: "
+                 f"{self.error_noise or 'white'}); N_eff {self.bic_samples:.4g} of {self.overall.n} samples "
+                 "for the BIC and the profile",
                  "parameters (SI)"]
         for p in self.model.params:
             err = self.stderr.get(p.name)
@@ -563,7 +567,8 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     doubts: list[str] = []
     blocks, quiet, still, tared = noise_blocks(trials)
     zeros = _zero_variances(tared, noise, scales)
-    cov = _covariance(best, to_si, blocks, doubts, quiet, still, zeros)
+    used: list[str] = []
+    cov = _covariance(best, to_si, blocks, doubts, quiet, still, zeros, used)
     zero_variance = _zero_share(best.jac, to_si, blocks, zeros, model.param_names)
     stderr = _stderr(cov, model.param_names)
     bound = ps.at_bound(z, lo, hi, AT_BOUND)
@@ -612,7 +617,15 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     return FitResult(model, trials, values, stderr, predictions, residuals, overall, phases, noise.std_N,
                      noise.source, bic, warnings, time.perf_counter() - t0, nfev, per_trial, white,
                      noise.scale_samples, scales, dict(zip(model.param_names, map(float, z), strict=True)),
-                     cov, n_eff, noise, counted, zero_variance)
+                     cov, n_eff, noise, counted, zero_variance, _one_phrase(used))
+
+
+def _one_phrase(used: list[str]) -> str:
+    """The noise models the standard errors were given, each once, with the blocks that had it
+    when the blocks differ."""
+    if len(set(used)) <= 1:
+        return used[0] if used else ""
+    return "; ".join(f"block {i + 1}: {u}" for i, u in enumerate(used))
 
 
 def noise_blocks(trials: list[TrialData]) -> tuple[list[int], list[int], list[bool], list[int]]:
@@ -687,13 +700,13 @@ def _zero_share(J: np.ndarray, to_si: np.ndarray, lengths: list[int], zeros: lis
 
 def _covariance(sol, to_si: np.ndarray, lengths: list[int], doubts: list[str] | None = None,
                 quiet: list[int] | None = None, still: list[bool] | None = None,
-                zeros: list[float] | None = None) -> np.ndarray | None:
+                zeros: list[float] | None = None, used: list[str] | None = None) -> np.ndarray | None:
     """Covariance of the parameters in SI: the correlated-residual sandwich
     (`rig.analysis.uncertainty`) in the fit variables, with each block's zero error (`zeros`, a
     variance), carried to SI through `to_si` = d(SI)/dz; why it may be doubtful appended to
     `doubts`."""
     try:
-        cov = hac_covariance(sol.jac, sol.fun, lengths, doubts, quiet, still, zeros)
+        cov = hac_covariance(sol.jac, sol.fun, lengths, doubts, quiet, still, zeros, used)
     except (np.linalg.LinAlgError, ValueError):
         return None
     # a direction the data do not determine (infinite variance) leaves every SI parameter

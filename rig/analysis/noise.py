@@ -58,6 +58,9 @@ class Noise:
     samples: int = 0  # behind the estimate
     spread: float = 0.0  # standard deviation of ln(std_N) from those samples
     note: str = ""  # the other estimate, when it disagrees
+    # a random walk under the noise at rest (its increment variance per sample, N^2; 0: none that
+    # the rest shows): a drift, or a noise so slow that over the record it wanders as one
+    walk_N2: float = 0.0
 
     def describe(self) -> str:
         parts = [self.source]
@@ -65,6 +68,8 @@ class Noise:
             parts.append(f"AR({len(self.ar)}), correlated over {self.scale_samples:.3g} samples")
         if self.quantum_N:
             parts.append(f"quantised in steps of {self.quantum_N:.3g} N")
+        if self.walk_N2:
+            parts.append(f"a drift wandering {math.sqrt(self.walk_N2 * max(self.samples, 1)):.3g} N over them")
         if self.samples:
             parts.append(f"{self.samples} samples, +/- {100 * self.spread:.2g} %")
         return "; ".join(parts)
@@ -363,8 +368,10 @@ def _measure_baseline(b: np.ndarray) -> Noise:
     phi = ar_fit(autocovariance(detr, min(MAX_ORDER, n // 4))[0], n)
     ar = tuple(float(c) for c in phi)
     spread = math.sqrt(variance_scale(ar) / (2.0 * n))
+    from rig.analysis.uncertainty import walk_at_rest  # it measures its own noise models from this one
+
     return Noise(std, integral_scale_ar(ar), AT_REST, ar, gauss, q, origin,
-                 float(np.mean(b)), n, spread)
+                 float(np.mean(b)), n, spread, walk_N2=walk_at_rest(b, ar) if not q else 0.0)
 
 
 def from_residual(residuals: list[np.ndarray]) -> Noise:

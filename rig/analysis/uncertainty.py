@@ -429,7 +429,73 @@ def _quiet_too_slow(rest: _AtRest, phi: np.ndarray, s2: float) -> bool:
     return 0.0 < c < 1.0 and 2.0 * band * (c - 1.0 - math.log(c)) > QUIET_LR
 
 
-def _where_it_is(J: np.ndarray, r: np.ndarray, rest: _AtRest, rng: _LazyRandom) -> np.ndarray:
+def walk_at_rest(b: np.ndarray, ar: tuple[float, ...] | np.ndarray = ()) -> float:
+    """The increment variance of a random walk under a stretch at rest `b` beyond its AR(`ar`)
+    noise (its straight line out, whitened by the AR, the walk found by `_drift` at the lowest
+    frequencies and recoloured), or 0 when the stretch shows none.
+
+    The adequacy test simulates the noise it measured at rest over the whole record: without the
+    walk, a perfect model under a slow drift, or under an AR(1) at 0.99 that wanders over the record
+    as a walk does, left a residual "correlated beyond the noise's own" and was called NOT adequate
+    (a walk 3x the noise over the record: 82 % of seeds). Beyond the AR, not beyond white noise:
+    a low-pass sensor's noise is not a walk, and read as one it hid every misfit."""
+    m = len(b)
+    if m < MIN_SAMPLES:
+        return 0.0
+    y = np.asarray(b, dtype=float)
+    u = np.linspace(-1.0, 1.0, m)
+    y = y - np.polyval(np.polyfit(u, y, 1), u)
+    phi = np.asarray(ar, dtype=float)
+    # white noise plus a walk against the AR, by the BIC of their restricted likelihoods as the
+    # standard errors choose (`hac_covariance`): a walk that dominates the stretch is followed by an
+    # AR near a unit root, which leaves `_drift` nothing to find
+    Q = _basis(np.column_stack([np.ones(m), u]))
+    ll_lv, _, s_eta = _level(y, Q)
+    if s_eta > 0.0 and ll_lv - _ar_reml(y, Q, phi) > 0.5 * (1 - len(phi)) * math.log(m):
+        return float(s_eta)
+    gain = 1.0 / (1.0 - float(phi.sum())) ** 2 if len(phi) else 1.0
+    return _drift(_whiten(y, phi), 3) * gain
+
+
+SHAPE_FROM = 8  # the walk's shape is judged on its components from this one up (the lowest hold a misfit)
+
+
+def _shape_refutes(basis: tuple[np.ndarray, np.ndarray], k: int, s_eta: float) -> bool:
+    """Whether the residual's own spectrum rules out the walk it was read as: a walk's power falls
+    as 1 / frequency^2 over every frequency where it stands above the white noise, where a smooth
+    misfit (a model that misses a shape) holds its power in the lowest few components and little
+    beyond. Over the components from SHAPE_FROM up, the walk held at `s_eta` (the white variance at
+    its best) against their own best white plus walk, at QUIET_LR.
+
+    Without it a misfit with a short stretch at rest (100 samples before contact) was read as a
+    walk on every seed: the errors of a Hertz fit 40-300x the estimates' scatter."""
+    P, mu = basis
+    P, mu = P[SHAPE_FROM:], mu[SHAPE_FROM:]
+    m = len(mu)
+    if m < MIN_SAMPLES:
+        return False
+    white = np.exp(np.linspace(-12.0, 12.0, 97))[:, None]
+    scale = float(np.median(P[:, 0])) or 1.0  # the residual's power per component, roughly
+    rss, logdet = _walk_rss(P, scale * white + s_eta * mu, k)
+    held = float(np.max(-0.5 * (logdet + rss)))
+    etas = s_eta * np.exp(np.linspace(-30.0, 0.0, 61))
+    grid = (scale * white[:, None, :] + etas[None, :, None] * mu[None, None, :]).reshape(-1, m)
+    rss, logdet = _walk_rss(P, grid, k)
+    best = float(np.max(-0.5 * (logdet + rss)))
+    return 2.0 * (best - held) > QUIET_LR
+
+
+def _short_lag_meat(J: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """J^T Sigma J for the noise of the residual's short lags (`rig.analysis.noise.from_residual`)."""
+    from rig.analysis.noise import from_residual
+
+    there = from_residual([r])
+    phi = np.asarray(there.ar, dtype=float)
+    return _spectral_meat(J, phi, there.std_N ** 2 / _unit_variance(phi))
+
+
+def _where_it_is(J: np.ndarray, r: np.ndarray, rest: _AtRest, rng: _LazyRandom,
+                 louder: list[float] | None = None) -> np.ndarray:
     """J^T Sigma J for a noise measured where it is: the stretch at rest's own AR on its rows, and on
     the rows past it the noise of the residual's short lags there (its structure function, which a
     smooth misfit barely reaches: `rig.analysis.noise.from_residual`), never quieter than at rest.
@@ -454,6 +520,8 @@ def _where_it_is(J: np.ndarray, r: np.ndarray, rest: _AtRest, rng: _LazyRandom) 
     phi = np.asarray(there.ar, dtype=float)
     var_rest = s2_rest * _unit_variance(at_rest)
     var = max(there.std_N ** 2, var_rest)
+    if louder is not None:
+        louder.append(math.sqrt(var / var_rest) if var_rest > 0 else 1.0)
     return meat + _spectral_meat(J[q:], phi, var / _unit_variance(phi))
 
 
@@ -494,7 +562,8 @@ def _basis(J: np.ndarray) -> np.ndarray:
 
 def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
                    notes: list[str] | None = None, quiet: list[int] | None = None,
-                   stationary: list[bool] | None = None, zeros: list[float] | None = None) -> np.ndarray:
+                   stationary: list[bool] | None = None, zeros: list[float] | None = None,
+                   used: list[str] | None = None) -> np.ndarray:
     """Covariance of least-squares parameters (in the units of J's columns) from the
     Jacobian `J` and the residual `r` of trials of `lengths` samples stacked in that order,
     each starting with `quiet` samples at rest (the approach before contact), if known.
@@ -503,13 +572,15 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
     `zeros`: per block, the variance of an error constant over the whole block that the residual
     cannot show (a tare's: the record's zero), in the residual's units squared; its score is that
     constant times the block's summed Jacobian.
-    Reasons to doubt it, if any, are appended to `notes` as sentences."""
+    Reasons to doubt it, if any, are appended to `notes` as sentences; the noise model each block
+    was given, to `used` (one phrase a block)."""
     n, p = J.shape
     g = J * r[:, None]
     rng = _LazyRandom()  # the same answer for the same fit
     meat = np.zeros((p, p))
     level_meat = np.zeros((p, p))
     bounded, clipped, drifting, misfit = [], [], [], []
+    louder: list[float] = []  # per block in `misfit` given the noise where it is: past the rest over at rest
     start = 0
     for k, m in enumerate(lengths):
         sl = slice(start, start + m)
@@ -517,6 +588,7 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
         gk, rk = g[sl], r[sl]
         if m < MIN_SAMPLES or not np.any(rk):
             meat += gk.T @ gk
+            _say(used, "white (too short to model)")
             continue
         # the trial's own model directions out of its residual: with several trials the joint fit
         # leaves in each the other trials' noise along them, smooth, which would read as a drift
@@ -526,25 +598,38 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
         # the noise model: the AR(p), or white noise plus a walk, whichever the BIC of the
         # restricted likelihood (of the residual, the fitted directions out) prefers
         still = bool(stationary and stationary[k])
-        ll_lv, s_eps, s_eta = _level(rk, Qk) if m > 2 * Qk.shape[1] + 2 and not still else (-math.inf, 0.0, 0.0)
+        basis = _walk_basis(rk, Qk) if m > 2 * Qk.shape[1] + 2 and not still else None
+        ll_lv, s_eps, s_eta = _level(rk, Qk, basis) if basis is not None else (-math.inf, 0.0, 0.0)
         q = quiet[k] if quiet else 0
         rest = _AtRest(r[sl][:q], J[sl][:q]) if q else None
-        if s_eta > 0.0 and ll_lv - _ar_reml(rk, Qk, phi) > 0.5 * (1 - len(phi)) * math.log(m) \
-                and not _quiet_refutes(rest, s_eta):
+        walks = s_eta > 0.0 and ll_lv - _ar_reml(rk, Qk, phi) > 0.5 * (1 - len(phi)) * math.log(m)
+        # whichever model won, a slow part that is not walk-shaped is a misfit: an AR near a unit
+        # root absorbs it as readily as a walk does
+        shaped = s_eta > 0.0 and _shape_refutes(basis, Qk.shape[1], s_eta)
+        if walks and not shaped and not _quiet_refutes(rest, s_eta):
             # Sigma = s_eps I + s_eta K, K = C C^T: the parameters see
             # sum_t J_t W_t = sum_s (sum_{t>=s} J_t) dW_s
             Jk = J[sl]
             C = np.cumsum(Jk[::-1], axis=0)[::-1]
             level_meat += s_eps * (Jk.T @ Jk) + s_eta * (C.T @ C)
             drifting.append(k)
+            _say(used, "white noise plus a random walk, from the residual")
+            continue
+        if shaped and rest is None:
+            # a smooth misfit, not a walk, and no stretch at rest: the noise of the residual's short lags
+            level_meat += _short_lag_meat(J[sl], r[sl])
+            misfit.append(k)
+            _say(used, "the residual's short lags (its slow part a misfit: not walk-shaped)")
             continue
         if rest is not None:
             s2 = float(np.mean(_whiten(rk, phi) ** 2))
-            if _quiet_too_slow(rest, phi, s2):
+            if shaped or _quiet_too_slow(rest, phi, s2):
                 # the residual's slow part is not noise: the errors are those of the noise where it is,
                 # at rest as the stretch at rest shows it, past it as the residual's short lags do
-                level_meat += _where_it_is(J[sl], r[sl], rest, rng)
+                level_meat += _where_it_is(J[sl], r[sl], rest, rng, louder)
                 misfit.append(k)
+                _say(used, f"the noise where it is: at rest over {rest.m} samples, past them the residual's "
+                           "short lags (its slow part a misfit)")
                 continue
         e = _whiten(gk, phi)
         M, lim = bandwidth(e)
@@ -561,6 +646,7 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
             bounded.append(k)
         if lim:
             clipped.append(k)
+        _say(used, f"AR({len(phi)}) of the residual" + (" with a drift" if k in drifting else ""))
     # the residual is smaller than the noise by the p directions the fit took out of it
     meat *= n / max(n - p, 1)
     if zeros:
@@ -569,8 +655,13 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
     bread = np.linalg.pinv(J.T @ J)
     cov = _undetermined(0.5 * (bread @ meat @ bread + (bread @ meat @ bread).T), J)
     if notes is not None:
-        notes.extend(_doubts(cov, J, r, lengths, bounded, clipped, drifting, misfit))
+        notes.extend(_doubts(cov, J, r, lengths, bounded, clipped, drifting, misfit, louder))
     return cov
+
+
+def _say(used: list[str] | None, what: str) -> None:
+    if used is not None:
+        used.append(what)
 
 
 def zero_meat(J: np.ndarray, lengths: list[int], zeros: list[float]) -> np.ndarray:
@@ -581,7 +672,8 @@ def zero_meat(J: np.ndarray, lengths: list[int], zeros: list[float]) -> np.ndarr
 
 
 def _doubts(cov: np.ndarray, J: np.ndarray, r: np.ndarray, lengths: list[int], bounded: list[int],
-            clipped: list[int], drifting: list[int], misfit: list[int]) -> list[str]:
+            clipped: list[int], drifting: list[int], misfit: list[int],
+            louder: list[float] | None = None) -> list[str]:
     n, p = J.shape
     which = lambda ks: "" if len(lengths) == 1 else " of trial" + ("s " if len(ks) > 1 else " ") + \
         ", ".join(str(k + 1) for k in ks)  # noqa: E731
@@ -594,9 +686,12 @@ def _doubts(cov: np.ndarray, J: np.ndarray, r: np.ndarray, lengths: list[int], b
         out.append(f"the sandwich's bandwidth{which(clipped)} reached its limit (what the prewhitening left "
                    "is still strongly correlated): the standard errors may be too small")
     if misfit:
+        loud = max(louder or [1.0])
+        past = (f"; past the rest the residual's short lags read {loud:.2g}x the noise at rest (a sensor "
+                "noisier in contact), and the errors use that there") if loud > 1.2 else ""
         out.append(f"the residual{which(misfit)} is slower than the noise at rest before contact allows (a "
                    "misfit, not noise): the standard errors are the measured noise's, as if the model were "
-                   "right, and do not include the misfit")
+                   f"right, and do not include the misfit{past}")
     if drifting:
         out.append(f"a random-walk drift under the residual{which(drifting)} was included in the standard "
                    "errors; how far a drift wanders is poorly known from one record, so they are approximate")
