@@ -325,6 +325,8 @@ def test_the_console_in_a_browser_runs_the_demo_and_estops_it_within_100_ms(tmp_
                 time.sleep(2.0)
                 draws1 = driver.execute_script("return [window.rigLive.draws, performance.now()]")
                 figures["updates_per_s"] = (draws1[0] - draws0[0]) / ((draws1[1] - draws0[1]) / 1000)
+                took = sorted(driver.execute_script("return window.rigLive.drawMs"))
+                figures["draw_ms_p50"] = took[len(took) // 2] if took else 0.0
                 delays = driver.execute_script("return window.rigLive.delays.slice(-100)")
                 figures["viewer_delay_p95_ms"] = sorted(delays)[int(0.95 * (len(delays) - 1))]
                 _wait(lambda: driver.execute_script(  # in the specimen: a force worth seeing
