@@ -97,9 +97,11 @@ def run(kind: str, arg: float, misfit: float, pre: int, seeds: int) -> dict:
     stat = np.array([r["stat"] for r in rows])
     sd = float(np.std(E))
     return {"case": f"{kind} {arg:g}, misfit {misfit:g}, {pre} before contact", "seeds": seeds,
-            "held": np.mean([r["held"] for r in rows], axis=0), "stat_held": np.mean([r["stat_held"] for r in rows]),
+            "held": np.mean([r["held"] for r in rows], axis=0),
+            "stat_held": np.mean([r["stat_held"] for r in rows]),
             "contact_held": np.mean([r["contact_held"] for r in rows]),
-            "stat_over_scatter": (float(np.min(stat)) / sd, float(np.median(stat)) / sd, float(np.max(stat)) / sd),
+            "stat_over_scatter": (float(np.min(stat)) / sd, float(np.median(stat)) / sd,
+                                  float(np.max(stat)) / sd),
             "sys_zero": float(np.mean([r["sys"] == 0 for r in rows])),
             "adequate": float(np.mean([r["adequate"] for r in rows]))}
 

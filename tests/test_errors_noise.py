@@ -1,0 +1,92 @@
+"""The noise the errors rest on, where it is and as it is: a misfit is not read as a noise, a
+louder noise in contact is not read as a misfit, a drift the rest shows is not called a misfit,
+and nothing jumps at a sample count. Synthetic Hertz curves of known truth through the whole
+pipeline (tests/bench/errors_harness.py; its 200-seed figures are in the closing benchmark).
+Six to eight seeds a case here: each assertion is one the code before failed on most seeds."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rig.analysis.session import AnalyzeRequest, analyze
+from tests.bench.errors_harness import curve, hertz, noise, one_seed, write
+from tests.conftest import per_seed
+
+
+def seeds(kind: str, arg: float, misfit: float, pre: int, n: int) -> list[dict]:
+    with tempfile.TemporaryDirectory() as tmp:
+        return per_seed(one_seed, range(n), kind, arg, misfit, pre, tmp)
+
+
+@pytest.mark.parametrize("pre", [100, 1300])
+def test_a_smooth_misfit_is_not_read_as_a_noise(pre):
+    """Hertz times (1 + 0.05 d/d_max), white noise: before, with 100 samples before contact every
+    seed read the misfit as a walk and its statistical error was 44-289x the estimates' scatter;
+    with 1300 the two regimes were 10-2000x apart. Now one regime, the noise's, and the interval
+    (with the systematic error) holds each of the noiseless curve's three fits."""
+    rows = seeds("white", 0.0, 0.05, pre, 6)
+    E = np.array([r["E"] for r in rows])
+    stat = np.array([r["stat"] for r in rows])
+    # the scatter of six estimates is itself uncertain (about +/-30 %): the noise-only error against it
+    assert np.all(stat < 2.5 * np.std(E)) and stat.max() < 3 * stat.min(), (stat, np.std(E))
+    # the specification's 80 % of seeds for each of the three (200 seeds in the benchmark)
+    assert all(sum(h) >= 5 for h in zip(*[r["held"] for r in rows], strict=True)), [r["held"] for r in rows]
+
+
+@pytest.mark.parametrize("kind,arg", [("loud-white", 0.0), ("loud-ar1", 0.95)])
+def test_a_noise_louder_in_contact_is_counted_where_it_is(kind, arg):
+    """Exact Hertz, the noise twice as loud in contact (white; and white at rest, an AR(1) at 0.95
+    in contact): read as a misfit, the errors were the quiet rest's, 0.55x and 0.08x the estimates'
+    scatter. Now they are the noise's where it is."""
+    rows = seeds(kind, arg, 0.0, 1300, 8)
+    E = np.array([r["E"] for r in rows])
+    ratio = np.median([r["stat"] for r in rows]) / np.std(E)
+    assert 0.5 < ratio < 1.6, ratio
+
+
+def test_the_louder_noise_is_said():
+    t, pos, f, loud = curve(1300, 0.0)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = write(Path(tmp) / "loud.csv", t, pos, f + noise("loud-white", 0.0, len(t), 1, loud))
+        out = analyze(AnalyzeRequest([str(path)], model="hertz", indenter="paraboloid:R=5um"))
+    said = " ".join(out.json["warnings"])
+    assert "noisier in contact" in said and "the errors use that there" in said, said
+    assert "errors     +/- below: statistical, the noise's given the model" in out.text
+    assert out.json["fit"]["stderr_noise_model"].startswith("the noise where it is")
+
+
+@pytest.mark.parametrize("kind,arg", [("ar1", 0.99), ("walk", 10.0)])
+def test_a_perfect_model_under_a_slow_noise_is_adequate(kind, arg):
+    """Before: NOT adequate on 15 % of seeds under an AR(1) at 0.99 and on 70 % under a walk of ten
+    times the noise over the record (the walk the rest shows was not in the simulated noise)."""
+    rows = seeds(kind, arg, 0.0, 1300, 8)
+    assert sum(r["adequate"] for r in rows) >= 7, [r["verdict"] for r in rows]
+
+
+def test_no_cliff_at_two_hundred_samples_before_contact():
+    """The oocyte record with 201 samples before contact had its noise from them; with 199, from
+    the residual (0.068 against 1.42 nN, and standard errors 880x apart). A misfitting curve with
+    190 and 210 samples before contact now gets its noise at rest both times, and errors alike."""
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for pre in (190, 210):
+            t, pos, f, _ = curve(pre, 0.2)
+            y = f + noise("white", 0.0, len(t), 3, None)
+            res = hertz(write(Path(tmp) / f"c{pre}.csv", t, pos, y))
+            out[pre] = (res.noise_source, res.stderr["E_Pa"], res.noise_N)
+    assert out[190][0] == out[210][0] == "the force at rest before contact", out
+    assert 0.5 < out[190][1] / out[210][1] < 2.0 and 0.8 < out[190][2] / out[210][2] < 1.25, out
+
+
+def test_the_bootstrap_says_when_its_coverage_cannot_be_checked():
+    t, pos, f, _ = curve(1300, 0.2)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = write(Path(tmp) / "m.csv", t, pos, f + noise("white", 0.0, len(t), 2, None))
+        out = analyze(AnalyzeRequest([str(path)], model="hertz", indenter="paraboloid:R=5um", bootstrap=3))
+    assert not out.json["adequate"]
+    assert "this coverage cannot be checked on this record" in out.text
+    assert "the draws' noise: the force at rest before contact" in out.text
