@@ -99,6 +99,7 @@ async function openCurve(row) {
   await painted();
   timing.curveMs = performance.now() - t0;
   (timing.curves = timing.curves || []).push(timing.curveMs);
+  (timing.server = timing.server || []).push(Math.round(1000 * (c.seconds || 0)));  // of which the server's
 }
 (async () => {
   const r = await RIG.get("/api/tables");
