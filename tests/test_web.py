@@ -186,6 +186,10 @@ def test_history_exports_excel_and_a_trials_csv_and_compares_trials(web):
     peak = table[0].index("peak force (N)")
     assert all(isinstance(r[peak], float) for r in table[1:]), table
     assert sorted(r[1] for r in table[1:]) == ["a", "b"]
+    history = web.web.history
+    history.rows = lambda: [{"specimen": '=HYPERLINK("http://evil.example")', "peak_force_N": 1.5}]
+    ws = openpyxl.load_workbook(io.BytesIO(history.xlsx_bytes())).active
+    assert ws["B2"].data_type == "s" and ws["B2"].value.startswith("=HYPERLINK") and ws["E2"].value == 1.5
     rel = logs[0].name
     status, body = _http(f"{base}/files/csv?file={rel}", headers=auth)
     export_csv(read_log(logs[0]), web.opts.logs / "replay.csv")

@@ -111,6 +111,9 @@ class History:
         rows = self.rows()
         for r in rows:
             ws.append([r.get(k) for k in COLUMNS])
+            for cell in ws[ws.max_row]:  # a name starting with "=" is text, never a formula Excel runs
+                if isinstance(cell.value, str) and cell.value.startswith("="):
+                    cell.data_type = "s"
         ws.freeze_panes = "A2"
         ws.auto_filter.ref = ws.dimensions
         for i, k in enumerate(COLUMNS):

@@ -23,7 +23,7 @@ const COLOURS = {ramp: "rgba(37,99,235,0.07)", hold: "rgba(22,163,74,0.08)", ret
     {x: d.t_s, y: d.force_pred_N, name: "estimator's force", line: {color: "#9ca3af", dash: "dot"}},
     {x: d.t_s, y: d.position_mm, name: "position", yaxis: "y2", line: {color: "#2563eb"}},
     {x: d.t_s, y: d.stiffness_N_per_m, name: "stiffness", yaxis: "y3", line: {color: "#16a34a"}}],
-    {margin: {l: 60, r: 10, t: 10, b: 36}, shapes, legend: {orientation: "h", y: -0.12},
+    {margin: {l: 60, r: 10, t: 28, b: 40}, shapes, legend: {orientation: "h", x: 0, y: 1.0, yanchor: "bottom"},
      xaxis: {title: {text: "t (s)"}, anchor: "y3"}, yaxis: {domain: [0.68, 1], title: {text: "force (N)"}},
      yaxis2: {domain: [0.35, 0.65], title: {text: "position (mm)"}}, yaxis3: {domain: [0, 0.32], title: {text: "k (N/m)"}}},
     {displaylogo: false, responsive: true});
