@@ -523,8 +523,9 @@ VIEWED = ("name: viewed\nsteps:\n  - ramp: {to_mm: 4, speed_mm_s: 2}\n  - hold: 
           "  - return: {to_mm: 0, speed_mm_s: 5}\n")
 VIEWERS = 10
 # The trial alone, over eleven runs of this test on two cores shared with other work (load average 5 to
-# 11): 1 to 13 late ticks and 4 to 36 missed. With ten viewers the counts stayed within that spread
-# (at most 8 late and 28 missed more than the same run's trial alone, and as often fewer), so "no more
+# 11): 1 to 13 late ticks and 4 to 36 missed; at a load average of 1.5, none in ten runs (and 0 to 2
+# late, none missed, with the viewers). With ten viewers the counts stayed within that spread (at
+# most 8 late and 28 missed more than the same run's trial alone, and as often fewer), so "no more
 # than without" is asserted up to the spread the trial shows by itself from run to run.
 LATE_SPREAD, MISSED_SPREAD = 12, 32
 
@@ -600,10 +601,10 @@ def _sample_clock(log_path: str) -> float:
 
 
 def test_ten_viewers_of_a_100_hz_trial_over_modbus_rtu_cost_it_no_ticks(tmp_path):
-    """In one run, the same 100 Hz trial over Modbus RTU with no viewer, then with ten websocket
-    viewers (the token in the address): late and missed ticks counted from each trial's log as
-    `rig replay` counts them, and each viewer's delay from the sample's tick (its wall time in the
-    log) to its arrival."""
+    """In one run, the same 100 Hz trial over Modbus RTU with no viewer, with ten websocket viewers
+    (the token in the address), and with none again: late and missed ticks counted from each
+    trial's log as `rig replay` counts them, and each viewer's delay from the sample's tick (its
+    wall time in the log) to its arrival."""
     from rig.recording.logs import read_log
     from rig.views.replay import summarize
 
@@ -613,11 +614,11 @@ def test_ten_viewers_of_a_100_hz_trial_over_modbus_rtu_cost_it_no_ticks(tmp_path
         web = WebProcess(tmp_path, d.sock, tmp_path)
         try:
             url = f"ws://127.0.0.1:{web.base.rsplit(':', 1)[1]}/ws?token={web.token}"
-            for label, n in (("alone", 0), ("viewed", VIEWERS)):
+            for label, n in (("alone", 0), ("viewed", VIEWERS), ("alone after", 0)):
                 viewers = Viewers(url, n) if n else None
                 cpu0 = (_cpu_s(web.proc.pid), _cpu_s(d.daemon.pid), _cpu_s(os.getpid()))
                 r = d.req({"cmd": "start", "protocol_text": VIEWED, "protocol_path": "viewed.yaml",
-                           "specimen": label})
+                           "specimen": label.replace(" ", "-")})
                 assert r["ok"], r
                 st = d.wait_idle()
                 assert st["last"]["outcome"] == "completed", st["last"]
@@ -640,7 +641,10 @@ def test_ten_viewers_of_a_100_hz_trial_over_modbus_rtu_cost_it_no_ticks(tmp_path
     finally:
         d.close()
     print(f"\nten viewers on a 100 Hz trial over Modbus RTU: {json.dumps(figures)}")
-    alone, viewed = figures["alone"], figures["viewed"]
+    # the trial with viewers against the worse of the trials alone before and after it (the machine's
+    # other work comes and goes), up to the trial's own spread from run to run
+    viewed = figures["viewed"]
+    alone = {k: max(figures["alone"][k], figures["alone after"][k]) for k in ("late", "missed")}
     assert viewed["late"] <= alone["late"] + LATE_SPREAD, figures
     assert viewed["missed"] <= alone["missed"] + MISSED_SPREAD, figures
     # every viewer saw the trial: the watch stream's 50 samples a second (of the loop's 100), from the
