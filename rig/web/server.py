@@ -78,22 +78,7 @@ class WebServer:
         self.token_file.unlink(missing_ok=True)
 
 
-NICE = 10  # rig web's scheduling priority below the rest's (see `serve`)
-
-
-def yield_to_the_loop() -> None:
-    """Lower this process's priority: nothing here is timed, and on the rig's own computer the
-    serial ports' kernel work (a tty's bytes pass through the kernel's workqueue, at normal
-    priority, not the loop's real-time one) should not wait behind pages being drawn and sent."""
-    import contextlib
-    import os
-
-    with contextlib.suppress(OSError, AttributeError):
-        os.nice(NICE)
-
-
 def serve(opts: WebOptions) -> int:
-    yield_to_the_loop()
     srv = WebServer(opts)
     if opts.exposed:
         print(EXPOSED_WARNING.format(host=opts.host, port=opts.port, logs=opts.logs, tables=opts.tables,
