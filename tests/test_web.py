@@ -335,6 +335,10 @@ def test_the_console_in_a_browser_runs_the_demo_and_estops_it_within_100_ms(tmp_
                 figures["viewer_delay_p95_ms"] = sorted(delays)[int(0.95 * (len(delays) - 1))]
                 _wait(lambda: driver.execute_script(  # in the specimen: a force worth seeing
                     "return Math.max(...document.getElementById('ts').data[0].y)") > 0.5, 10, "contact")
+                shaded = driver.execute_script(  # the ramp shaded as a ramp (its colour), the tare as the tare
+                    "return document.getElementById('ts').layout.shapes.filter(s => s.type === 'rect')"
+                    ".map(s => s.fillcolor)")
+                assert shaded[:2] == ["rgba(107,114,128,0.08)", "rgba(37,99,235,0.07)"], shaded
                 driver.save_screenshot(str(shots / "web-console.png"))
                 latencies = [_estop(driver, d)]
                 st = d.wait_idle()

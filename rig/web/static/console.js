@@ -171,10 +171,10 @@ function connect() {
       if (!trialMeta) newTrial({});
       const ps = m.ps || [m.p];  // the points since the last message (25 messages a second)
       take(ps);
-      for (const p of ps) {
+      ps.forEach((p, i) => {  // a new step is sent at once: its first point is the message's last
         const last = steps[steps.length - 1];
-        if (!last || last[1] !== p[4]) { steps.push([p[0], p[4], p === m.p ? m.step_kind : ""]); stepsDirty = true; }
-      }
+        if (!last || last[1] !== p[4]) { steps.push([p[0], p[4], i === ps.length - 1 ? m.step_kind : ""]); stepsDirty = true; }
+      });
       showLive(m);
       if (m.campaign) followCampaign(m.campaign);
     } else if (m.kind === "end") {
