@@ -162,6 +162,17 @@ def test_the_console_shows_a_running_campaigns_journal_in_words(web, tmp_path):
         "trial 1 ran: completed - log t1.mcap", "fitted 1 trials: hertz + relaxation (not adequate)",
         "decided: separate - relaxation and creep look alike"]
     assert j["campaign"]["phase"] == "decided: separate"
+    if os.path.exists(CHROMIUM) and os.path.exists(CHROMEDRIVER):  # and on the console's page
+        from selenium.webdriver.common.by import By
+
+        driver = _browser()
+        try:
+            driver.get(f"http://127.0.0.1:{web.opts.port}/?token={web.opts.token}")
+            items = _wait(lambda: driver.find_elements(By.CSS_SELECTOR, "#journal li"), 15, "the journal")
+            assert [li.text for li in items][-1] == "decided: separate - relaxation and creep look alike"
+            assert "specimen pig" in driver.find_element(By.ID, "campaign-head").text
+        finally:
+            driver.quit()
     hub.status = {"ok": True, "state": "characterizing", "campaign": {**camp, "journal": "/etc/passwd.jsonl"}}
     j = json.loads(_http(f"http://127.0.0.1:{web.opts.port}/api/journal", headers=auth)[1])
     assert not j["ok"] and "not in the log folder" in j["error"]
