@@ -104,7 +104,8 @@ class NaniteFit:
 class RigFit:
     json: dict
     E_Pa: float
-    E_stderr: float | None
+    E_stderr: float | None  # statistical: the noise's, given the model
+    E_sys: float | None  # systematic: how far the fit's range and baseline move it (rig.analysis.systematic)
     x0_m: float  # contact point in rig's travel from the approach's first sample
     offset_N: float
 
@@ -182,7 +183,8 @@ def fit_rig(path: Path, curve: int, indenter: str) -> RigFit:
                                curve=curve, spring_constant_N_per_m=o.spring_constant_N_per_m,
                                sensitivity_m_per_V=o.sensitivity_m_per_V)).json
     m = j["material"]
-    return RigFit(j, m["E_Pa"], m["E_Pa_stderr"], m["contact_point_m"][0], j["parameters"]["offset_N"]["value"])
+    return RigFit(j, m["E_Pa"], m["E_Pa_stat"], m.get("E_Pa_sys"), m["contact_point_m"][0],
+                  j["parameters"]["offset_N"]["value"])
 
 
 def _shift(a: np.ndarray, b: np.ndarray) -> tuple[int, float, float]:
@@ -294,15 +296,17 @@ def fmt_pct(v: float | None) -> str:
     return "-" if v is None else f"{v * 100:+.1f}"
 
 
-HEADER = ("| file | curve | E rig (± SE) | E nanite, weight_cp=0 | diff % | E nanite, default weight_cp "
-          "| RMSE rig | RMSE nanite | could not fit |\n|---|---|---|---|---|---|---|---|---|")
+HEADER = ("| file | curve | E rig (± stat ± sys) | E nanite, weight_cp=0 | diff % | "
+          "E nanite, default weight_cp | RMSE rig | RMSE nanite | could not fit |\n"
+          "|---|---|---|---|---|---|---|---|---|")
 
 
 def markdown_row(row: Row) -> str:
     e_rig = "-"
     if row.rig is not None:
-        se = row.rig.E_stderr
-        e_rig = fmt_pa(row.rig.E_Pa) + (f" ± {fmt_pa(se)}" if se is not None else "")
+        se, sys_ = row.rig.E_stderr, row.rig.E_sys
+        e_rig = fmt_pa(row.rig.E_Pa) + (f" ± {fmt_pa(se)}" if se is not None else "") + \
+            (f" ± {fmt_pa(sys_)}" if sys_ else " ± 0" if sys_ is not None else "")
     same = row.same
     cells = [row.path.name, row.label, e_rig, fmt_pa(row.nanite0 and row.nanite0.E_Pa), fmt_pct(row.diff),
              fmt_pa(row.nanite_default and row.nanite_default.E_Pa), fmt_n(same and same.rig_rmse_N),
