@@ -190,3 +190,17 @@ def test_profile_any_parameter_on_request():
     bad = subprocess.run([sys.executable, "-m", "rig", "analyze", str(SPOT3), "--model", "hertz", "--indenter",
                           "paraboloid:R=10um", "--profile", "E_pa"], capture_output=True, text=True)
     assert bad.returncode == 2 and "did you mean 'E_Pa'" in bad.stderr and "Traceback" not in bad.stderr
+
+
+@real
+def test_the_map_report_carries_the_caveats_and_names_the_errors(tmp_path):
+    """A batch of a file that lacks its calibration: the caveat a reader recorded is in the batch's
+    report.md, and the report says which error is which."""
+    src = WORKSHOP
+    run = subprocess.run([sys.executable, "-m", "rig", "analyze", str(src), "--model", "hertz", "--indenter",
+                          "paraboloid:R=10um", "--each", "--table", str(tmp_path / "t.csv"), "--report",
+                          str(tmp_path / "rep")], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "| caveat | curves |" in md and "no spring constant" in md, md[:2000]
+    assert "E_Pa_sys systematic" in md

@@ -292,6 +292,17 @@ def write_map_report(rows: list[dict], out_dir: str | Path, params: list[str], s
     if height_from:
         lines += [f"Contact height: each curve's fitted contact point, above the lowest; from {height_from}.",
                   ""]
+    caveats = Counter(c for r in ok for c in str(r.get("caveats") or "").split("; ") if c)
+    if caveats:
+        # what the files' readers recorded that qualifies every number here (rig.analysis.analyze.caveats)
+        lines += ["| caveat | curves |", "|---|---|"]
+        lines += [f"| {c} | {n} |" for c, n in caveats.most_common()]
+        lines.append("")
+    with_sys = [r for r in ok if _num(r.get("E_Pa_sys"))]
+    if any("E_Pa_sys" in r for r in ok):
+        lines += ["Errors: E_Pa_stat is statistical (the noise's, given the model); E_Pa_sys systematic (how "
+                  f"far the fit's range and baseline move E beyond its noise), non-zero on {len(with_sys)} of "
+                  f"{len(ok)} curves.", ""]
     named = Counter(r.get("effect") for r in ok if r.get("effect"))
     if named:
         lines += ["| effect missing | curves |", "|---|---|"]
