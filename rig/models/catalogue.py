@@ -267,6 +267,13 @@ def build_model(name: str, extra: list[str] | None = None,
 
     reg = registry or CATALOGUE
     models = {**NAMED_MODELS, **VISCOELASTIC_MODELS}
+    # a model as the tool prints it (`--auto`'s final model, a fit's name): its first part, the
+    # rest added, the record's own contact point among them
+    head, *rest = [n.strip() for n in name.split("+")]
+    if rest:
+        name, extra = head, [*rest, *(extra or [])]
+    if CONTACT_POINT.name not in reg:
+        reg = {**reg, CONTACT_POINT.name: CONTACT_POINT}
     indenter_effects = (CONTACT, *VISCOELASTIC_EFFECTS.values())
     reg = {**{n: e for n, e in SENSOR_EFFECTS.items() if n not in reg}, **reg}  # --add tilt, drag anywhere
     if name not in models and name not in reg:
@@ -295,7 +302,8 @@ def build_model(name: str, extra: list[str] | None = None,
         if n not in reg:
             raise RigError(f"unknown effect '{n}'{did_you_mean(n, reg)}; `rig models` lists the catalogue")
     model = Model([reg[n] for n in names], name=name)
-    for n in extra or []:
+    extra = [n for i, n in enumerate(extra or []) if n not in names and n not in (extra or [])[:i]]
+    for n in extra:
         model = model + reg[n]
     if extra:
         model.name = name + "".join(f"+{n}" for n in extra)

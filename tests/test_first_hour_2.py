@@ -1,0 +1,51 @@
+"""The first hour, continued (issue 45): what a new technician and a new researcher expected to
+type back, to find kept with a trial, and to read off a day's trials; each with its check."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from rig.cli import main
+
+AFM = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "afm-fd"
+SPOT = AFM / "fmt-jpk-fd_spot3-0192.jpk-force"
+
+
+def _rmse(text: str) -> str:
+    return re.search(r"^fit +RMSE (\S+ \S+),", text, re.M).group(1)
+
+
+# --- 1. the model the tool prints can be typed back ----------------------------------------------
+
+def test_the_model_a_fit_prints_builds_the_same_model():
+    from rig.models.catalogue import build_model
+
+    printed = "poly_elastic+nonlinear_damping+relaxation+fractional_relaxation+viscous+contact_point+offset"
+    typed = build_model(printed)
+    assert typed.effect_names == ["poly_elastic", "nonlinear_damping", "relaxation", "fractional_relaxation",
+                                  "viscous", "contact_point", "offset"]
+    assert typed.name == printed
+    assert build_model("proposed", ["contact_point"]).effect_names[-1] == "contact_point"
+    # a named model at the head, an effect it already holds named again: the same model
+    assert build_model("hooke+linear_elastic+drift").effect_names == ["linear_elastic", "drift"]
+
+
+@pytest.mark.skipif(not SPOT.exists(), reason="the shared AFM curves are not beside the project")
+def test_auto_s_final_model_typed_back_gives_the_same_fit(capsys):
+    args = [str(SPOT), "--segment", "approach"]
+    assert main(["analyze", *args, "--auto"]) == 0
+    out = capsys.readouterr().out
+    final = re.search(r"^final model (\S+):", out, re.M).group(1)
+    assert "+contact_point+offset" in final  # the record's own contact and zero, as printed
+    assert main(["analyze", *args, "--model", final]) == 0
+    again = capsys.readouterr().out
+    assert re.search(r"^model +(\S+)", again, re.M).group(1) == final
+    auto_rmse = re.findall(r"^\d+ +\S+ +(\S+)", out, re.M)[-1]
+    assert _rmse(again) == f"{auto_rmse} nN"
+    # and the start model with --add for each part --auto printed beyond it: the same again
+    extra = [a for x in final.split("+")[3:] for a in ("--add", x)]
+    assert main(["analyze", *args, "--model", "proposed", *extra]) == 0
+    assert _rmse(capsys.readouterr().out) == f"{auto_rmse} nN"
