@@ -7,6 +7,7 @@ Every hidden effect is off (None) by default.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 
 def _pos(**kw: float) -> dict:
@@ -114,10 +115,14 @@ class FaultParams:
 
 @dataclass
 class Relaxation2Params:
-    """A second Maxwell branch (spring k in series with a dashpot, time constant tau) in parallel."""
+    """A second Maxwell branch (spring k_m in series with a dashpot, time constant tau_m) in
+    parallel: the catalogue's relaxation2, its parameters under the names a fit gives them."""
 
-    k_N_per_m: float = field(default=60.0, **_pos(ge=0))
-    tau_s: float = field(default=40.0, **_pos(gt=0))
+    # the names before the catalogue's, still read from a config (with a DeprecatedKey warning)
+    RENAMED_KEYS: ClassVar[dict[str, str]] = {"k_N_per_m": "k_m_N_per_m", "tau_s": "tau_m_s"}
+
+    k_m_N_per_m: float = field(default=60.0, **_pos(ge=0))
+    tau_m_s: float = field(default=40.0, **_pos(gt=0))
 
 
 @dataclass

@@ -98,7 +98,7 @@ class SimRig:
         tp = p.tissue
         self._a1 = math.exp(-self.dt / tp.tau1_s)
         fx = p.effects
-        self._a2 = math.exp(-self.dt / fx.relaxation2.tau_s) if fx.relaxation2 else 0.0
+        self._a2 = math.exp(-self.dt / fx.relaxation2.tau_m_s) if fx.relaxation2 else 0.0
         self.f1_N = 0.0  # proposed-model branch (first-order lag state)
         self.f2_N = 0.0  # second Maxwell branch
         self.tissue_force_N = 0.0
@@ -235,7 +235,7 @@ class SimRig:
         f1 = 0.0 if f1 < 0.0 else f1
         f2 = 0.0
         if fx.relaxation2 and x > 0.0:
-            f2 = self.f2_N * self._a2 + fx.relaxation2.k_N_per_m * (xdot * dt)
+            f2 = self.f2_N * self._a2 + fx.relaxation2.k_m_N_per_m * (xdot * dt)
             f2 = 0.0 if f2 < 0.0 else f2
         frac_N, frac = None, 0.0
         if self._frac_modes is not None:

@@ -27,14 +27,14 @@ SPECIMENS = {
 
 CASES = {
     # name: (specimen, {effect: params}, seed of the paper-protocol runs)
-    "relaxation2": ("A", {"relaxation2": {"k_N_per_m": 60.0, "tau_s": 40.0}}, 11),
+    "relaxation2": ("A", {"relaxation2": {"k_m_N_per_m": 60.0, "tau_m_s": 40.0}}, 11),
     "drift": ("B", {"drift": {"rate_N_per_s": 0.004}}, 12),
     "offset": ("C", {"offset": {"force_N": 0.3}}, 13),
     "contact_offset": ("A", {"contact_offset": {"x0_mm": 1.5}}, 14),
     "delay": ("B", {"delay": {"delay_s": 0.08}}, 15),
     "friction": ("C", {"friction": {"force_N": 0.15}}, 16),
     "compliance": ("A", {"compliance": {"k_frame_N_per_m": 2000.0}}, 17),
-    "relaxation2_small": ("C", {"relaxation2": {"k_N_per_m": 35.0, "tau_s": 25.0}}, 18),
+    "relaxation2_small": ("C", {"relaxation2": {"k_m_N_per_m": 35.0, "tau_m_s": 25.0}}, 18),
     "delay_long": ("C", {"delay": {"delay_s": 0.12}}, 19),
 }
 SEEDS = (1, 2, 3, 4, 5)  # every case at several seeds: a case won by a hair flips with the seed

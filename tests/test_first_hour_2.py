@@ -49,3 +49,28 @@ def test_auto_s_final_model_typed_back_gives_the_same_fit(capsys):
     extra = [a for x in final.split("+")[3:] for a in ("--add", x)]
     assert main(["analyze", *args, "--model", "proposed", *extra]) == 0
     assert _rmse(capsys.readouterr().out) == f"{auto_rmse} nN"
+
+
+# --- 2. the simulator's hidden relaxation2 and the fit's speak of the same parameters ------------
+
+def test_the_simulated_relaxation2_is_configured_under_the_fitted_names():
+    from rig.models.catalogue import CATALOGUE
+    from rig.specs.config import parse_config
+    from rig.specs.yamlspec import DeprecatedKey
+
+    fitted = [p.name for p in CATALOGUE["relaxation2"].params]
+    assert fitted == ["k_m_N_per_m", "tau_m_s"]
+    cfg = parse_config("sim: {effects: {relaxation2: {k_m_N_per_m: 60, tau_m_s: 40}}}\n")
+    assert (cfg.sim.effects.relaxation2.k_m_N_per_m, cfg.sim.effects.relaxation2.tau_m_s) == (60, 40)
+    # the old names still read, with a warning naming the new ones and where the old stand
+    with pytest.warns(DeprecatedKey) as caught:
+        old = parse_config("sim:\n  effects:\n    relaxation2: {k_N_per_m: 60, tau_s: 40}\n", "old.yaml")
+    assert old.sim.effects.relaxation2 == cfg.sim.effects.relaxation2
+    said = [str(w.message) for w in caught]
+    assert any("old.yaml:3: sim.effects.relaxation2.k_N_per_m is deprecated" in m and "'k_m_N_per_m'" in m
+               for m in said), said
+    from rig.errors import SpecError
+
+    with pytest.raises(SpecError, match="'tau_s' is the old name of 'tau_m_s': give one of them"):
+        parse_config("sim: {effects: {relaxation2: {tau_s: 40, tau_m_s: 40}}}\n")
+

@@ -121,7 +121,7 @@ def test_noise_level_matches_config():
 # ------------------------------------------------------------ hidden effects, as mechanisms
 
 def test_relaxation2_adds_slow_decay(base):
-    t, _, f2, _, t_ramp = ramp_hold(quiet(relaxation2=Relaxation2Params(k_N_per_m=60, tau_s=40)))
+    t, _, f2, _, t_ramp = ramp_hold(quiet(relaxation2=Relaxation2Params(k_m_N_per_m=60, tau_m_s=40)))
     _, _, f, _, _ = base
     hold = (t > t_ramp + 30) & (t < t_ramp + 59)
     # late in the hold the base model has settled; the second branch is still relaxing

@@ -299,6 +299,8 @@ def bind(cls: type, node: Marked | None, path: str, where: str = "") -> Any:
         return cls()
     view = MapView(node, path, where)
     fields = {f.name: f for f in dataclasses.fields(cls)}
+    node = _renamed(cls, node, view)
+    view = MapView(node, path, where)
     view.check_keys(fields)
     hints = typing.get_type_hints(cls)
     kwargs: dict[str, Any] = {}
@@ -309,6 +311,33 @@ def bind(cls: type, node: Marked | None, path: str, where: str = "") -> Any:
     except (ValueError, TypeError) as exc:
         raise SpecError(str(exc), path=path, line=node.line, column=node.column,
                         field=where or None) from None
+
+
+class DeprecatedKey(FutureWarning):
+    """A config key written under its old name: still read, under its new one."""
+
+
+def _renamed(cls: type, node: Marked, view: MapView) -> Marked:
+    """`node` with the keys `cls.RENAMED_KEYS` (old name -> new) under their new names, each
+    old one warned about (DeprecatedKey) with where it stands; both names at once are an error."""
+    renamed = getattr(cls, "RENAMED_KEYS", {})
+    if not isinstance(node.value, dict) or not renamed.keys() & node.value.keys():
+        return node
+    import warnings
+
+    items = {}
+    for key, child in node.value.items():
+        new = renamed.get(key)
+        if new is None:
+            items[key] = child
+            continue
+        if new in node.value:
+            raise view.error(key, f"'{key}' is the old name of '{new}': give one of them")
+        warnings.warn(f"{view.path}:{child.key_line}: {view._field(key)} is deprecated, read as "
+                      f"{view._field(new)}: write '{new}' (the fitted parameter's name)", DeprecatedKey,
+                      stacklevel=4)
+        items[new] = child
+    return dataclasses.replace(node, value=items)
 
 
 def _bind_value(tp: Any, child: Marked, view: MapView, name: str, meta: typing.Mapping) -> Any:

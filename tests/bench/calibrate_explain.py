@@ -45,7 +45,7 @@ from tests.test_explain import SPECIMENS, SPEEDS, _default, _protocol  # noqa: E
 # Each hidden effect of tests/test_explain.py, its size parameter and the value that test uses.
 # Compliance grows as the frame softens: its multiple divides the frame's stiffness.
 EFFECTS = {
-    "relaxation2": ("k_N_per_m", 60.0, {"tau_s": 40.0}),
+    "relaxation2": ("k_m_N_per_m", 60.0, {"tau_m_s": 40.0}),
     "drift": ("rate_N_per_s", 0.004, {}),
     "offset": ("force_N", 0.3, {}),
     "contact_offset": ("x0_mm", 1.5, {}),

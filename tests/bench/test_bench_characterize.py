@@ -41,7 +41,7 @@ SEEDS = [int(s) for s in os.environ.get("RIG_BENCH_SEEDS", "1,2,3,4,5").split(",
 TISSUE = {"k1_N_per_m3": 5.6e4, "k2_N_per_m2": 5.5e2, "k3_N_per_m": 14.0, "tau1_s": 8.0,
           "tau2_N_s_per_m2": 2.3e5}
 HIDDEN = {  # sim setting, the catalogue's parameters and their truth
-    "relaxation2": ("relaxation2: {k_N_per_m: 60.0, tau_s: 40.0}", {"k_m_N_per_m": 60.0, "tau_m_s": 40.0}),
+    "relaxation2": ("relaxation2: {k_m_N_per_m: 60.0, tau_m_s: 40.0}", {"k_m_N_per_m": 60.0, "tau_m_s": 40.0}),
     "compliance": ("compliance: {k_frame_N_per_m: 2000.0}", {"k_frame_N_per_m": 2000.0}),
     "drift": ("drift: {rate_N_per_s: 0.004}", {"drift_N_per_s": 0.004}),
     "contact_offset": ("contact_offset: {x0_mm: 1.5}", {"x0_mm": 1.5}),

@@ -36,7 +36,7 @@ SEEDS = (1, 2, 3, 4, 5)
 # against the tissue's own 8 s (over 25 s it tied with a damping and a contact offset: within 0.3 %
 # of each other's error, and its fitted time constant 10-12 s, the tissue's own)
 HIDDEN = {"drift": P.DriftParams(rate_N_per_s=0.004), "compliance": P.ComplianceParams(k_frame_N_per_m=500.0),
-          "relaxation2": P.Relaxation2Params(k_N_per_m=100.0, tau_s=20.0)}
+          "relaxation2": P.Relaxation2Params(k_m_N_per_m=100.0, tau_m_s=20.0)}
 LONG_HOLD = """name: creep at two forces, the last held long
 steps:
   - ramp: {to_mm: 10, speed_mm_s: 5}
