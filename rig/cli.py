@@ -470,6 +470,13 @@ def cmd_logs(args: argparse.Namespace) -> int:
 
     out_dir = Path(args.dir) if args.dir else Path(load_config(args.config).recorder.out_dir)
     entries = list_trials(out_dir)
+    figures = trial_figures(entries)
+    if args.table:
+        from rig.views.logtable import table_rows, write_logs_table
+
+        path = write_logs_table(table_rows(entries, figures, out_dir), args.table)
+        print(f"table      {path} ({len(entries)} trials)")
+        return 0
     if args.json:
         print(json.dumps([{**e.as_dict(), **f} for e, f in zip(entries, figures, strict=True)], indent=2))
     else:
@@ -488,7 +495,6 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 def cmd_models(args: argparse.Namespace) -> int:
     from rig.models.catalogue import CATALOGUE, catalogue_json, format_catalogue
-    figures = trial_figures(entries)
     from rig.models.plugins import load_plugin
 
     if args.action:
@@ -841,6 +847,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--dir", help="directory of logs (default: the config's recorder.out_dir)")
     r.add_argument("--config")
     r.add_argument("--json", action="store_true")
+    r.add_argument("--table", metavar="FILE", help="write the trials as a table, one row per trial (specimen, "
+                   "protocol, outcome, peak force, stiffness at the hold's end, estimator error, duration, "
+                   "calibration date): CSV, or Parquet for a .parquet name")
     r.set_defaults(func=cmd_logs)
 
     r = sub.add_parser("web", help="the lab in a browser: live console, trial history, maps",

@@ -74,3 +74,50 @@ def test_the_simulated_relaxation2_is_configured_under_the_fitted_names():
     with pytest.raises(SpecError, match="'tau_s' is the old name of 'tau_m_s': give one of them"):
         parse_config("sim: {effects: {relaxation2: {tau_s: 40, tau_m_s: 40}}}\n")
 
+
+
+# --- 5. a day's trials as a table --------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def day(tmp_path_factory):
+    """Two trials of the demo on the simulated rig, on the virtual clock."""
+    out = tmp_path_factory.mktemp("day")
+    for specimen in ("pig-07", "pig-08"):
+        assert main(["run", str(ROOT / "protocols" / "demo.yaml"), "--speed", "0", "--quiet", "--out", str(out),
+                     "--specimen", specimen]) == 0
+    return out
+
+
+def test_logs_table_writes_one_row_per_trial_as_csv(day, tmp_path, capsys):
+    import csv
+
+    from rig.recording.logs import read_log
+    from rig.views.replay import log_figures
+
+    capsys.readouterr()
+    assert main(["logs", "--dir", str(day), "--table", str(tmp_path / "day.csv")]) == 0
+    assert "2 trials" in capsys.readouterr().out
+    with open(tmp_path / "day.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["specimen"] for r in rows] == ["pig-08", "pig-07"]  # newest first, as rig logs lists them
+    assert set(rows[0]) >= {"specimen", "protocol", "outcome", "peak_force_N", "hold_end_stiffness_N_per_m",
+                            "estimator_error_rms_N", "duration_s", "calibration_date"}
+    for r in rows:
+        figs = log_figures(read_log(day / r["file"]))
+        assert r["outcome"] == "completed" and r["protocol"].startswith("demo")
+        assert float(r["peak_force_N"]) == pytest.approx(figs["peak_force_N"])
+        assert float(r["hold_end_stiffness_N_per_m"]) == pytest.approx(figs["hold_end_stiffness_N_per_m"])
+        assert float(r["estimator_error_rms_N"]) == pytest.approx(figs["estimator_error_rms_N"])
+        assert 10 < float(r["duration_s"]) < 13
+        assert r["calibration_date"] == ""  # the simulated rig's config holds no calibration
+
+
+def test_logs_table_writes_parquet(day, tmp_path):
+    pq = pytest.importorskip("pyarrow.parquet")
+    assert main(["logs", "--dir", str(day), "--table", str(tmp_path / "day.parquet")]) == 0
+    t = pq.read_table(tmp_path / "day.parquet").to_pylist()
+    assert [r["specimen"] for r in t] == ["pig-08", "pig-07"]
+    assert all(isinstance(r["peak_force_N"], float) and r["peak_force_N"] > 0 for r in t)

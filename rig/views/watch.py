@@ -129,8 +129,9 @@ class Watcher:
 
 def trial_figures(entries) -> list[dict]:
     """Per entry of `list_trials`: its peak force, stiffness at the hold's end and estimator error
-    (rig.views.replay.log_figures), read from the log's samples; None each for a log being
-    written or one that cannot be read."""
+    (rig.views.replay.log_figures), read from the log's samples, and from its header the load
+    cell's calibration date and the specimen's thickness and area; None each for a log being
+    written or one that cannot be read, or a header without them."""
     import contextlib
 
     from rig.errors import RigError
@@ -140,10 +141,16 @@ def trial_figures(entries) -> list[dict]:
     out = []
     for e in entries:
         figs = dict.fromkeys(("peak_force_N", "hold_end_stiffness_N_per_m", "estimator_error_rms_N"))
+        cal, trial = {}, {}
         if e.outcome != "running":
             with contextlib.suppress(RigError, OSError, ValueError):
-                figs = log_figures(read_log(e.path))
-        out.append(figs)
+                log = read_log(e.path)
+                cal, trial = log.metadata.get("calibration", {}), log.trial
+                figs = log_figures(log)
+        # what the header keeps beside them: the load cell's calibration, the specimen's size
+        out.append({**figs, "calibration_date": cal.get("date") or None,
+                    "thickness_mm": trial.get("thickness_mm") or None,
+                    "area_mm2": trial.get("area_mm2") or None})
     return out
 
 
