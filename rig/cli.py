@@ -38,6 +38,15 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _specimen_size(r: argparse.ArgumentParser) -> None:
+    r.add_argument("--thickness-mm", type=_positive_float, metavar="MM",
+                   help="the specimen's thickness, kept in the log's header: the bottom effect's thickness in "
+                        "rig analyze, the strain (indentation / thickness) in rig replay")
+    r.add_argument("--area-mm2", type=_positive_float, metavar="MM2",
+                   help="the specimen's contact area, kept in the log's header: the stress (force / area) in "
+                        "rig replay")
+
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -74,9 +83,12 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     config = load_config(args.config)
     proto = load_protocol(args.protocol, config)  # refused here, before anything moves
+    from rig.specs.specimen import dimensions
+
     opts = RunOptions(specimen=args.specimen, operator=args.operator, notes=args.notes,
                       out_dir=args.out, speed=args.speed, progress=not args.quiet, live_port=args.live,
-                      model_path=args.model, spy_path=args.spy)
+                      model_path=args.model, spy_path=args.spy,
+                      dimensions=dimensions(args.thickness_mm, args.area_mm2))
     result = run_trial(proto, config, opts)
     print(f"trial {result.outcome}: {result.samples} samples in {result.duration_s:.1f} s "
           f"({result.late_ticks} late, {result.missed_ticks} missed ticks)")
@@ -384,8 +396,11 @@ def cmd_start(args: argparse.Namespace) -> int:
         raise RigError("rig start: give a protocol file (or --characterize for a campaign)")
     path = Path(args.protocol).resolve()
     text = read_text(path, "protocol file")
+    from rig.specs.specimen import dimensions
+
     req = {"cmd": "start", "protocol_text": text, "protocol_path": str(path), "specimen": args.specimen,
-           "operator": args.operator, "notes": args.notes, "from_contact": args.from_contact}
+           "operator": args.operator, "notes": args.notes, "from_contact": args.from_contact,
+           **{k: float(v) for k, v in dimensions(args.thickness_mm, args.area_mm2).items()}}
     if args.model:
         req.update(model_text=read_text(Path(args.model).resolve(), "model file"), model_path=args.model)
     reply = _reply(request(_socket(args), req))
@@ -710,6 +725,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--specimen", default="specimen", help="specimen ID recorded in the log")
     r.add_argument("--operator", default="", help="operator name recorded in the log")
     r.add_argument("--notes", default="", help="free text recorded in the log")
+    _specimen_size(r)
     r.add_argument("--out", help="directory for the log (default: the config's recorder.out_dir)")
     r.add_argument("--speed", type=_positive_or_zero, default=1.0,
                    help="simulated rig only: 0 = as fast as possible, N = N times real time "
@@ -822,6 +838,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--specimen", default="specimen")
     r.add_argument("--operator", default="", help="default: your user name")
     r.add_argument("--notes", default="")
+    _specimen_size(r)
     r.add_argument("--model", metavar="MODEL.json", help="run this saved model in the loop")
     r.add_argument("--from-contact", action="store_true",
                    help="start although a trial cut short (an estop, a fault) left the probe in the specimen: "

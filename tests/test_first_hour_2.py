@@ -3,9 +3,11 @@ type back, to find kept with a trial, and to read off a day's trials; each with 
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from rig.cli import main
@@ -121,3 +123,92 @@ def test_logs_table_writes_parquet(day, tmp_path):
     t = pq.read_table(tmp_path / "day.parquet").to_pylist()
     assert [r["specimen"] for r in t] == ["pig-08", "pig-07"]
     assert all(isinstance(r["peak_force_N"], float) and r["peak_force_N"] > 0 for r in t)
+
+
+# --- 4. the specimen's dimensions kept with the trial, used where they matter --------------------
+
+MATERIAL = ("probe: paraboloid:R=5mm\nsim:\n  tissue:\n    material:\n      indenter: paraboloid:R=5mm\n"
+            "      E0_Pa: 20000\n      E_inf_Pa: 20000\n")
+RAMP = "name: ramp-hold\nsteps:\n  - ramp: {to_mm: 2, speed_mm_s: 2}\n  - hold: {duration_s: 2}\n" \
+       "  - return: {to_mm: 0, speed_mm_s: 2}\n"
+
+
+@pytest.fixture(scope="module")
+def sized(tmp_path_factory):
+    """A ramp-hold on the simulated material, its thickness and area given; and the same without."""
+    out = tmp_path_factory.mktemp("sized")
+    (out / "rig.yaml").write_text(MATERIAL)
+    (out / "p.yaml").write_text(RAMP)
+    logs = {}
+    for name, size in (("given", ["--thickness-mm", "8", "--area-mm2", "50"]), ("plain", [])):
+        d = out / name
+        assert main(["run", str(out / "p.yaml"), "--config", str(out / "rig.yaml"), "--speed", "0", "--quiet",
+                     "--out", str(d), "--specimen", name, *size]) == 0
+        (logs[name],) = d.glob("*.mcap")
+    return logs
+
+
+def test_run_keeps_thickness_and_area_in_the_log_header(sized):
+    from rig.recording.logs import read_log
+
+    trial = read_log(sized["given"]).trial
+    assert (trial["thickness_mm"], trial["area_mm2"]) == ("8", "50")
+    assert "thickness_mm" not in read_log(sized["plain"]).trial
+
+
+def test_replay_reports_stress_and_strain_from_the_dimensions(sized, capsys):
+    from rig.recording.logs import read_log
+    from rig.specs.frames import Frame
+
+    capsys.readouterr()
+    assert main(["replay", str(sized["given"]), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    z = d["specimen_size"]
+    assert z["peak_stress_Pa"] == pytest.approx(d["peak_force_N"] / 50e-6)
+    depth = float(np.max(read_log(sized["given"]).position_mm(Frame.SURFACE)))
+    assert 1.9 < depth < 2.1 and z["peak_strain"] == pytest.approx(depth / 8.0)
+    assert main(["replay", str(sized["given"])]) == 0
+    text = capsys.readouterr().out
+    assert "size       thickness 8 mm, area 50 mm^2" in text
+    assert f"stress     peak {z['peak_stress_Pa'] / 1e3:.4g} kPa (peak force / area)" in text
+    assert "strain     peak 0.2" in text
+    assert main(["replay", str(sized["plain"])]) == 0
+    assert "stress" not in capsys.readouterr().out
+
+
+def test_the_bottom_effect_takes_the_thickness_from_the_log(sized, capsys):
+    """With the thickness in the header the bottom effect is the specimen's (h not fitted, the
+    modulus the only parameter it shares); without it, h_m is fitted as before."""
+    capsys.readouterr()
+    for name, has_h in (("given", False), ("plain", True)):
+        assert main(["analyze", str(sized[name]), "--model", "hertz", "--add", "bottom_effect", "--json"]) == 0
+        got = json.loads(capsys.readouterr().out)
+        assert ("h_m" in got["parameters"]) is has_h, (name, list(got["parameters"]))
+        assert got["parameters"]["E_Pa"]["value"] > 0
+
+
+def test_the_daemon_s_start_refuses_a_thickness_that_is_not_a_positive_number():
+    from rig.service.daemon import RequestError, _dimensions
+
+    assert _dimensions({"thickness_mm": 3, "area_mm2": 12.5}) == {"thickness_mm": "3", "area_mm2": "12.5"}
+    assert _dimensions({}) == {}
+    for bad in (0, -1, "3", True, float("inf")):
+        with pytest.raises(RequestError, match='"thickness_mm" must be a positive number'):
+            _dimensions({"thickness_mm": bad})
+
+
+def test_rig_start_sends_the_dimensions_with_the_start(monkeypatch, tmp_path, capsys):
+    import rig.service.client as client
+
+    sent = []
+
+    def fake(sock, req, *a, **k):
+        sent.append(req)
+        return {"ok": True, "protocol": "demo", "log": "x.mcap"}
+
+    monkeypatch.setattr(client, "request", fake)
+    assert main(["start", str(ROOT / "protocols" / "demo.yaml"), "--socket", str(tmp_path / "s"),
+                 "--thickness-mm", "4.5", "--area-mm2", "20"]) == 0
+    assert (sent[0]["thickness_mm"], sent[0]["area_mm2"]) == (4.5, 20.0)
+    with pytest.raises(SystemExit):
+        main(["start", str(ROOT / "protocols" / "demo.yaml"), "--thickness-mm", "-1"])

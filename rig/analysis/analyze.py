@@ -25,7 +25,7 @@ from rig.models.catalogue import (
 )
 from rig.models.contact import Indenter, parse_indenter
 from rig.models.core import Effect, Model, Param
-from rig.models.instrument import ADHESION
+from rig.models.instrument import ADHESION, BOTTOM_EFFECTS, BOTTOM_SHAPES, bottom_effect
 from rig.models.plugins import check_plugin_effect, load_plugin
 from rig.models.viscoelastic import MODELS as VISCOELASTIC_EFFECTS
 from rig.records import ReadOptions, Record, read_record
@@ -102,6 +102,11 @@ def load_inputs(paths: list[str], holdout: list[str], plugins: list[str],
     pull = ind is not None
     trials = [prepare(r, str(p), _segment(r, segment, approach), form, keep_pull=pull)
               for r, p in zip(recs, paths, strict=True)]
+    thick = {t.meta.get("thickness_m") for t in trials}
+    if ind is not None and ind.kind in BOTTOM_SHAPES and len(thick) == 1 and None not in thick:
+        # the specimen's thickness, which the logs' header keeps: the bottom effect's, not fitted
+        h = thick.pop()
+        registry.update({n: bottom_effect(ind, poisson, bonded, h) for n, bonded in BOTTOM_EFFECTS.items()})
     held = []
     for p in holdout:
         r = read_record(p, options)

@@ -29,8 +29,9 @@ from rig.analysis.data import PHASES, TrialData, decimate
 from rig.analysis.fit import FitResult, evaluate, fit
 from rig.analysis.residual_shape import describe, not_the_answer
 from rig.analysis.uncertainty import delta_bic
-from rig.models.catalogue import instrument_effects
+from rig.models.catalogue import CONTACT, instrument_effects
 from rig.models.core import Effect, Model
+from rig.models.instrument import BOTTOM_EFFECTS
 
 MIN_DROP = 0.05  # calibrated: docs/explanation/verdict.md (tests/bench/calibrate_explain.py)
 SCREEN_SAMPLES = 2000  # per trial
@@ -117,6 +118,8 @@ def candidates(model: Model, registry: dict[str, Effect],
             continue
         if {e.name, *model.effect_names} >= {"contact_point", "contact_offset"}:
             continue  # one contact point: the other is a second name for it
+        if e.name in BOTTOM_EFFECTS and not model.has(CONTACT):
+            continue  # a correction of the indenter's contact (a known thickness puts it in the registry)
         out.append(e)
     return out
 

@@ -98,8 +98,10 @@ def bottom_factor(chi: np.ndarray, coeffs: tuple[float, ...]) -> tuple[np.ndarra
     return b, db
 
 
-def bottom_effect(indenter: Indenter, poisson: float = 0.5, bonded: bool = True) -> Effect:
-    """The bottom effect for `indenter`'s elastic contact, thickness h_m fitted: the drive term
+def bottom_effect(indenter: Indenter, poisson: float = 0.5, bonded: bool = True,
+                  thickness_m: float | None = None) -> Effect:
+    """The bottom effect for `indenter`'s elastic contact, thickness h_m fitted, or the
+    specimen's known `thickness_m` (the log's header: `rig run --thickness-mm`): the drive term
     E g(d) (B(chi) - 1) beside the contact's E g(d), sharing its E_Pa. Raises ValueError for a
     shape the series is not for."""
     if indenter.kind not in BOTTOM_SHAPES:
@@ -117,6 +119,22 @@ def bottom_effect(indenter: Indenter, poisson: float = 0.5, bonded: bool = True)
 
     how = "bonded to" if bonded else "lying on"
     c = ", ".join(f"{x:.4g}" for x in coeffs)
+    if thickness_m is not None:
+        h_known = float(thickness_m)
+
+        def _bottom_known(x, v, E_Pa):
+            return _bottom(x, v, E_Pa, h_known)
+
+        return Effect(
+            BOTTOM if bonded else BOTTOM_FREE, "drive",
+            (Param("E_Pa", "Pa", 1.0, 0.0, relative=True, warn_negative=True),),
+            _bottom_known,
+            f"F = F_contact(d) (1 + c1 chi + c2 chi^2 + c3 chi^3 + c4 chi^4), chi = sqrt(R d)/h: a layer of "
+            f"thickness h = {h_known * 1e3:g} mm (the specimen's, from the log) {how} a hard substrate "
+            f"({REFERENCE}; nu {poisson:g}: c = {c})",
+            "ramp residual growing faster than the contact law with depth: the sample reads stiffer the "
+            "deeper the tip goes (a thin sample on a hard support); E fitted without it is too high",
+            source=f"indenter {indenter.spec()}, thickness {h_known * 1e3:g} mm")
     return Effect(
         BOTTOM if bonded else BOTTOM_FREE, "drive",
         (Param("E_Pa", "Pa", 1.0, 0.0, relative=True, warn_negative=True),

@@ -146,7 +146,17 @@ def _read_mcap(path: Path) -> Record:
     x_mm = log.position_mm(Frame.SURFACE)
     return Record(path.name, "mcap", s["t_s"][keep], x_mm[keep] / 1000.0, s["force_N"][keep],
                   frame=Frame.SURFACE, steps=kinds[keep], baseline_force_N=s["force_N"][tare],
-                  length_unit="mm", force_unit="N", meta={"indenter": _probe(log, path) or None})
+                  length_unit="mm", force_unit="N", meta={"indenter": _probe(log, path) or None,
+                                                           **_size(log)})
+
+
+def _size(log) -> dict:
+    """The specimen's thickness (m) and contact area (m^2) the log's header keeps, if any."""
+    from rig.specs.specimen import from_header
+
+    dims = from_header(log.trial)
+    return {k: v for k, v in (("thickness_m", dims.get("thickness_mm", 0) * 1e-3),
+                              ("area_m2", dims.get("area_mm2", 0) * 1e-6)) if v}
 
 
 def _probe(log, path: Path) -> str:

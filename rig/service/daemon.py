@@ -37,6 +37,9 @@ still below that surface: its reply says so and offers the two ways on, `{"cmd":
 `"from_contact": true` (`rig start --from-contact`: run from here, the operator's confirmation).
 `status` carries it as "probe_in_contact" until the probe is out.
 
+A start may give the specimen's dimensions, `"thickness_mm"` and `"area_mm2"` (positive numbers;
+`rig start --thickness-mm --area-mm2`): the log's header keeps them (rig.specs.specimen).
+
 A stop or estop is answered once the STOP has gone out on the bus and the drive acknowledged
 it; "ok": false says it did not. With a trial running, the trial sends it (from its loop's next
 tick, or at once while it starts or closes); otherwise the daemon sends it itself on the idle
@@ -168,6 +171,20 @@ def _left_in_contact(trial: Trial, result: TrialResult, tolerance_mm: float) -> 
 def _where(left: dict) -> str:
     return (f"{left['depth_mm']:.2f} mm into the specimen (the slider at {left['position_mm']:.3f} mm, the "
             f"surface at {left['surface_mm']:.3f} mm, {left['force_N']:.3g} N), where {left['by']} left it")
+
+
+def _dimensions(req: dict) -> dict[str, str]:
+    """The specimen's thickness and area of a start request ("thickness_mm", "area_mm2": positive
+    numbers, or absent), as the log's header keeps them."""
+    from rig.specs.specimen import KEYS, dimensions
+
+    values = {}
+    for key in KEYS:
+        value = req.get(key)
+        if value is not None and (_number(value) is None or value <= 0):
+            raise RequestError(f'"{key}" must be a positive number, not {_shown(value)}')
+        values[key] = value
+    return dimensions(values["thickness_mm"], values["area_mm2"])
 
 
 def _number(value: object) -> float | None:
@@ -481,6 +498,7 @@ class Daemon:
         specimen = _name(req, "specimen", "specimen")
         operator = _name(req, "operator", user)
         notes = _text(req, "notes", "")
+        size = _dimensions(req)
         from_contact = _flag(req, "from_contact")
         with self.state_lock:
             self._refuse_if_busy()
@@ -493,7 +511,7 @@ class Daemon:
             in_contact = self._in_contact(here, from_contact)  # RequestError while it is, unconfirmed
             check_limits(proto, self.config, start_mm=here)  # LimitError -> error reply
             log_path = inside(self.out_dir, default_log_path(self.out_dir, proto, specimen))
-            trial = self._new_trial(proto, specimen, operator, notes, user, log_path, self._model(req))
+            trial = self._new_trial(proto, specimen, operator, notes, user, log_path, self._model(req), size)
             warnings = [*in_contact, *self.devices.warnings, *trial.warnings]
             meta = {"protocol": proto.name, "specimen": specimen, "user": user, "operator": operator,
                     "log": str(log_path), "started": time.strftime("%H:%M:%S")}
@@ -656,11 +674,11 @@ class Daemon:
             self.dev_lock.release()
 
     def _new_trial(self, proto, specimen: str, operator: str, notes: str, user: str, log_path: Path,
-                   model) -> Trial:
+                   model, size: dict[str, str] | None = None) -> Trial:
         info = TrialInfo(specimen=specimen, operator=operator, notes=notes, clock="real",
                          extra={"requested_by": user, "devices": self.devices.description, "daemon": "rigd",
                                 "backstop": self.devices.backstop,
-                                "warnings": " | ".join(self.devices.warnings)})
+                                "warnings": " | ".join(self.devices.warnings), **(size or {})})
         trial = Trial(proto, self.config, self.devices.slider, self.devices.loadcell,
                       RealClock(self.config.loop.spin_ms / 1000.0), log_path, info, model=model, zero=self.zero)
         trial.on_tick = self._on_tick

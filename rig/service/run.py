@@ -6,7 +6,7 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from rig.clock import RealClock, VirtualClock
@@ -35,6 +35,8 @@ class RunOptions:
     live_port: int | None = None  # publish live on this port (Foxglove WebSocket), None = off
     model_path: str | None = None  # a saved model to run in the loop (default: the config's `model:`)
     spy_path: str | None = None  # write every frame and line on the wire here (`rig spy` reads it)
+    # the specimen's thickness and area for the log's header (rig.specs.specimen.dimensions)
+    dimensions: dict[str, str] = field(default_factory=dict)
 
 
 def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None) -> TrialResult:
@@ -57,7 +59,7 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None
     clock_name = "real" if opts.speed == 1.0 else f"virtual x{opts.speed:g}" if opts.speed else "virtual"
     info = TrialInfo(specimen=opts.specimen, operator=opts.operator, notes=opts.notes,
                      clock=clock_name, extra={"devices": devices.description, "backstop": devices.backstop,
-                                              "warnings": " | ".join(devices.warnings)})
+                                              "warnings": " | ".join(devices.warnings), **opts.dimensions})
     try:
         trial = Trial(proto, config, devices.slider, devices.loadcell, clock, log_path, info, model=model)
     except BaseException:

@@ -125,6 +125,9 @@ def summarize(log: TrialLog) -> dict:
     if config is None:
         out["warnings"] = [f"{why}: late and missed ticks counted at the defaults ({DEFAULT_RATE_HZ:g} Hz, "
                            f"{DEFAULT_LATE_TOLERANCE_MS:g} ms late), the estimator not re-run"]
+    size = specimen_size(log, out["peak_force_N"])
+    if size:
+        out["specimen_size"] = size
     hc = hold_check(log)
     if hc:
         out["estimator"]["hold_end"] = {"stiffness_N_per_m": hc.stiffness_N_per_m,
@@ -137,6 +140,26 @@ def summarize(log: TrialLog) -> dict:
         diff = float(np.max(np.abs(again - s["stiffness_N_per_m"])))
         out["estimator"]["rerun_max_diff_N_per_m"] = diff
         out["estimator"]["reproduced"] = bool(diff <= 1e-6 * max(1.0, float(np.max(np.abs(again)))))
+    return out
+
+
+def specimen_size(log: TrialLog, peak_force_N: float) -> dict:
+    """The specimen's dimensions the header keeps (rig.specs.specimen), and what they turn the
+    trial's figures into: with the area the peak stress (peak force / area, Pa), with the
+    thickness the peak strain (the deepest indentation from the surface / thickness); {} when
+    the header gives neither."""
+    from rig.specs.specimen import from_header
+
+    dims = from_header(log.trial)
+    if not dims:
+        return {}
+    out: dict = dict(dims)
+    if "area_mm2" in dims:
+        out["peak_stress_Pa"] = peak_force_N / (dims["area_mm2"] * 1e-6)
+    if "thickness_mm" in dims:
+        depth_mm = max(float(np.max(log.position_mm(Frame.SURFACE))), 0.0)
+        out["peak_indentation_mm"] = depth_mm
+        out["peak_strain"] = depth_mm / dims["thickness_mm"]
     return out
 
 
@@ -198,6 +221,16 @@ def format_summary(d: dict) -> str:
         f"{d['late_ticks']} late, {d['missed_ticks']} missed",
         f"peak force {d['peak_force_N']:.3f} N",
     ]
+    z = d.get("specimen_size")
+    if z:
+        given = [f"thickness {z['thickness_mm']:g} mm" if "thickness_mm" in z else "",
+                 f"area {z['area_mm2']:g} mm^2" if "area_mm2" in z else ""]
+        lines.append(f"size       {', '.join(g for g in given if g)}")
+        if "peak_stress_Pa" in z:
+            lines.append(f"stress     peak {z['peak_stress_Pa'] / 1e3:.4g} kPa (peak force / area)")
+        if "peak_strain" in z:
+            lines.append(f"strain     peak {z['peak_strain']:.4g} ({z['peak_indentation_mm']:.3f} mm deepest "
+                         "indentation / thickness)")
     for f in d["faults"]:
         lines.append(f"FAULT      t={f['t_s']:.2f} s: {f['message']}")
     for w in d.get("warnings", ()):
