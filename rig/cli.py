@@ -219,6 +219,12 @@ def cmd_check(args: argparse.Namespace) -> int:
         after_force = is_force
     if seek_s:
         info["force_seek_up_to_s"] = round(seek_s, 1)
+    from rig.control.calibration import calibration_warnings
+
+    cal_warnings = calibration_warnings(config, limits.max_force_N) if config.loadcell.backend != "none" else []
+    if config.calibration is not None:
+        info["calibration"] = {"date": config.calibration.date, "range_N": list(config.calibration.range_N),
+                               "warnings": cal_warnings}
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
@@ -243,6 +249,8 @@ def cmd_check(args: argparse.Namespace) -> int:
             1: "ramp-and-hold class: only f(t) = k x(t-1) is identifiable online"}.get(
         order, "rich enough for a model with more than one input lag")
     print(f"  excitation order {order} ({note})")
+    for w in cal_warnings:
+        print(f"  WARNING   {w}")
     return 0
 
 
@@ -336,6 +344,58 @@ def cmd_tare(args: argparse.Namespace) -> int:
           f"readings) saved in {r['path']}{was}")
     if r["config_zero_N"] is not None:
         print(f"note: the config's loadcell.zero_N ({r['config_zero_N']:g} N) takes precedence over it")
+    return 0
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from rig.control.calibration import (
+        calibration,
+        fit_calibration,
+        format_calibration,
+        measure,
+        read_readings_file,
+        save_calibration,
+    )
+    from rig.specs.config import load_config
+
+    if not args.config:
+        raise RigError("rig calibrate: give --config FILE: the calibration is saved into it (created if "
+                       "absent, the built-in simulated rig's defaults otherwise)")
+    path = Path(args.config)
+    config = load_config(path if path.exists() else None)
+    if args.readings:
+        lines = read_readings_file(args.readings)
+        given = [x for x in lines if x[1] is not None]
+        if given and len(given) != len(lines):
+            raise RigError(f"--readings {args.readings}: give a reading for every mass, or for none")
+        if given:
+            points = [(m, r, s or 0.0, n or 1) for m, r, s, n in lines]
+        else:
+            points = measure(config, [m for m, *_ in lines], args.seconds, lambda m: None, print)
+    else:
+        if not args.masses:
+            raise RigError("rig calibrate: give the masses in g (e.g. rig calibrate 200 500 1000 --config "
+                           "rig.yaml), or --readings FILE")
+        masses = [0.0, *args.masses]
+
+        def confirm(m: float) -> None:
+            what = ("take every mass off the probe (nothing touching it)" if m == 0
+                    else f"place {m:g} g on the probe")
+            try:
+                input(f"{what}, then press Enter: ")
+            except EOFError:
+                raise RigError("rig calibrate: cancelled (no confirmation)") from None
+
+        points = measure(config, masses, args.seconds, confirm, print)
+    cal = calibration(config, points, config.calibration)
+    fit = fit_calibration(cal.masses_g, cal.readings_N, [p[2] for p in points], [p[3] for p in points])
+    saved = save_calibration(path, cal)
+    if args.json:
+        from dataclasses import asdict
+
+        print(json.dumps({**asdict(cal), "deviations_N": fit["deviations_N"], "config": str(saved)}, indent=2))
+    else:
+        print(format_calibration(cal, fit, saved))
     return 0
 
 
@@ -807,6 +867,24 @@ def build_parser() -> argparse.ArgumentParser:
     _rig_config(r)
     r.add_argument("--seconds", type=float, default=1.0, help="how long to average (default 1 s)")
     r.set_defaults(func=cmd_tare)
+
+    r = sub.add_parser("calibrate", help="calibrate the load cell with known masses and save it in the config",
+                       description="Read the load cell empty and with each mass on the probe (you place each "
+                                   "and press Enter; the simulated rig places them itself), fit the line: "
+                                   "sensitivity, offset and linearity with their uncertainties, saved with the "
+                                   "date into the config's calibration: section. Every log's header carries "
+                                   "it; rig check and the log warn when it is older than "
+                                   "calibration.max_age_days or a force may go beyond the calibrated range.")
+    r.add_argument("masses", nargs="*", type=_positive_float, metavar="GRAMS",
+                   help="the masses, in g, placed one at a time (the empty probe is read first)")
+    r.add_argument("--config", help="the rig config to save the calibration into (created if absent)")
+    r.add_argument("--readings", metavar="FILE",
+                   help="a scripted run: one mass (g) a line, read without asking; or each mass with its "
+                        "reading (N, and optionally its std and count), fitted without the cell")
+    r.add_argument("--seconds", type=_positive_float, default=1.0,
+                   help="how long to read each mass (default 1 s)")
+    r.add_argument("--json", action="store_true")
+    r.set_defaults(func=cmd_calibrate)
 
     r = sub.add_parser("home", help="run the drive's return-to-home operation")
     _rig_config(r)

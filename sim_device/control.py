@@ -1,7 +1,8 @@
 """`rig sim`: serve the simulated devices on the wire until told to stop.
 
 Commands arrive on stdin as JSON lines: {"faults": {"drop_replies": 2}} switches faults
-(any field of `FaultParams`), {"status": true} prints the drive's state as a JSON line.
+(any field of `FaultParams`), {"loadcell": {"mass_g": 500}} puts a calibration mass on the
+load cell (and 0 takes it off), {"status": true} prints the drive's state as a JSON line.
 """
 
 from __future__ import annotations
@@ -17,6 +18,9 @@ from rig.sim.params import SimParams
 from rig.sim.server import WireSim, wire_note
 
 from rig.realtime import Realtime
+
+# what a command may change of the load cell while it serves: the mass resting on it
+LOADCELL_AT_RUN_TIME = ["mass_g"]
 
 
 def serve_sim(params: SimParams, *, loop_priority: int = 0, json_out: bool = False,
@@ -70,6 +74,11 @@ def serve_sim(params: SimParams, *, loop_priority: int = 0, json_out: bool = Fal
                 say({"error": f"unknown fault '{name}'", "known": sorted(fault_names)})
                 continue
             setattr(params.faults, name, value)
+        for name, value in (cmd.get("loadcell") or {}).items():
+            if name not in LOADCELL_AT_RUN_TIME:
+                say({"error": f"loadcell.{name} cannot be changed at run time", "known": LOADCELL_AT_RUN_TIME})
+                continue
+            setattr(params.loadcell, name, float(value))
         if cmd.get("status"):
             with sim.rig.lock:
                 sim.drive.sync()

@@ -9,6 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar
 
+STANDARD_GRAVITY = 9.80665  # m/s^2: a mass's weight on the cell (the conventional value, CGPM 1901)
+
 
 def _pos(**kw: float) -> dict:
     return {"metadata": kw}
@@ -72,6 +74,13 @@ class LoadCellParams:
     baudrate: int = field(default=115200, **_pos(gt=0))
     parity: str = field(default="N", metadata={"choices": ["N", "E", "O"]})
     stopbits: int = field(default=1, **_pos(ge=1, le=2))
+    # The cell's sensitivity: what it reads per newton on it (1: a perfectly calibrated cell);
+    # `rig calibrate` measures it with known masses.
+    gain: float = field(default=1.0, **_pos(gt=0, le=10))
+    # A calibration mass resting on the probe (g, weighing on the cell as a pressing force);
+    # switchable at run time (`rig sim`'s {"loadcell": {"mass_g": 500}}): the simulated
+    # technician's hand at `rig calibrate`.
+    mass_g: float = field(default=0.0, **_pos(ge=0))
 
 
 @dataclass

@@ -21,7 +21,7 @@ from collections import deque
 
 import numpy as np
 from rig.sim.material import Material
-from rig.sim.params import SimParams
+from rig.sim.params import STANDARD_GRAVITY, SimParams
 
 
 class SliderMotion:
@@ -290,7 +290,8 @@ class SimRig:
             if faults.loadcell_frozen or faults.loadcell_noiseless:
                 return self._faulty_reading(faults.loadcell_frozen, lc.resolution_N)
             self._stuck_N = None
-            value = self.sensor_force_N + (self.rng.normal(0.0, lc.noise_N) if lc.noise_N else 0.0)
+            value = lc.gain * (self.sensor_force_N + lc.mass_g * 1e-3 * STANDARD_GRAVITY) \
+                + (self.rng.normal(0.0, lc.noise_N) if lc.noise_N else 0.0)
             if lc.lowpass_Hz > 0:
                 value = self._lowpass(value, lc.lowpass_Hz)
         if lc.resolution_N:

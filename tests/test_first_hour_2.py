@@ -81,6 +81,7 @@ def test_the_simulated_relaxation2_is_configured_under_the_fitted_names():
 # --- 5. a day's trials as a table --------------------------------------------------------------
 
 ROOT = Path(__file__).resolve().parents[1]
+DEMO = ROOT / "protocols" / "demo.yaml"
 
 
 @pytest.fixture(scope="module")
@@ -212,3 +213,66 @@ def test_rig_start_sends_the_dimensions_with_the_start(monkeypatch, tmp_path, ca
     assert (sent[0]["thickness_mm"], sent[0]["area_mm2"]) == (4.5, 20.0)
     with pytest.raises(SystemExit):
         main(["start", str(ROOT / "protocols" / "demo.yaml"), "--thickness-mm", "-1"])
+
+
+# --- 3. the load cell's calibration: from readings, and its warnings -----------------------------
+
+def test_a_calibration_from_readings_taken_elsewhere_fits_the_line(tmp_path, capsys):
+    """Readings on a line of slope 0.98 with a known 10 mN bend at 500 g: the sensitivity, the
+    offset and the linearity come back (no cell is opened)."""
+    g = 9.80665
+    lines = [(m, 0.98 * m * 1e-3 * g + 0.05 + (0.01 if m == 500 else 0.0)) for m in (0, 250, 500, 750, 1000)]
+    (tmp_path / "r.txt").write_text("".join(f"{m} {r:.6f} 0.001 100\n" for m, r in lines))
+    cfg = tmp_path / "rig.yaml"
+    assert main(["calibrate", "--readings", str(tmp_path / "r.txt"), "--config", str(cfg), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["sensitivity"] == pytest.approx(0.98, rel=2e-3)
+    assert out["offset_N"] == pytest.approx(0.052, abs=3e-3)
+    assert out["linearity_N"] == pytest.approx(0.008 / 0.98, rel=0.05)  # the bend, less the line's share of it
+    assert out["linearity_pct"] == pytest.approx(100 * out["linearity_N"] / g, rel=1e-6)
+    from rig.specs.config import load_config
+
+    assert load_config(cfg).calibration.sensitivity == pytest.approx(out["sensitivity"], rel=1e-7)
+
+
+def _calibrated(tmp_path, date: str, top_N: float, max_age: float = 365) -> Path:
+    cfg = tmp_path / "rig.yaml"
+    cfg.write_text(f"recorder: {{out_dir: {tmp_path / 'trials'}}}\ncalibration:\n  date: \"{date}\"\n"
+                   f"  sensitivity: 1.0\n  range_N: [0, {top_N}]\n  max_age_days: {max_age}\n")
+    return cfg
+
+
+def test_an_old_calibration_is_warned_about_at_check_and_in_the_log(tmp_path, capsys):
+    from rig.recording.logs import read_log
+
+    cfg = _calibrated(tmp_path, "2025-01-02T10:00:00+00:00", 50.0, max_age=180)
+    assert main(["check", str(ROOT / "protocols" / "demo.yaml"), "--config", str(cfg)]) == 0
+    said = capsys.readouterr().out
+    assert "WARNING   the load cell's calibration is" in said
+    assert "beyond calibration.max_age_days (180)" in said
+    assert main(["run", str(DEMO), "--config", str(cfg), "--speed", "0", "--quiet"]) == 0
+    (log,) = (tmp_path / "trials").glob("*.mcap")
+    log = read_log(log)
+    assert "days old" in log.metadata["calibration"]["warnings"]
+    assert [e["kind"] for e in log.events if e["kind"].startswith("calibration")] == ["calibration_warning"]
+
+
+def test_a_force_beyond_the_calibrated_range_is_warned_about_at_check_and_in_the_log(tmp_path, capsys):
+    """The demo's ramp reaches about 1 N; calibrated up to 0.5 N, the log says when it passed it."""
+    from datetime import UTC, datetime
+
+    from rig.recording.logs import read_log
+
+    cfg = _calibrated(tmp_path, datetime.now(UTC).isoformat(), 0.5)
+    assert main(["check", str(ROOT / "protocols" / "demo.yaml"), "--config", str(cfg)]) == 0
+    assert "the force limit 20 N is beyond the calibrated range (0-0.5 N)" in capsys.readouterr().out
+    assert main(["run", str(DEMO), "--config", str(cfg), "--speed", "0", "--quiet"]) == 0
+    (path,) = (tmp_path / "trials").glob("*.mcap")
+    log = read_log(path)
+    (ev,) = [e for e in log.events if e["kind"].startswith("calibration")]
+    assert ev["kind"] == "calibration_range" and ev["data"]["force_N"] > 0.5
+    first = int(np.argmax(np.abs(log.samples["force_N"]) > 0.5))
+    assert ev["t_s"] == pytest.approx(log.samples["t_s"][first], abs=0.011)
+    capsys.readouterr()
+    assert main(["replay", str(path)]) == 0
+    assert "NOTICE     force" in capsys.readouterr().out

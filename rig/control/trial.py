@@ -276,6 +276,14 @@ class Trial:
                 "no free-air zero known for the load cell: this trial's tare is assumed to be taken "
                 "out of contact, so a preload at the start would not count against the force limit "
                 "(`rig tare` with the probe out of contact, or loadcell.zero_N, fixes that)")
+        # the load cell's calibration (`rig calibrate`): its age said now, a force beyond its range
+        # said once, when it comes (an event in the log and a notice)
+        from rig.control.calibration import calibration_warnings
+
+        self.calibration_warnings = calibration_warnings(config) if loadcell is not None else []
+        self.warnings += self.calibration_warnings
+        cal = config.calibration if loadcell is not None else None
+        self._cal_max_N = cal.range_N[1] if cal is not None and cal.range_N[1] > 0 else math.inf
         self._seq = self._late = self._missed = 0
         self._tick_times: list[float] = []
         self._t0: float | None = None
@@ -488,6 +496,13 @@ class Trial:
             "loadcell_zero_source": "" if self.loadcell is None else self.zero.source if self.zero else
             "none known: the tare is assumed to be taken out of contact", **info.extra,
         })
+        if self.loadcell is not None and self.config.calibration is not None:
+            from rig.control.calibration import header
+
+            rec.write_metadata("calibration", {**header(self.config.calibration),
+                                               "warnings": " | ".join(self.calibration_warnings)})
+        for w in self.calibration_warnings:
+            self._event(rec, 0.0, "calibration_warning", w)
         rec.attach("protocol.yaml", "application/yaml", self.proto.source_text.encode(), now_ns)
         rec.attach("config.yaml", "application/yaml", self.config.text().encode(), now_ns)
         if self.model is not None:
@@ -973,6 +988,8 @@ class Trial:
             error_N=est.error_N, forgetting=est.forgetting, contact=est.updated,
             step=seq.index, step_kind=kind, late_ms=round(k.lateness * 1000.0, 4), **model)
         self._emit(rec, SAMPLE.topic, self.clock.wall_ns(k.now), sample)
+        if abs(k.force) > self._cal_max_N:
+            self._beyond_calibration(rec, t, k.force)
         self._seq += 1
         if t >= L.next_health:
             self._health(rec, t, k.now, L.health_mark)
@@ -986,6 +1003,15 @@ class Trial:
             preload_N=L.preload_N, force_steps=self.snapshot.force_steps)
         if self.on_tick is not None:
             self.on_tick(self.snapshot)
+
+    def _beyond_calibration(self, rec: Recorder, t: float, force_N: float) -> None:
+        """A force beyond the calibrated range, the first time: said in the log and to the operator."""
+        cal = self.config.calibration
+        msg = (f"force {force_N:.4g} N beyond the load cell's calibrated range ({cal.range_N[0]:g}-"
+               f"{cal.range_N[1]:.4g} N, {cal.date[:10]}): read uncalibrated from here")
+        self._event(rec, t, "calibration_range", msg, {"force_N": force_N, "range_N": list(cal.range_N)})
+        self.notices.append(msg)
+        self._cal_max_N = math.inf
 
     def _send_stop(self, L: _Loop, t: float) -> bool:
         ok = self._safe_stop()

@@ -186,6 +186,31 @@ class LoadCellConfig:
 
 
 @dataclass
+class CalibrationConfig:
+    """The load cell's calibration with known masses, as `rig calibrate` saves it (its date, and
+    each figure with its standard uncertainty): the cell reads `sensitivity` per newton on it,
+    plus `offset_N`; `linearity_N` is the largest deviation of a mass's reading from that line
+    (in N of force; `linearity_pct` of the calibrated range `range_N`). Every log's header
+    carries it; one older than `max_age_days`, or a force beyond `range_N`, is warned about at
+    `rig check` and in the log."""
+
+    date: str = ""  # ISO 8601, UTC
+    cell: str = ""  # the load cell it was measured on (backend:port)
+    sensitivity: float = field(default=1.0, metadata={"gt": 0})
+    sensitivity_u: float = field(default=0.0, metadata={"ge": 0})
+    offset_N: float = 0.0
+    offset_u_N: float = field(default=0.0, metadata={"ge": 0})
+    linearity_N: float = field(default=0.0, metadata={"ge": 0})
+    linearity_u_N: float = field(default=0.0, metadata={"ge": 0})
+    linearity_pct: float = field(default=0.0, metadata={"ge": 0})
+    range_N: tuple[float, float] = (0.0, 0.0)
+    masses_g: list[float] = field(default_factory=list)
+    readings_N: list[float] = field(default_factory=list)
+    # older than this, `rig check` and every trial's log warn that the cell is due a calibration
+    max_age_days: float = field(default=365.0, metadata={"gt": 0})
+
+
+@dataclass
 class RecorderConfig:
     out_dir: str = "trials"
     flush_s: float = field(default=1.0, metadata={"gt": 0})
@@ -231,6 +256,8 @@ class RigConfig:
     # The probe's geometry as an indenter (e.g. cylinder:R=2mm, sphere:R=5mm): `rig analyze` reads
     # it from each log and fits moduli in Pa (the hertz model); "" leaves the models lumped.
     probe: str = ""
+    # The load cell's calibration (`rig calibrate` writes it here); none: never calibrated.
+    calibration: CalibrationConfig | None = None
     source_text: str = field(default="", repr=False, compare=False)
     source_path: str = field(default="<built-in simulated rig>", repr=False, compare=False)
 

@@ -125,6 +125,8 @@ def summarize(log: TrialLog) -> dict:
     if config is None:
         out["warnings"] = [f"{why}: late and missed ticks counted at the defaults ({DEFAULT_RATE_HZ:g} Hz, "
                            f"{DEFAULT_LATE_TOLERANCE_MS:g} ms late), the estimator not re-run"]
+    if "calibration" in log.metadata:
+        out["calibration"] = dict(log.metadata["calibration"])
     size = specimen_size(log, out["peak_force_N"])
     if size:
         out["specimen_size"] = size
@@ -206,7 +208,8 @@ def _missed(s: dict, rate_Hz: float) -> int:
 
 
 # the events a completed trial's operator is told of (`TrialResult.notices`)
-NOTICE_EVENTS = ("force_step_warning", "setpoint_missed", "force_limit_depth", "force_depth_budget")
+NOTICE_EVENTS = ("force_step_warning", "setpoint_missed", "force_limit_depth", "force_depth_budget",
+                 "calibration_warning", "calibration_range")
 
 
 def format_summary(d: dict) -> str:
@@ -221,6 +224,11 @@ def format_summary(d: dict) -> str:
         f"{d['late_ticks']} late, {d['missed_ticks']} missed",
         f"peak force {d['peak_force_N']:.3f} N",
     ]
+    c = d.get("calibration")
+    if c:
+        lines.append(f"calibrated {c.get('date', '?')[:10]}: sensitivity {c.get('sensitivity')} +/- "
+                     f"{c.get('sensitivity_u')}, linearity {c.get('linearity_N')} N "
+                     f"({c.get('linearity_pct')} % of {c.get('range_N', '').replace(' ', '-')} N)")
     z = d.get("specimen_size")
     if z:
         given = [f"thickness {z['thickness_mm']:g} mm" if "thickness_mm" in z else "",
