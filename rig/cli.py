@@ -600,10 +600,10 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     options = ReadOptions(spring_constant_N_per_m=args.spring_constant, sensitivity_m_per_V=args.sensitivity)
     if is_batch(args.inputs, args.curve, args.each, options):
         return cmd_analyze_each(args)
-    for flag in ("table", "resume", "workers", "scheduler"):
-        if getattr(args, flag):
-            raise RigError(f"--{flag} is for a batch (--each, a folder, a glob or a map file alone): "
-                           "one record gives one analysis")
+    for flag in ("table", "resume", "workers", "scheduler", "min_quality"):
+        if getattr(args, flag) not in (None, False):
+            raise RigError(f"--{flag.replace('_', '-')} is for a batch (--each, a folder, a glob or a map file "
+                           "alone): one record gives one analysis")
     design_config = _design_args(args)  # refused before the long work, not after it
     done = analyze(AnalyzeRequest(
         inputs=args.inputs, model=args.model, add=args.add or [], holdout=args.holdout or [],
@@ -634,6 +634,8 @@ def cmd_analyze_each(args: argparse.Namespace) -> int:
                        "(give one record, or --curve N of a map, to use it)")
     if args.resume and not args.table:
         raise RigError("--resume continues the table of an earlier batch: give it with --table")
+    if args.min_quality is not None and not 0 <= args.min_quality <= 10:
+        raise RigError(f"--min-quality {args.min_quality:g}: a quality is rated from 0 to 10")
     if args.workers is not None and args.scheduler:
         raise RigError("--workers sets local processes; with --scheduler the cluster's workers do the work")
     req = BatchRequest(model=args.model, add=tuple(args.add or ()), plugins=tuple(args.plugin or ()),
@@ -642,12 +644,13 @@ def cmd_analyze_each(args: argparse.Namespace) -> int:
                        block=args.block)
     res = run_each(args.inputs, req, table=args.table, resume=args.resume, workers=args.workers,
                    scheduler=args.scheduler, progress=not args.json or sys.stderr.isatty())
-    summary = format_summary(res, req)
+    summary = format_summary(res, req, args.min_quality)
     if args.report:
-        from rig.analysis.each import parameters
+        from rig.analysis.each import parameters, passes
         from rig.analysis.map_report import write_map_report
 
-        summary += f"\nreport: {write_map_report(res.rows, args.report, parameters(res.rows), summary)}"
+        kept = [r for r in res.rows if passes(r, args.min_quality)]
+        summary += f"\nreport: {write_map_report(kept, args.report, parameters(kept), summary)}"
     if args.json:
         for r in res.rows:
             print(json.dumps(jsonable(r)))
@@ -1071,6 +1074,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write one row per curve to OUT (.csv, .jsonl, or .parquet with the table extra): "
                         "position, parameters with standard errors, contact, RMSE over noise, verdict, why a "
                         "curve failed")
+    b.add_argument("--min-quality", type=float, metavar="Q",
+                   help="leave curves rated below Q (0-10: contact, fit over noise, baseline, artefacts; the "
+                        "table's quality column) out of the summary's statistics and the report's maps; the "
+                        "table keeps them all")
     b.add_argument("--resume", action="store_true",
                    help="keep the rows of an interrupted (or finished) batch in --table and do only the rest")
     b.add_argument("--workers", type=_positive_int, metavar="N",

@@ -4,6 +4,7 @@ type back, to find kept with a trial, and to read off a day's trials; each with 
 from __future__ import annotations
 
 import json
+import math
 import re
 from pathlib import Path
 
@@ -276,3 +277,64 @@ def test_a_force_beyond_the_calibrated_range_is_warned_about_at_check_and_in_the
     capsys.readouterr()
     assert main(["replay", str(path)]) == 0
     assert "NOTICE     force" in capsys.readouterr().out
+
+
+# --- 6. a quality rating per curve, and a filter on it ------------------------------------------
+
+def _analysis(*, cp_u=1e-9, cp_sys=0.0, depth=1e-7, r=1.0, touched=500, samples=1000, caveats=(), notes=(),
+              warnings=(), contact=True):
+    rec = {"samples": samples, "notes": list(notes)}
+    if contact:
+        rec.update(contact_point_m=1e-6, contact_point_m_stderr=cp_u)
+    return {"records": [rec], "material": {"caveats": list(caveats), "contact_point_m_sys": cp_sys},
+            "scales": {"length_m": depth}, "fit": {"rmse_over_noise": r},
+            "phases": {"ramp": {"n": touched}, "hold_early": None}, "warnings": list(warnings)}
+
+
+def test_the_quality_rating_follows_its_documented_rule():
+    from rig.analysis.quality import rate
+
+    assert rate(_analysis()) == (10.0, {"contact": 3.0, "fit": 4.0, "baseline": 2.0, "artefacts": 1.0})
+    # each part at its other end
+    assert rate(_analysis(cp_u=3e-8))[1]["contact"] == 0.0  # 30 % of the indentation
+    assert rate(_analysis(cp_u=1e-9, cp_sys=3e-8))[1]["contact"] == 0.0  # the systematic error counts
+    assert rate(_analysis(r=5.0))[1]["fit"] == 0.0
+    assert rate(_analysis(touched=960))[1]["baseline"] == 0.0  # 4 % out of contact ...
+    assert rate(_analysis(touched=960))[1]["contact"] == 0.0  # ... and the contact point not seen
+    assert rate(_analysis(touched=5))[1]["baseline"] == 0.0  # 99.5 % out of contact: barely indented
+    assert rate(_analysis(caveats=["no spring constant"]))[1]["artefacts"] == 0.5
+    assert rate(_analysis(caveats=["a"], warnings=["physics: a law that pulls"]))[1]["artefacts"] == 0.0
+    assert rate(_analysis(), effect="power_elastic")[1]["artefacts"] == 0.5
+    assert rate(_analysis(contact=False))[1]["contact"] == 3.0  # the record knows its surface
+    # between the ends: log-linear (contact, fit), linear (baseline)
+    parts = rate(_analysis(cp_u=math.sqrt(0.01 * 0.30) * 1e-7, r=math.sqrt(1.1 * 5.0), touched=825))[1]
+    assert parts["contact"] == pytest.approx(1.5) and parts["fit"] == pytest.approx(2.0)
+    assert parts["baseline"] == pytest.approx(2 * (0.175 - 0.05) / 0.25)
+
+
+@pytest.mark.skipif(not AFM.exists(), reason="the shared AFM curves are not beside the project")
+def test_batch_tables_rate_every_curve_and_min_quality_filters_the_summary_and_report(tmp_path, capsys):
+    import csv
+
+    args = ["analyze", str(AFM / "fmt-jpk-fd_map2x2_extracted.jpk-force-map"), "--model", "hertz", "--indenter",
+            "paraboloid:R=10um", "--segment", "approach", "--workers", "2"]
+    assert main([*args, "--table", str(tmp_path / "all.csv")]) == 0
+    capsys.readouterr()
+    with open(tmp_path / "all.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    q = {int(r["curve"]): float(r["quality"]) for r in rows}
+    assert all(0 <= v <= 10 for v in q.values()) and all("contact" in r["quality_parts"] for r in rows)
+    cut = sorted(q.values())[1] + 0.05  # two curves below it, two at or above
+    kept = sorted(c for c, v in q.items() if v >= cut)
+    assert main([*args, "--table", str(tmp_path / "cut.csv"), "--min-quality", f"{cut:g}", "--report",
+                 str(tmp_path / "rep")]) == 0
+    said = capsys.readouterr().out
+    assert f"quality >= {cut:g} (of 10): 2 of 4 curves kept" in said
+    assert "(2 curves)" in said and "(4 curves)" not in said  # the parameters' statistics: the kept ones
+    with open(tmp_path / "cut.csv", newline="") as fh:
+        assert len(list(csv.DictReader(fh))) == 4  # the table keeps every curve
+    assert (tmp_path / "rep" / "map1_quality.png").exists()
+    assert "2 of 4 curves kept" in (tmp_path / "rep" / "report.md").read_text()
+    assert len(kept) == 2
+    assert main(["analyze", str(SPOT), "--min-quality", "5"]) != 0
+    assert "--min-quality is for a batch" in capsys.readouterr().err

@@ -281,6 +281,10 @@ def _analyze(c: Curve, rec: Any, req: BatchRequest, read_s: float) -> dict:
         row["effect"] = d.get("best") or ""
         row["effect_dbic"] = next((s["delta_bic"] for s in out.get("suggestions", [])
                                    if s["effect"] == d.get("best")), None)
+    from rig.analysis.quality import describe, rate
+
+    row["quality"], parts = rate(out, row.get("effect") or "")
+    row["quality_parts"] = describe(parts)
     row.update(error="", _read_s=read_s, _fit_s=time.perf_counter() - t0)
     return row
 

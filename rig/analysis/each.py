@@ -168,14 +168,31 @@ def _n(count: int, what: str) -> str:
     return f"{count} {what}" if count == 1 else f"{count} {what}s"
 
 
-def format_summary(res: EachResult, req: BatchRequest) -> str:
+def passes(r: dict, min_quality: float | None) -> bool:
+    """Whether a row counts at `min_quality` (None: every row does): an analysed curve rated at
+    least that (rig.analysis.quality)."""
+    if min_quality is None:
+        return True
+    q = r.get("quality")
+    try:
+        return not r.get("error") and float(q) >= min_quality
+    except (TypeError, ValueError):
+        return False
+
+
+def format_summary(res: EachResult, req: BatchRequest, min_quality: float | None = None) -> str:
+    """The batch's summary; with `min_quality`, its statistics over the curves rated at least
+    that (the counts of curves analysed and failed stay the batch's)."""
     rows = res.analysed
     ok = [r for r in rows if not r.get("error")]
+    analysed = len(ok)
+    if min_quality is not None:
+        ok = [r for r in ok if passes(r, min_quality)]
     files = len({r["file"] for r in rows})
     new = len(rows) - res.resumed
     lines = [f"{_n(res.curves, 'curve')} from {_n(files, 'file')}, model {req.model}"
              + (f" (+{', +'.join(req.add)})" if req.add else "")
-             + f": {len(ok)} analysed, {len(res.failed)} could not be"
+             + f": {analysed} analysed, {len(res.failed)} could not be"
              + (f"; {res.resumed} kept from the earlier run" if res.resumed else "")
              + (f"; {res.seconds:.1f} s ({_n(new, 'curve')} at {new / max(res.seconds, 1e-9):.3g}/s)" if new
                 else "; nothing left to do")]
@@ -185,6 +202,12 @@ def format_summary(res: EachResult, req: BatchRequest) -> str:
         shown = ", ".join(Path(f).name for f in res.skipped[:6]) + (", ..." if len(res.skipped) > 6 else "")
         lines.append(f"  skipped {_n(len(res.skipped), 'file')} in the folders given that are not records: "
                      f"{shown}")
+    if min_quality is not None:
+        qs = [float(r["quality"]) for r in rows if not r.get("error") and r.get("quality") not in (None, "")]
+        left = analysed - len(ok)
+        lines.append(f"  quality >= {min_quality:g} (of 10): {len(ok)} of {analysed} curves kept for the "
+                     f"statistics below and the report ({left} left out; the table keeps them all)"
+                     + (f"; quality median {statistics.median(qs):.3g}" if qs else ""))
     read = sum(r.get("_read_s", 0.0) for r in rows)
     fitted = sum(r.get("_fit_s", 0.0) for r in rows)
     if read + fitted > 0:

@@ -118,6 +118,8 @@ def display(col: str) -> tuple[float, str]:
         return 1e3, f"{col[:-3]} (kPa)"
     if col == "rmse_over_noise":
         return 1.0, "RMSE / noise"
+    if col == "quality":
+        return 1.0, "quality (0-10)"
     if col == CONTACT_HEIGHT:
         return UM, "contact height (µm)"
     return 1.0, col
@@ -263,6 +265,8 @@ def write_map_report(rows: list[dict], out_dir: str | Path, params: list[str], s
     for r in rows:
         by_file.setdefault(str(r["file"]), []).append(r)
     shown = [p for p in params if not p.startswith(("x_c_m", "offset_N"))] + ["rmse_over_noise"]
+    if any(r.get("quality") not in (None, "") for r in rows):
+        shown.append("quality")
     if height_from:
         shown.append(CONTACT_HEIGHT)
     for k, (f, fr) in enumerate(by_file.items()):

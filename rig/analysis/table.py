@@ -12,7 +12,23 @@ with its statistical error (the noise's, given the model: `E_Pa_stat`) and, for 
 systematic error (how far the fit's range and baseline move it beyond their noise: `E_Pa_sys`;
 rig.analysis.systematic), `contact_point_m` with the same two, the
 error and the noise (`rmse_N`, `noise_N`, `rmse_over_noise`), `adequate`, with `--explain` the
-missing effect and its dBIC, and `error`: why a curve could not be analysed (empty otherwise).
+missing effect and its dBIC, the curve's `quality` and its `quality_parts`, and `error`: why a
+curve could not be analysed (empty otherwise).
+
+`quality` rates a curve from 0 (unusable) to 10 (clean), the sum of four parts (rig.analysis.quality;
+docs/explanation/quality.md), each measured, none trained:
+
+- contact, 0-3: the contact point's uncertainty (statistical and systematic combined) over the
+  indentation past it: 3 at 1 % or less, 0 at 30 % or more, log-linear between (3 where the record
+  knows its surface; 0 where less than 5 % of the curve is out of contact);
+- fit, 0-4: `rmse_over_noise`: 4 at 1.1 or less, 0 at 5 or more, log-linear between;
+- baseline, 0-2: the share of the curve's samples out of contact: 2 from 30 % to 90 %, falling
+  linearly to 0 at 5 % and at 99 %;
+- artefacts, 0-1: 1 with nothing named, 0.5 with one, 0 with more: the reader's caveats, a curve
+  that starts in contact, the effect `--explain` names missing, a physics warning of the fit.
+
+`rig analyze --each --min-quality Q` keeps the table whole and leaves the curves rated below Q
+out of the summary's statistics and the report's maps and histograms.
 """
 
 from __future__ import annotations
@@ -28,7 +44,8 @@ from rig.errors import RigError
 
 PLACE = ["file", "curve", "x_m", "y_m", "grid_x", "grid_y"]
 TAIL = ["contact_point_m", "contact_point_m_stat", "contact_point_m_sys", "rmse_N", "noise_N",
-        "rmse_over_noise", "adequate", "segment", "caveats", "effect", "effect_dbic", "error"]
+        "rmse_over_noise", "adequate", "segment", "caveats", "effect", "effect_dbic", "quality",
+        "quality_parts", "error"]
 FORMATS = {".csv": "csv", ".jsonl": "jsonl", ".json": "jsonl", ".parquet": "parquet"}
 
 
