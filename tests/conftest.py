@@ -32,7 +32,7 @@ CLOCK_MODULES = {
     "test_loop_seams", "test_mbpoll", "test_model_loop", "test_ownership", "test_paced_wire",
     "test_ports", "test_preload", "test_probe", "test_recording_seams", "test_safety", "test_soak",
     "test_spy", "test_stop_anytime", "test_trial", "test_wire", "test_daemon_characterize", "test_pages_clock",
-    "test_daemon_stops", "test_web", "test_calibrate",
+    "test_daemon_stops", "test_web", "test_calibrate", "test_newcomer",
 }
 
 
