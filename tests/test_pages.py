@@ -23,6 +23,10 @@ SHOWN_NOT_RUN = {
         "installing the systemd unit needs root and systemd (tests/test_daemon.py checks the "
         "daemon's readiness and watchdog notifications on a socket of its own)",
     ("dask-cluster.md", "python3 -m pip install '.[cluster,afm]'"): "installing the extras",
+    ("web.md", "python3 -m pip install '.[web]'"): "installing the extra (tests/test_web.py runs rig web)",
+    ("calibrate.md", "rig calibrate 200 500 1000 --config rig.yaml"):
+        "interactive: it waits for the technician to place each mass (tests/test_calibrate.py runs it on "
+        "the simulated rig, scripted)",
 }
 
 
