@@ -69,7 +69,7 @@ def test_negative_damping_comes_from_the_record_not_the_tissue(seed, tmp_path, c
             res = _fit(rec, model, capsys)
             assert _damping(res) > 0, (rec, model, res["parameters"])
             assert res["parameters"]["eta_N_s_per_m"]["value"] > 0
-            assert not any("negative" in w for w in res["warnings"])
+            assert not any("negative" in w for w in res["warnings"]), res["warnings"]
     # 10 s into the hold: negative, and the fit says it is meaningless
     voigt_cut = []
     for rec in (marked["cut"], behind["cut"]):
@@ -87,5 +87,7 @@ def test_negative_damping_comes_from_the_record_not_the_tissue(seed, tmp_path, c
     for rec in (marked["cut"], behind["cut"]):
         res = _fit(rec, "proposed", capsys)
         tau2.append(res["parameters"]["tau2_N_s_per_m2"]["value"])
-        assert tau2[-1] > 0 and not any("negative" in w for w in res["warnings"])
+        # (its damping: the elastic cubic may be flagged on a 10 s cut, `rig.analysis.fit.physics`)
+        said = res["warnings"]
+        assert tau2[-1] > 0 and not any("tau2" in w and "negative" in w for w in said), said
     assert abs(tau2[0] / TAU2 - 1) < 0.1  # and, with the contact where it is marked, the simulator's own

@@ -522,30 +522,7 @@ def _where_it_is(J: np.ndarray, r: np.ndarray, rest: _AtRest, rng: _LazyRandom,
     var = max(there.std_N ** 2, var_rest)
     if louder is not None:
         louder.append(math.sqrt(var / var_rest) if var_rest > 0 else 1.0)
-    slow = _slow_noise_meat(J[q:], r[q:], rng)
-    if slow is not None:
-        # the stretch's own slow part is shaped as a noise's, not a misfit's: a noise correlated
-        # over more samples than the short lags reach (an AR(1) at 0.95 in contact was read at
-        # 0.66 of its scatter from them), counted by prewhitening as the residual's own is
-        return meat + slow
     return meat + _spectral_meat(J[q:], phi, var / _unit_variance(phi))
-
-
-def _slow_noise_meat(J: np.ndarray, r: np.ndarray, rng: _LazyRandom) -> np.ndarray | None:
-    """The prewhitened HAC meat of a stretch whose slow part is shaped as a noise's (a walk's 1/f^2
-    past its lowest components: `_shape_refutes` does not refute it), or None where it is not."""
-    if len(r) < 4 * MIN_SAMPLES:
-        return None
-    Q = _basis(J)
-    u = r - Q @ (Q.T @ r)
-    basis = _walk_basis(u, Q)
-    _, _, s_eta = _level(u, Q, basis)
-    if not s_eta > 0.0 or _shape_refutes(basis, Q.shape[1], s_eta):
-        return None
-    phi, _ = _prewhitening(u, Q, rng)
-    e = _whiten(J * r[:, None], phi)
-    M, _ = bandwidth(e)
-    return _bartlett_meat(e, M) / (1.0 - float(phi.sum())) ** 2
 
 
 def _unit_variance(phi: np.ndarray) -> float:
