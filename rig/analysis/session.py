@@ -124,10 +124,11 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         boot = bootstrap(res, req.bootstrap, progress=req.progress)
         out["bootstrap"] = boot.as_dict()
     profiled = None
+    # --profile's names, or None: the parameters that trade off
+    asked = req.profile if isinstance(req.profile, list) and req.profile else None
     if req.profile is not None and req.profile is not False:
         from rig.analysis.profile import intervals
 
-        asked = req.profile if isinstance(req.profile, list) and req.profile else None
         if asked:
             unknown = [n for n in asked if n not in res.values]
             if unknown:
@@ -189,7 +190,7 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     if profiled is not None:
         from rig.analysis.profile import format_intervals
 
-        parts.append(format_intervals(profiled, res, asked=bool(isinstance(req.profile, list) and req.profile)))
+        parts.append(format_intervals(profiled, res, asked=asked is not None))
     if boot is not None:
         from rig.analysis.bootstrap import format_bootstrap
 

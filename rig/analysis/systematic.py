@@ -123,14 +123,13 @@ def _choices(res: FitResult) -> list[tuple[str, int, int]]:
     zero = float(pred[0])
     peak = int(np.argmax(f - zero))
     rise = f[:peak + 1] - zero
+    contact = _contact_index(res)
     out = []
     for share in DEPTH_SHARES:
         end = int(np.argmax(rise >= share * rise[-1])) + 1 if rise[-1] > 0 else 0
         # before the contact the fit has nothing to say about the modulus
-        contact = _contact_index(res)
         if end - contact >= MIN_SAMPLES and end < t.n:
             out.append((f"to {share * 100:.0f} % of peak", 0, end))
-    contact = _contact_index(res)
     if contact >= 2 * MIN_SAMPLES:
         out.append(("baseline halved", contact // 2, t.n))
     return out

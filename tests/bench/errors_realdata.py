@@ -10,13 +10,14 @@ much wider the reported interval is than the statistical one alone. A markdown t
 from __future__ import annotations
 
 import sys
-from dataclasses import replace
 from pathlib import Path
 
+from rig.analysis.analyze import load_inputs
 from rig.analysis.fit import fit
 from rig.analysis.session import AnalyzeRequest, analyze
 from rig.analysis.systematic import cut, interval, systematic
 from rig.errors import RigError
+from rig.models.catalogue import build_model
 from rig.records import ReadOptions, list_curves
 
 ROOT = Path(__file__).resolve().parents[3] / "shared" / "realdata"
@@ -42,20 +43,13 @@ def row(path: Path, curve: int) -> str:
     m = out.json["material"]
     lo, hi = m["E_Pa_interval"]
     # each refit with its own errors: the fit on the cut samples, and its own systematic error
-    from rig.analysis.analyze import load_inputs
-    from rig.models.catalogue import build_model
-
     inp = load_inputs([str(path)], [], [], ReadOptions(curve=curve, **o), indenter=INDENTER, segment="approach")
     res = fit(build_model("hertz", registry=inp.registry), inp.trials)
     cells = []
-    for share_choice in m["E_Pa_refits"]:
-        if "% of peak" not in share_choice["choice"]:
+    for c in systematic(res).choices:
+        if "% of peak" not in c.name:
             continue
-        found = systematic(res)
-        c = next(c for c in found.choices if c.name == share_choice["choice"])
-        t = res.trials[0]
-        part = cut(t, 0, c.samples)
-        sub = fit(res.model, [replace(part)], starts=1, initial=res.values)
+        sub = fit(res.model, [cut(res.trials[0], 0, c.samples)], starts=1, initial=res.values)
         sub_sys = systematic(sub)
         iv = interval(sub.values["E_Pa"], sub.stderr["E_Pa"], sub_sys.error["E_Pa"] if sub_sys else 0.0)
         overlap = iv is not None and iv[0] <= hi and iv[1] >= lo
