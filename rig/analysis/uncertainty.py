@@ -140,13 +140,19 @@ def _integral_scale(phi: np.ndarray) -> float:
         return 1.0
     if np.any(np.abs(np.roots(np.r_[1.0, -phi])) >= 1.0):
         return math.inf
-    # gamma_k - sum_j phi_j gamma_|k-j| = sigma^2 [k == 0], k = 0..q, with sigma^2 = 1
+    gamma0 = _autocovariance_unit(phi)[0]
+    return float(1.0 / ((1.0 - phi.sum()) ** 2 * gamma0)) if gamma0 > 0 else math.inf
+
+
+def _autocovariance_unit(phi: np.ndarray) -> np.ndarray:
+    """gamma_0..gamma_q of the stationary AR(phi) of unit innovation variance, from the Yule-Walker
+    equations gamma_k - sum_j phi_j gamma_|k-j| = [k == 0], k = 0..q."""
+    q = len(phi)
     A = np.eye(q + 1)
     for k in range(q + 1):
         for j in range(1, q + 1):
             A[k, abs(k - j)] -= phi[j - 1]
-    gamma0 = np.linalg.solve(A, np.eye(q + 1)[0])[0]
-    return float(1.0 / ((1.0 - phi.sum()) ** 2 * gamma0)) if gamma0 > 0 else math.inf
+    return np.linalg.solve(A, np.eye(q + 1)[0])
 
 
 def _bounded(phi: np.ndarray, m: int) -> tuple[np.ndarray, bool]:
@@ -277,11 +283,7 @@ def _ar_reml(r: np.ndarray, Q: np.ndarray, phi: np.ndarray) -> float:
     X = np.column_stack([r, Q])
     if q == 0:
         return _reml(X, 0.0, Q.shape[1])
-    A = np.eye(q + 1)
-    for k in range(q + 1):
-        for j in range(1, q + 1):
-            A[k, abs(k - j)] -= phi[j - 1]
-    gamma = np.linalg.solve(A, np.eye(q + 1)[0])
+    gamma = _autocovariance_unit(phi)
     G = gamma[np.abs(np.subtract.outer(np.arange(q), np.arange(q)))]
     try:
         c = np.linalg.cholesky(G)
@@ -530,11 +532,7 @@ def _unit_variance(phi: np.ndarray) -> float:
     q = len(phi)
     if q == 0:
         return 1.0
-    A = np.eye(q + 1)
-    for k in range(q + 1):
-        for j in range(1, q + 1):
-            A[k, abs(k - j)] -= phi[j - 1]
-    g = float(np.linalg.solve(A, np.eye(q + 1)[0])[0])
+    g = float(_autocovariance_unit(phi)[0])
     return g if g > 0 and math.isfinite(g) else 1.0
 
 
