@@ -324,17 +324,21 @@ def test_batch_tables_rate_every_curve_and_min_quality_filters_the_summary_and_r
         rows = list(csv.DictReader(fh))
     q = {int(r["curve"]): float(r["quality"]) for r in rows}
     assert all(0 <= v <= 10 for v in q.values()) and all("contact" in r["quality_parts"] for r in rows)
-    cut = sorted(q.values())[1] + 0.05  # two curves below it, two at or above
-    kept = sorted(c for c, v in q.items() if v >= cut)
+    # a cut between two distinct ratings (the table's ratings are rounded, so two curves can tie)
+    v = sorted(set(q.values()))
+    assert len(v) >= 2, f"the four curves rate alike ({q}): nothing to filter"
+    cut = round((v[0] + v[1]) / 2, 3)
+    kept = sorted(c for c, x in q.items() if x >= cut)
+    n = len(kept)
     assert main([*args, "--table", str(tmp_path / "cut.csv"), "--min-quality", f"{cut:g}", "--report",
                  str(tmp_path / "rep")]) == 0
     said = capsys.readouterr().out
-    assert f"quality >= {cut:g} (of 10): 2 of 4 curves kept" in said
-    assert "(2 curves)" in said and "(4 curves)" not in said  # the parameters' statistics: the kept ones
+    assert f"quality >= {cut:g} (of 10): {n} of 4 curves kept" in said
+    assert f"({n} curves)" in said and "(4 curves)" not in said  # the parameters' statistics: the kept ones
     with open(tmp_path / "cut.csv", newline="") as fh:
         assert len(list(csv.DictReader(fh))) == 4  # the table keeps every curve
     assert (tmp_path / "rep" / "map1_quality.png").exists()
-    assert "2 of 4 curves kept" in (tmp_path / "rep" / "report.md").read_text()
-    assert len(kept) == 2
+    assert f"{n} of 4 curves kept" in (tmp_path / "rep" / "report.md").read_text()
+    assert 1 <= n <= 3
     assert main(["analyze", str(SPOT), "--min-quality", "5"]) != 0
     assert "--min-quality is for a batch" in capsys.readouterr().err
