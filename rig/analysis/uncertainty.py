@@ -113,6 +113,12 @@ def _bartlett_meat(g: np.ndarray, M: int) -> np.ndarray:
 
 def _ar_order(r: np.ndarray, pmax: int) -> int:
     """AR order of `r` by BIC over 0..pmax, every order fitted by least squares on the same samples."""
+    return int(np.argmin(_ar_orders_bic(r, pmax, 0)))
+
+
+def _ar_orders_bic(r: np.ndarray, pmax: int, extra: int) -> np.ndarray:
+    """BIC of the AR orders 0..pmax of `r` (each fitted by least squares on the same samples), with
+    `extra` further parameters counted in each."""
     n = len(r)
     X = np.column_stack([r[pmax - k:n - k] for k in range(1, pmax + 1)] + [r[pmax:]])
     G = X.T @ X
@@ -121,7 +127,7 @@ def _ar_order(r: np.ndarray, pmax: int) -> int:
     # the last column of the Cholesky factor holds the residual of every nested fit at once
     rss = np.maximum(np.cumsum(R[::-1, -1] ** 2)[::-1], np.finfo(float).tiny)
     m = n - pmax
-    return int(np.argmin(m * np.log(rss / m) + np.log(m) * np.arange(pmax + 1)))
+    return m * np.log(rss / m) + np.log(m) * (np.arange(pmax + 1) + extra)
 
 
 def _ar_fit(R: np.ndarray, q: int) -> np.ndarray:
@@ -182,7 +188,8 @@ class _LazyRandom:
         return self._rng.normal(size=shape)
 
 
-def _prewhitening(r: np.ndarray, Q: np.ndarray, rng: _LazyRandom) -> tuple[np.ndarray, bool]:
+def _prewhitening(r: np.ndarray, Q: np.ndarray, rng: _LazyRandom,
+                  order: int | None = None) -> tuple[np.ndarray, bool]:
     """AR coefficients of the noise under the residual `r` of one trial, its order by BIC.
 
     Least squares on a fitted residual is biased towards white: the fit took the model's
@@ -192,7 +199,7 @@ def _prewhitening(r: np.ndarray, Q: np.ndarray, rng: _LazyRandom) -> tuple[np.nd
     simulated from the coefficients, projected off the same directions and refitted, and the
     coefficients moved by the difference (indirect inference, a fixed number of draws)."""
     m = len(r)
-    q = _ar_order(r, min(MAX_AR_ORDER, m // 10))
+    q = _ar_order(r, min(MAX_AR_ORDER, m // 10)) if order is None else order
     if q == 0:
         return np.zeros(0), False
     observed = _ar_fit(r[None, :], q)[0]
@@ -489,9 +496,8 @@ def _shape_refutes(basis: tuple[np.ndarray, np.ndarray], k: int, s_eta: float) -
 
 def _misfit_meat(J: np.ndarray, r: np.ndarray, rng: _LazyRandom) -> np.ndarray:
     """J^T Sigma J for the noise under a residual that holds a misfit, with no stretch at rest to
-    measure it on: the noise `_in_contact` finds under the whole residual."""
-    phi, var = _in_contact(J, r, rng)
-    return _spectral_meat(J, phi, var / _unit_variance(phi))
+    measure it on: the noises `_in_contact` finds under the whole residual."""
+    return sum(w * _spectral_meat(J, phi, var / _unit_variance(phi)) for w, phi, var in _in_contact(J, r, rng))
 
 
 def _where_it_is(J: np.ndarray, r: np.ndarray, rest: _AtRest, rng: _LazyRandom,
@@ -518,17 +524,22 @@ def _where_it_is(J: np.ndarray, r: np.ndarray, rest: _AtRest, rng: _LazyRandom,
     if len(r) - c < MIN_SAMPLES:
         return meat + _spectral_meat(J[c:], at_rest, s2_rest) if len(r) > c else meat
     var_rest = s2_rest * _unit_variance(at_rest)
-    phi, var = _in_contact(J[c:], r[c:], rng)
-    # never quieter than at rest, but in the contact's own spectrum: measured on the longer stretch
-    # it is the surer (a rest of 124 samples read an AR whose long-run variance was 3.7x the
-    # white noise's, and lent to the contact it took the errors with it)
-    var = max(var, var_rest)
+    level = 0.0
+    for w, phi, var in _in_contact(J[c:], r[c:], rng):
+        # never quieter than at rest, but in the contact's own spectrum: measured on the longer
+        # stretch it is the surer (a rest of 124 samples read an AR whose long-run variance was 3.7x
+        # the white noise's, and lent to the contact it took the errors with it)
+        var = max(var, var_rest)
+        level += w * var
+        meat = meat + w * _spectral_meat(J[c:], phi, var / _unit_variance(phi))
     if louder is not None:
-        louder.append(math.sqrt(var / var_rest) if var_rest > 0 else 1.0)
-    return meat + _spectral_meat(J[c:], phi, var / _unit_variance(phi))
+        louder.append(math.sqrt(level / var_rest) if var_rest > 0 else 1.0)
+    return meat
 
 
 MAX_MISFIT_DEGREE = 8  # of the Legendre polynomial a misfit in contact is given, at most
+WEIGHT_NEGLIGIBLE = 1e-4  # of the BIC weights' sum: a degree below it is left out of the average
+JACOBIAN_RTOL = 1e-6  # directions weaker than this (relative) in the model's and the misfit's are one
 
 
 def _misfit_bases(m: int):
@@ -539,11 +550,12 @@ def _misfit_bases(m: int):
         yield np.polynomial.legendre.legvander(x, d)
 
 
-def _in_contact(J: np.ndarray, r: np.ndarray, rng: _LazyRandom) -> tuple[np.ndarray, float]:
-    """The AR coefficients and the variance of the noise under a residual in contact that holds a
-    smooth misfit too: the misfit as a Legendre polynomial in time, its degree chosen with the
-    AR's order by one BIC (the likelihood of the prewhitened residual), then the AR measured on
-    what neither the model nor the polynomial takes, its bias corrected for both.
+def _in_contact(J: np.ndarray, r: np.ndarray, rng: _LazyRandom) -> list[tuple[float, np.ndarray, float]]:
+    """The noise under a residual in contact that holds a smooth misfit too, as (weight, AR
+    coefficients, variance): the misfit a Legendre polynomial in time, each degree weighed with the
+    AR's order by one BIC (the likelihood of the prewhitened residual), and under each degree that
+    counts the AR measured on what neither the model nor the polynomial takes, its bias corrected
+    for both.
 
     A correlated noise and a smooth misfit differ in their spectra, not at one lag: the polynomial
     takes a misfit whole where an AR near a unit root would follow it as noise (a 20 % Hertz
@@ -552,26 +564,38 @@ def _in_contact(J: np.ndarray, r: np.ndarray, rng: _LazyRandom) -> tuple[np.ndar
     (short lags alone read an AR(1) at 0.95 at 0.54 of its errors' scatter; this, 0.9, the rest
     being the contact law's own nonlinearity). Over 200 seeds the 20 % misfit's statistical error
     is 1.0-1.2x the estimates' scatter, seed by seed. A misfit faster than the polynomial follows
-    counts as noise: the errors grow with it, they never shrink."""
+    counts as noise: the errors grow with it, they never shrink.
+
+    The degrees and the orders are averaged by their BIC weights, not picked: two near a tie,
+    swapped by a rounding of the Jacobian, moved a cone's errors by 13 %."""
     m = len(r)
-    best = (math.inf, None)
+    pmax = min(MAX_AR_ORDER, m // 10)
+    tried, crits = [], []
     for P in _misfit_bases(m):
-        Q = _basis(np.column_stack([J, P]))
+        # the model's directions and the polynomial's, one direction each: a Jacobian by finite
+        # differences holds a constant column to 1e-8, and the rounding's tolerance kept its error
+        # as a direction of its own, which took a cone's errors from 10.9 to 28.3
+        Q = _basis(np.column_stack([_basis(J, JACOBIAN_RTOL), _basis(P)]), JACOBIAN_RTOL)
         u = r - Q @ (Q.T @ r)
-        o = _ar_order(u, min(MAX_AR_ORDER, m // 10))
-        phi = _ar_fit(u[None, :], o)[0] if o else np.zeros(0)
-        s2 = float(np.mean(_whiten(u, phi) ** 2))
-        if s2 <= 0.0:
-            best = (-math.inf, P)
+        if not np.any(u):  # the polynomial takes the residual whole: nothing left to call noise
             break
-        crit = m * math.log(s2) + (P.shape[1] - 1 + o) * math.log(m)
-        if crit < best[0]:
-            best = (crit, P)
-    Q = _basis(np.column_stack([J, best[1]]))
-    u = r - Q @ (Q.T @ r)
-    phi, _ = _prewhitening(u, Q, rng)
-    s2 = float(np.sum(_whiten(u, phi) ** 2)) / max(m - len(phi) - Q.shape[1], 1)
-    return phi, s2 * _unit_variance(phi)
+        tried.append((Q, u))
+        crits.append(_ar_orders_bic(u, pmax, P.shape[1] - 1))
+    if not tried:
+        return [(1.0, np.zeros(0), 0.0)]
+    C = np.array(crits)
+    W = np.exp(-0.5 * (C - C.min()))
+    W /= W.sum()
+    out = []
+    for d, o in zip(*np.nonzero(W >= WEIGHT_NEGLIGIBLE), strict=True):
+        Q, u = tried[d]
+        # each its own draws (the same for the same record): drawn from one stream, whether a
+        # degree of little weight was kept would change every later degree's correction
+        phi, _ = _prewhitening(u, Q, _LazyRandom(), int(o))
+        s2 = float(np.sum(_whiten(u, phi) ** 2)) / max(m - len(phi) - Q.shape[1], 1)
+        out.append((float(W[d, o]), phi, s2 * _unit_variance(phi)))
+    kept = sum(w for w, _, _ in out)
+    return [(w / kept, phi, var) for w, phi, var in out]
 
 
 def _unit_variance(phi: np.ndarray) -> float:
@@ -597,12 +621,13 @@ def _spectral_meat(J: np.ndarray, phi: np.ndarray, s2: float) -> np.ndarray:
     return np.real((F.conj() * (w * S)[:, None]).T @ F) / nfft
 
 
-def _basis(J: np.ndarray) -> np.ndarray:
-    """Orthonormal columns spanning J's (its numerically dependent ones left out)."""
+def _basis(J: np.ndarray, rtol: float | None = None) -> np.ndarray:
+    """Orthonormal columns spanning J's (its numerically dependent ones left out: singular values
+    below `rtol` of the largest, by default the rounding's)."""
     U, sv, _ = np.linalg.svd(J, full_matrices=False)
     if not len(sv) or not sv[0] > 0:
         return U[:, :0]
-    return U[:, sv > sv[0] * max(J.shape) * np.finfo(float).eps]
+    return U[:, sv > sv[0] * (max(J.shape) * np.finfo(float).eps if rtol is None else rtol)]
 
 
 def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
