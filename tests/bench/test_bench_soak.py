@@ -1,12 +1,15 @@
 """The fault-injection soak, long: 20 seeds, each one example of 21 random steps (420 steps),
-printing every step and the invariants checked. RIG_SOAK_STRICT=1 fails on the invariants of
-features still pending (tests/soak_harness.py FEATURES_PENDING) instead of listing them."""
+printing every step and the invariants checked; then sixteen trials per load-cell mode back to
+back on one daemon over Modbus RTU (the suite's daemon soak runs each kind of ending once).
+RIG_SOAK_STRICT=1 fails on the invariants of features still pending (tests/soak_harness.py
+FEATURES_PENDING) instead of listing them."""
 
 from __future__ import annotations
 
 import pytest
 
 from tests.soak_harness import REPORT
+from tests.test_daemon_workflow import SOAK, soak_the_daemon
 from tests.test_soak import run_soak
 
 SEEDS = range(1, 21)
@@ -27,3 +30,8 @@ def test_bench_soak(seed_value):
         for line in soak.pending:
             print("  pending:", line)
     assert sum(len(s.trace) for s in soaks) >= STEPS - 1
+
+
+@pytest.mark.parametrize("mode", ["stream", "poll"])
+def test_bench_soak_the_daemon_over_rtu(tmp_path, mode):
+    soak_the_daemon(tmp_path, mode, SOAK)

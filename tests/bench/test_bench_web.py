@@ -13,7 +13,9 @@
   maps every time and for the page opened again (the first opening of all, plotly.js fetched
   and compiled by the browser, is printed beside it);
 - twelve pixels clicked with the mouse, across the map: the time from the press to the curve
-  drawn with its fit, residual and retract (performance.now() in the page); target: under 1 s each.
+  drawn with its fit, residual and retract (performance.now() in the page); target: under 1 s each;
+- the console's whole path with ESTOP from the page twenty times (the suite does it eight times):
+  p95 of the click to the simulated drive's STOP under 100 ms.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import ROOT
-from tests.test_web import WebProcess, _browser, _wait, click_pixel
+from tests.test_web import WebProcess, _browser, _wait, click_pixel, console_in_a_browser
 
 MAP_S, CURVE_S = 2.0, 1.0
 
@@ -101,3 +103,9 @@ def test_the_64x64_map_opens_in_2_s_and_a_pixel_in_1_s(map64, tmp_path):
     # fetched and compiled, is printed (1.3-2.5 s on this machine under load: most of it compiling)
     assert max(figures["maps_ms"]) < MAP_S * 1000 and max(figures["load_ms"][1:]) < MAP_S * 1000, figures
     assert c[-1] < CURVE_S * 1000, figures
+
+
+def test_twenty_estops_from_the_console(tmp_path):
+    figures = console_in_a_browser(tmp_path, 20)
+    print(f"\ntwenty ESTOPs from the page: p50 {figures['estop_ms_p50']:.1f} ms, p95 "
+          f"{figures['estop_ms_p95']:.1f} ms, max {figures['estop_ms_max']:.1f} ms")
