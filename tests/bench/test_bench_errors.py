@@ -1,4 +1,4 @@
-"""The errors' specification over 200 seeds a case (not in the default run: about an hour on two
+"""The errors' specification over 200 seeds a case (not in the default run: about 2.5 minutes on two
 cores; `python -m pytest tests/bench/test_bench_errors.py -s`). Hertz on synthetic curves of
 known truth, E, contact and zero fitted, through the whole pipeline (tests/bench/errors_harness.py):
 
