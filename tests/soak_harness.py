@@ -306,13 +306,21 @@ class Soak:
         self.last_start_wall = time.time()
         if not r["ok"]:
             inside = TRAVEL_MM[0] <= pos + REACH_MM.get(name, depth_mm) <= TRAVEL_MM[1]
-            self.expect(not inside or "busy" in r["error"], "reply true",
-                        f"start '{name}' from {pos:.2f} mm refused: {r['error']}")
+            # a fault or an estop that left the probe in the specimen: a start is refused until the
+            # probe is returned (or the operator confirms it); the soak returns it, as an operator would
+            in_contact = "the probe is in contact" in r["error"]
+            self.expect(not inside or "busy" in r["error"] or (in_contact and "rig return" in r["error"]),
+                        "reply true", f"start '{name}' from {pos:.2f} mm refused: {r['error']}")
             time.sleep(0.1)
             self.expect(self.sim.drive.moves == moves, "reply true",
                         f"a refused start moved the drive ({r['error']})")
             after = set(self.out.glob("*.mcap")) if self.out.exists() else set()
             self.expect(after == before, "reply true", f"a refused start left a log: {after - before}")
+            if in_contact:
+                back = self.req({"cmd": "return"})
+                self.trace.append("return")
+                self.expect(back["ok"], "reply true", f"the return after '{r['error']}' was refused: {back}")
+                self.settle()
             return r
         self.expect(r["log"] not in self.trials, "logs readable, outcome true",
                     f"the new trial's log {r['log']} has the name of an earlier one")
