@@ -515,12 +515,6 @@ def _shape_refutes(basis: tuple[np.ndarray, np.ndarray], k: int, s_eta: float) -
     return 2.0 * (max(best, held) - held) > QUIET_LR
 
 
-def _misfit_meat(J: np.ndarray, r: np.ndarray, rng: _LazyRandom) -> np.ndarray:
-    """J^T Sigma J for the noise under a residual that holds a misfit, with no stretch at rest to
-    measure it on: the noises `_in_contact` finds under the whole residual."""
-    return sum(w * _spectral_meat(J, phi, var / _unit_variance(phi)) for w, phi, var in _in_contact(J, r, rng))
-
-
 def _where_it_is(J: np.ndarray, r: np.ndarray, rest: _AtRest, rng: _LazyRandom,
                  louder: list[float] | None = None) -> np.ndarray:
     """J^T Sigma J for a noise measured where it is: the stretch at rest's own AR on its rows and
@@ -545,30 +539,18 @@ def _where_it_is(J: np.ndarray, r: np.ndarray, rest: _AtRest, rng: _LazyRandom,
     if len(r) - c < MIN_SAMPLES:
         return meat + _spectral_meat(J[c:], at_rest, s2_rest) if len(r) > c else meat
     var_rest = s2_rest * _unit_variance(at_rest)
-    level = 0.0
-    for w, phi, var in _in_contact(J[c:], r[c:], rng):
-        # never quieter than at rest, but in the contact's own spectrum: measured on the longer
-        # stretch it is the surer (a rest of 124 samples read an AR whose long-run variance was 3.7x
-        # the white noise's, and lent to the contact it took the errors with it)
-        var = max(var, var_rest)
-        level += w * var
-        meat = meat + w * _spectral_meat(J[c:], phi, var / _unit_variance(phi))
+    # never quieter than at rest, but in the contact's own spectrum: measured on the longer stretch
+    # it is the surer (a rest of 124 samples read an AR whose long-run variance was 3.7x the white
+    # noise's, and lent to the contact it took the errors with it)
+    there, level = _in_contact_meat(J[c:], r[c:], rng, var_rest)
     if louder is not None:
         louder.append(math.sqrt(level / var_rest) if var_rest > 0 else 1.0)
-    return meat
+    return meat + there
 
 
 MAX_MISFIT_DEGREE = 8  # of the Legendre polynomial a misfit in contact is given, at most
 WEIGHT_NEGLIGIBLE = 1e-4  # of the BIC weights' sum: a degree below it is left out of the average
 JACOBIAN_RTOL = 1e-6  # directions weaker than this (relative) in the model's and the misfit's are one
-
-
-def _misfit_bases(m: int):
-    """The shapes a smooth misfit is given: Legendre polynomials in time, of degree 0 to
-    MAX_MISFIT_DEGREE."""
-    x = np.linspace(-1.0, 1.0, m)
-    for d in range(MAX_MISFIT_DEGREE + 1):
-        yield np.polynomial.legendre.legvander(x, d)
 
 
 def _in_contact(J: np.ndarray, r: np.ndarray, rng: _LazyRandom) -> list[tuple[float, np.ndarray, float]]:
@@ -591,17 +573,19 @@ def _in_contact(J: np.ndarray, r: np.ndarray, rng: _LazyRandom) -> list[tuple[fl
     swapped by a rounding of the Jacobian, moved a cone's errors by 13 %."""
     m = len(r)
     pmax = min(MAX_AR_ORDER, m // 10)
+    # the model's directions and the polynomial's, one direction each: a Jacobian by finite
+    # differences holds a constant column to 1e-8, and the rounding's tolerance kept its error as a
+    # direction of its own, which took a cone's errors from 10.9 to 28.3
+    model = _basis(J, JACOBIAN_RTOL)
+    legendre = np.polynomial.legendre.legvander(np.linspace(-1.0, 1.0, m), MAX_MISFIT_DEGREE)
     tried, crits = [], []
-    for P in _misfit_bases(m):
-        # the model's directions and the polynomial's, one direction each: a Jacobian by finite
-        # differences holds a constant column to 1e-8, and the rounding's tolerance kept its error
-        # as a direction of its own, which took a cone's errors from 10.9 to 28.3
-        Q = _basis(np.column_stack([_basis(J, JACOBIAN_RTOL), _basis(P)]), JACOBIAN_RTOL)
+    for d in range(MAX_MISFIT_DEGREE + 1):
+        Q = _basis(np.column_stack([model, _basis(legendre[:, :d + 1])]), JACOBIAN_RTOL)
         u = r - Q @ (Q.T @ r)
         if not np.any(u):  # the polynomial takes the residual whole: nothing left to call noise
             break
         tried.append((Q, u))
-        crits.append(_ar_orders_bic(u, pmax, P.shape[1] - 1))
+        crits.append(_ar_orders_bic(u, pmax, d))
     if not tried:
         return [(1.0, np.zeros(0), 0.0)]
     C = np.array(crits)
@@ -619,6 +603,15 @@ def _in_contact(J: np.ndarray, r: np.ndarray, rng: _LazyRandom) -> list[tuple[fl
     return [(w / kept, phi, var) for w, phi, var in out]
 
 
+def _in_contact_meat(J: np.ndarray, r: np.ndarray, rng: _LazyRandom,
+                     floor: float = 0.0) -> tuple[np.ndarray, float]:
+    """J^T Sigma J for the noises `_in_contact` finds under the residual `r`, each variance at least
+    `floor`, and their weighted variance."""
+    noises = [(w, phi, max(var, floor)) for w, phi, var in _in_contact(J, r, rng)]
+    parts = [(w, phi, var / _unit_variance(phi)) for w, phi, var in noises]
+    return _mixture_meat(J, parts), sum(w * var for w, _, var in noises)
+
+
 def _unit_variance(phi: np.ndarray) -> float:
     """The variance of an AR(phi) process per unit innovation variance (Yule-Walker)."""
     q = len(phi)
@@ -631,10 +624,17 @@ def _unit_variance(phi: np.ndarray) -> float:
 def _spectral_meat(J: np.ndarray, phi: np.ndarray, s2: float) -> np.ndarray:
     """J^T Sigma J for a stationary AR(phi) noise of innovation variance s2, through the spectrum
     (Whittle's circulant approximation: J's columns zero-padded past the noise's memory)."""
+    return _mixture_meat(J, [(1.0, phi, s2)])
+
+
+def _mixture_meat(J: np.ndarray, parts: list[tuple[float, np.ndarray, float]]) -> np.ndarray:
+    """`_spectral_meat` of a weighted sum of AR noises (weight, phi, innovation variance): the
+    meat is linear in the spectrum, so J is transformed once for them all."""
     m = len(J)
     nfft = 1 << math.ceil(math.log2(2 * m))
     F = np.fft.rfft(J, nfft, axis=0)
-    S = _spectrum(phi, s2, 2.0 * np.pi * np.arange(nfft // 2 + 1) / nfft)
+    omega = 2.0 * np.pi * np.arange(nfft // 2 + 1) / nfft
+    S = sum(w * _spectrum(phi, s2, omega) for w, phi, s2 in parts)
     w = np.full(nfft // 2 + 1, 2.0)
     w[0] = 1.0
     if nfft % 2 == 0:
@@ -708,7 +708,7 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, lengths: list[int],
             continue
         if shaped and rest is None:
             # a smooth misfit, not a walk, and no stretch at rest: the noise under the residual, the misfit out
-            level_meat += _misfit_meat(J[sl], r[sl], rng)
+            level_meat += _in_contact_meat(J[sl], r[sl], rng)[0]
             misfit.append(k)
             _say(used, "the residual's, a smooth misfit taken out (its slow part not walk-shaped)")
             continue
