@@ -475,12 +475,32 @@ SHAPE_FROM = 8  # the walk's shape is judged on its components from this one up 
 def _line_max(f, grid: np.ndarray) -> float:
     """The largest value of f (vectorised) along a line: on `grid` (evenly spaced), then on a grid
     64 times finer around its best point. A log-likelihood over thousands of components is peaked:
-    half a coarse step of 0.25 off its best variance costs it some 6 units."""
-    values = f(grid)
-    at = int(np.argmax(values))
+    half a coarse step of 0.25 off its best variance costs it some 6 units.
+
+    Each grid is searched from every COARSE-th point and then around the best of those, which
+    finds the same best point as the whole grid for a likelihood with one peak along the line
+    (a variance ratio's) at a fraction of the evaluations: each costs a pass over the record's
+    components, and the walk's tests took two fifths of a map curve's analysis."""
+    values, at = _peak(f, grid)
     step = float(grid[1] - grid[0])
     fine = grid[at] + np.linspace(-step, step, 129)
-    return max(float(values[at]), float(np.max(f(fine))))
+    return max(values, _peak(f, fine)[0])
+
+
+COARSE = 8  # `_line_max` looks at every COARSE-th point first
+
+
+def _peak(f, grid: np.ndarray) -> tuple[float, int]:
+    """The largest of f over `grid` and where it is, searched from every COARSE-th point and then
+    among the points between the best one's neighbours."""
+    first = np.arange(0, len(grid), COARSE)
+    if first[-1] != len(grid) - 1:
+        first = np.append(first, len(grid) - 1)
+    best = first[int(np.argmax(f(grid[first])))]
+    lo, hi = max(best - COARSE + 1, 0), min(best + COARSE, len(grid))
+    near = f(grid[lo:hi])
+    at = lo + int(np.argmax(near))
+    return float(near[at - lo]), at
 
 
 def _shape_refutes(basis: tuple[np.ndarray, np.ndarray], k: int, s_eta: float) -> bool:
