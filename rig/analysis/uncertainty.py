@@ -55,6 +55,7 @@ BIC is defined once, on the effective number of independent residuals (see `bic`
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -316,15 +317,23 @@ def _walk_basis(r: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Z[:, 1:] = X * np.exp(1j * np.pi / N * np.arange(1, m + 1))
     Y = -np.fft.fft(Z, N, axis=1)[:, 1:m + 1].imag.T
     Y *= 2.0 / math.sqrt(N)
-    i, j = np.triu_indices(k + 1)
+    i, j = _pairs(k + 1)
     return Y[:, i] * Y[:, j], 0.25 / np.sin(0.5 * a) ** 2
+
+
+@functools.lru_cache(maxsize=16)
+def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """`np.triu_indices(n)`, made once for each of the few sizes a fit has (thousands of calls a map)."""
+    i, j = np.triu_indices(n)
+    i.flags.writeable = j.flags.writeable = False
+    return i, j
 
 
 def _walk_rss(P: np.ndarray, lam: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """For covariances diagonal in the walk basis with eigenvalues `lam` (rows: several at once),
     the restricted residual sum of squares r^T P^T Sigma^-1 P r and log det Sigma + log det
     Q^T Sigma^-1 Q."""
-    i, j = np.triu_indices(k + 1)
+    i, j = _pairs(k + 1)
     w = 1.0 / lam
     G = np.zeros((len(lam), k + 1, k + 1))
     G[:, i, j] = w @ P
