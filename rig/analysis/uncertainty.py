@@ -145,7 +145,8 @@ def _integral_scale(phi: np.ndarray) -> float:
     q = len(phi)
     if q == 0:
         return 1.0
-    if np.any(np.abs(np.roots(np.r_[1.0, -phi])) >= 1.0):
+    # an AR(1)'s one root is its coefficient (np.roots gives it exactly)
+    if (abs(phi[0]) >= 1.0) if q == 1 else np.any(np.abs(np.roots(np.r_[1.0, -phi])) >= 1.0):
         return math.inf
     gamma0 = _autocovariance_unit(phi)[0]
     return float(1.0 / ((1.0 - phi.sum()) ** 2 * gamma0)) if gamma0 > 0 else math.inf
@@ -178,15 +179,33 @@ def _bounded(phi: np.ndarray, m: int) -> tuple[np.ndarray, bool]:
 
 class _LazyRandom:
     """numpy's generator seeded 0, made on first use: most fits never measure a bias, and
-    numpy.random costs them 9 ms to import."""
+    numpy.random costs them 9 ms to import.
+
+    Every one starts from the same seed, so the draws it gives depend only on the shapes asked
+    for so far: they are kept (`_DRAWN`, by that sequence of shapes) and given again to the next
+    one that asks for the same, where drawing them took a tenth of a misfitting curve's fit (a
+    map's curves, and a fit's refits, ask for the same shapes over and over)."""
 
     def __init__(self) -> None:
-        self._rng = None
+        self._asked: tuple[tuple[int, ...], ...] = ()
 
     def standard_normal(self, shape: tuple[int, ...]) -> np.ndarray:
-        if self._rng is None:
-            self._rng = np.random.default_rng(0)
-        return self._rng.normal(size=shape)
+        self._asked = (*self._asked, tuple(shape))
+        got = _DRAWN.get(self._asked)
+        if got is None:
+            rng = np.random.default_rng(0)
+            for earlier in self._asked[:-1]:
+                rng.normal(size=earlier)  # the stream moved past what was given from `_DRAWN`
+            got = rng.normal(size=shape)
+            got.flags.writeable = False
+            if len(_DRAWN) >= _DRAWN_KEPT:
+                _DRAWN.pop(next(iter(_DRAWN)))
+            _DRAWN[self._asked] = got
+        return got
+
+
+_DRAWN: dict[tuple, np.ndarray] = {}
+_DRAWN_KEPT = 16
 
 
 def _prewhitening(r: np.ndarray, Q: np.ndarray, rng: _LazyRandom,
