@@ -139,17 +139,24 @@ def _ar_fit(R: np.ndarray, q: int) -> np.ndarray:
     return np.linalg.solve(Xt @ X, Xt @ R[:, q:, None])[..., 0]
 
 
-def _integral_scale(phi: np.ndarray) -> float:
+def _integral_scale(phi: np.ndarray, largest_root: float | None = None) -> float:
     """Samples per independent value of the AR(phi) process: its long-run variance over its
-    variance, gamma_0 from the Yule-Walker equations; inf if it is not stationary."""
+    variance, gamma_0 from the Yule-Walker equations; inf if it is not stationary (the largest
+    root's modulus, when known, spares finding the roots)."""
     q = len(phi)
     if q == 0:
         return 1.0
-    # an AR(1)'s one root is its coefficient (np.roots gives it exactly)
-    if (abs(phi[0]) >= 1.0) if q == 1 else np.any(np.abs(np.roots(np.r_[1.0, -phi])) >= 1.0):
+    if largest_root is None:
+        largest_root = _largest_root(phi)
+    if largest_root >= 1.0:
         return math.inf
     gamma0 = _autocovariance_unit(phi)[0]
     return float(1.0 / ((1.0 - phi.sum()) ** 2 * gamma0)) if gamma0 > 0 else math.inf
+
+
+def _largest_root(phi: np.ndarray) -> float:
+    # an AR(1)'s one root is its coefficient (np.roots gives it exactly)
+    return abs(float(phi[0])) if len(phi) == 1 else float(np.max(np.abs(np.roots(np.r_[1.0, -phi]))))
 
 
 def _autocovariance_unit(phi: np.ndarray) -> np.ndarray:
@@ -167,13 +174,17 @@ def _bounded(phi: np.ndarray, m: int) -> tuple[np.ndarray, bool]:
     """`phi` with its roots pulled in (phi_k s^k, s < 1) until the process it describes is
     correlated over at most the record's `m` samples: recolouring by 1 / (1 - sum phi)^2 then
     never claims more than one independent value per record. Also whether it had to."""
-    if _integral_scale(phi) <= m:
+    if len(phi) == 0:
+        return phi, False
+    root = _largest_root(phi)
+    if _integral_scale(phi, root) <= m:
         return phi, False
     k = np.arange(1, len(phi) + 1)
     lo, hi = 0.0, 1.0
     for _ in range(40):
         s = 0.5 * (lo + hi)
-        lo, hi = (s, hi) if _integral_scale(phi * s ** k) <= m else (lo, s)
+        # phi_k s^k has the roots of phi times s: found once, not at each step
+        lo, hi = (s, hi) if _integral_scale(phi * s ** k, root * s) <= m else (lo, s)
     return phi * lo ** k, True
 
 
