@@ -151,6 +151,28 @@ def test_a_real_curve_whose_e_moves_with_the_fit_range_says_so_in_its_error():
 
 
 @real
+def test_a_lower_sample_rate_keeps_the_systematic_error_or_says_why_not(tmp_path):
+    """spot3 at half its sample rate had fewer than 40 samples in contact to half its peak force:
+    no depth refit was made, and the material line read "+/- 0 (sys)" with an interval nine times
+    narrower than at the full rate. Now the refits are made down to 20 samples in contact (sys
+    2.4 kPa against 3.0), and a refit not made is named, with why."""
+    subprocess.run([sys.executable, "-m", "rig", "import", str(SPOT3), "--csv", str(tmp_path / "full.csv")],
+                   check=True, capture_output=True)
+    head, *rows = (tmp_path / "full.csv").read_text().splitlines()
+    out = {}
+    for every in (1, 2, 4):
+        path = tmp_path / f"every{every}.csv"
+        path.write_text("\n".join([head, *rows[::every]]) + "\n")
+        out[every] = analyze(AnalyzeRequest([str(path)], model="hertz", indenter="paraboloid:R=10um",
+                                            segment="approach"))
+    full, half, quarter = (out[k].json["material"] for k in (1, 2, 4))
+    assert full["E_Pa_sys"] > 0 and 0.5 < half["E_Pa_sys"] / full["E_Pa_sys"] < 2.0, (full, half)
+    assert not full["E_Pa_sys_not_made"] and not half["E_Pa_sys_not_made"]
+    assert quarter["E_Pa_sys_not_made"] and "samples in contact, fewer than" in quarter["E_Pa_sys_not_made"][0]
+    assert "not refitted to 50 % of peak (" in out[4].text and "sys leaves that choice out" in out[4].text
+
+
+@real
 def test_caveats_a_reader_recorded_are_in_the_text_and_the_row():
     out = analyze(AnalyzeRequest([str(WORKSHOP)], model="hertz", indenter="paraboloid:R=10um"))
     caveat_lines = [ln for ln in out.text.splitlines() if ln.startswith("CAVEAT")]

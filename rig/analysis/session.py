@@ -250,6 +250,7 @@ def material_json(res: FitResult, inputs, depth: bool = True, sys_err: Systemati
                  "E_Pa": res.values["E_Pa"], "E_Pa_stat": e_stat, "E_Pa_sys": e_sys,
                  "E_Pa_interval": interval(res.values["E_Pa"], e_stat, e_sys),
                  "E_Pa_sys_from": sys_err.why("E_Pa") if sys_err is not None else None,
+                 "E_Pa_sys_not_made": list(sys_err.not_made) if sys_err is not None else [],
                  "E_Pa_refits": [{"choice": c.name, "E_Pa": c.values["E_Pa"],
                                   "counted": c.counted.get("E_Pa", False)}
                                  for c in sys_err.choices if "E_Pa" in c.values]
@@ -300,6 +301,8 @@ def format_material(m: dict, res: FitResult) -> str:
             if any(r["counted"] for r in refits):
                 lines.append("           (* moved beyond its noise: counted in sys; stat is the noise's, given "
                              "the model)")
+        for why in m.get("E_Pa_sys_not_made") or []:
+            lines.append(f"           not refitted {why}: sys leaves that choice out")
     if "contact_point_m" in m:
         k, u = res.trials[0].length_unit
         cp = ", ".join(f"{c / k:.4g}" for c in m["contact_point_m"])

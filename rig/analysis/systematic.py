@@ -41,7 +41,7 @@ from rig.models.core import Motion
 # fourfold; at 3 one in a hundred or so, while a misfit that matters moves E by tens of SDs
 SIGNIFICANT = 3.0
 FLOOR = 1.0 / 3.0  # the shift's noise is at least this share of the refit's standard error
-MIN_SAMPLES = 40  # a refit on fewer samples than this (or a baseline shorter) is not made
+MIN_SAMPLES = 20  # a refit on fewer samples than this (or a baseline shorter) is not made
 DEPTH_SHARES = (0.5, 0.75)  # of the peak force: where the shallower fits end
 Z95 = 1.959964
 
@@ -74,12 +74,14 @@ class Systematic:
     error: dict[str, float]
     choices: list[Choice]
     values: dict[str, float]
+    not_made: list[str] = field(default_factory=list)  # refits the curve did not allow, and why
 
     def as_dict(self) -> dict:
         return {"rule": f"the largest shift over the choices that exceeds {SIGNIFICANT:g} times its own "
                         "noise's SD, plus 1.96 times that SD; "
                         "interval: value +/- (1.96 stat + sys)",
-                "error": self.error, "choices": [c.as_dict(self.values) for c in self.choices]}
+                "error": self.error, "choices": [c.as_dict(self.values) for c in self.choices],
+                "not_made": self.not_made}
 
     def why(self, name: str) -> str:
         """The choices that set `name`'s systematic error, in words ('' when none counted)."""
@@ -115,8 +117,9 @@ def cut(t: TrialData, start: int, end: int) -> TrialData:
                    contact_m=(t.contact_m or 0.0) + float(m.x_m[start] - m.x_m[0]) if start else t.contact_m)
 
 
-def _choices(res: FitResult) -> list[tuple[str, int, int]]:
-    """(what, start, end) of each refit this curve allows."""
+def _choices(res: FitResult, not_made: list[str] | None = None) -> list[tuple[str, int, int]]:
+    """(what, start, end) of each refit this curve allows; each one it does not, with why, to
+    `not_made`."""
     t = res.trials[0]
     f = t.force_N
     pred = res.predictions[0]
@@ -126,12 +129,18 @@ def _choices(res: FitResult) -> list[tuple[str, int, int]]:
     contact = _contact_index(res)
     out = []
     for share in DEPTH_SHARES:
+        what = f"to {share * 100:.0f} % of peak"
         end = int(np.argmax(rise >= share * rise[-1])) + 1 if rise[-1] > 0 else 0
         # before the contact the fit has nothing to say about the modulus
         if end - contact >= MIN_SAMPLES and end < t.n:
-            out.append((f"to {share * 100:.0f} % of peak", 0, end))
+            out.append((what, 0, end))
+        elif not_made is not None and end < t.n:
+            not_made.append(f"{what} ({max(end - contact, 0)} samples in contact, fewer than {MIN_SAMPLES})")
     if contact >= 2 * MIN_SAMPLES:
         out.append(("baseline halved", contact // 2, t.n))
+    elif not_made is not None and contact:
+        not_made.append(f"baseline halved ({contact} samples before contact, fewer than "
+                        f"{2 * MIN_SAMPLES})")
     return out
 
 
@@ -151,8 +160,9 @@ def systematic(res: FitResult) -> Systematic | None:
         return None
     names = [k for k in res.values if res.stderr.get(k) is not None and math.isfinite(res.stderr[k])]
     error = dict.fromkeys(names, 0.0)
-    choices = []
-    for what, start, end in _choices(res):
+    choices: list[Choice] = []
+    not_made: list[str] = []
+    for what, start, end in _choices(res, not_made):
         part = cut(res.trials[0], start, end)
         try:
             got = fit(res.model, [part], starts=1, initial=res.values)
@@ -173,4 +183,4 @@ def systematic(res: FitResult) -> Systematic | None:
                 # the noiseless curve, not only the value it gave on this one
                 error[k] = max(error[k], abs(shift) + Z95 * sd)
         choices.append(c)
-    return Systematic(error, choices, {k: res.values[k] for k in names})
+    return Systematic(error, choices, {k: res.values[k] for k in names}, not_made)
