@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rig.analysis.data import PHASES, TrialData, decimate
-from rig.analysis.fit import FitResult, evaluate, fit
+from rig.analysis.fit import FitResult, evaluate, fit, negative
 from rig.analysis.residual_shape import describe, not_the_answer
 from rig.analysis.uncertainty import delta_bic
 from rig.models.catalogue import CONTACT, instrument_effects
@@ -169,6 +169,8 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
         if bad:
             sug.meaningless = bad
             sug.why += f"; but {bad}"
+        elif (slight := within(res, base)):
+            sug.why += f"; {slight}"
         return sug
 
     ranked = [score(e, res_c, i < REFIT_LEADERS) for i, (_, e, res_c) in enumerate(screened)]
@@ -235,17 +237,33 @@ def meaningless(res: FitResult, base: FitResult) -> str:
 
     Every parameter of the model counts, not only the added effect's: an effect that fits only
     by turning one of the model's own terms negative (a damping, a stiffness) is not the
-    answer. A parameter already negative in `base`, the fit without the effect, is the base
-    model's own problem (its fit says so) and is left out."""
+    answer. Negative means significantly so: below zero by more than UNPHYSICAL_SE of its own
+    standard errors (`rig.analysis.fit.negative`); a value slightly negative within its error
+    is said (`within`) and does not reject. A parameter already negative in `base`, the fit
+    without the effect, is the base model's own problem (its fit says so) and is left out."""
     for p in res.model.params:
         v = res.values[p.name]
         if not (p.warn_negative and v < 0) or base.values.get(p.name, 0.0) < 0:
             continue
         owner = next((e.name for e in res.model.effects if any(q.name == p.name for q in e.params)), "model")
-        said = f"{owner}.{p.name} is negative"
-        return next((w for w in res.warnings if w.startswith(said)),
-                    f"{said} ({v:.4g} {p.unit}): physically meaningless")
+        said, bad = negative(f"{owner}.{p.name}", v, p.unit, res.stderr.get(p.name))
+        if bad:
+            return said
     return ""
+
+
+def within(res: FitResult, base: FitResult) -> str:
+    """The parameters of `res` negative within their errors (not meaningless: `meaningless`), said."""
+    out = []
+    for p in res.model.params:
+        v = res.values[p.name]
+        if not (p.warn_negative and v < 0) or base.values.get(p.name, 0.0) < 0:
+            continue
+        owner = next((e.name for e in res.model.effects if any(q.name == p.name for q in e.params)), "model")
+        said, bad = negative(f"{owner}.{p.name}", v, p.unit, res.stderr.get(p.name))
+        if not bad:
+            out.append(said)
+    return "; ".join(out)
 
 
 def passes(delta_bic: float, rmse_drop: float, base_adequate: bool) -> bool:

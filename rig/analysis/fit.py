@@ -575,7 +575,7 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     lag, drive = ps.rate_form
     # a rate below half a loading time's is only slow; at its bound the lag has become an integrator
     integrator = ps.integrator(z) and bool(bound[lag])
-    warnings = _warnings(model, values, bound, integrator)
+    warnings = _warnings(model, values, bound, integrator, stderr)
     if integrator:
         # the lag's time constant and the amplitudes over it run off together; their ratios
         # are the model at this limit, and what the record determines
@@ -832,14 +832,31 @@ def combinations(model: Model, values: dict[str, float], cov: np.ndarray | None)
     return out
 
 
-def _warnings(model: Model, values: dict[str, float], at_bound: np.ndarray, integrator: bool) -> list[str]:
+# a parameter that must not be negative is meaningless only when it is below zero by more than
+# this many of its standard errors (one-sided, about 2 %): a value slightly negative within its
+# error is a physical value the noise moved, and rejecting a candidate for it threw right answers away
+UNPHYSICAL_SE = 2.0
+
+
+def negative(name: str, v: float, unit: str, se: float | None) -> tuple[str, bool]:
+    """What a fit says of a parameter that must not be negative at value `v` < 0 with standard error
+    `se`, and whether that is physically meaningless (beyond UNPHYSICAL_SE of its errors)."""
+    if se is not None and math.isfinite(se) and v + UNPHYSICAL_SE * se >= 0.0:
+        return (f"{name} is negative ({v:.4g} +/- {se:.2g} {unit}), within {UNPHYSICAL_SE:g} standard "
+                "errors of zero: consistent with a physical value"), False
+    beyond = f", beyond {UNPHYSICAL_SE:g} standard errors" if se is not None and math.isfinite(se) else ""
+    return f"{name} is negative ({v:.4g} {unit}{beyond}): physically meaningless", True
+
+
+def _warnings(model: Model, values: dict[str, float], at_bound: np.ndarray, integrator: bool,
+              stderr: dict[str, float | None] | None = None) -> list[str]:
     out = []
     for p, bound in zip(model.params, at_bound, strict=True):
         v = values[p.name]
         effect = _owner(model, p)
         owner = effect.name
         if p.warn_negative and v < 0:
-            out.append(f"{owner}.{p.name} is negative ({v:.4g} {p.unit}): physically meaningless")
+            out.append(negative(f"{owner}.{p.name}", v, p.unit, (stderr or {}).get(p.name))[0])
         if bound and effect.stage == "lag" and v > 0 and integrator:
             out.append(f"{owner}.{p.name} = {v:.4g} {p.unit}: the force does not relax on this record; "
                        f"the lag acts as an integrator (its rate 1/{p.name} sits at its bound, zero)")

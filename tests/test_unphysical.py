@@ -1,0 +1,53 @@
+"""Unphysical means significantly so: a parameter that must not be negative (a damping, a
+stiffness) is physically meaningless only when it is below zero by more than two of its own
+standard errors. Before, any negative value rejected a candidate effect: a damping that a spring's
+record leaves at zero came out slightly negative on a third of the seeds, and `--explain` threw
+the candidate away as "physically meaningless"."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rig.analysis.data import prepare
+from rig.analysis.explain import meaningless
+from rig.analysis.fit import UNPHYSICAL_SE, fit
+from rig.models import build_model
+from rig.records.record import Record
+
+
+def record(seed: int, damping_N_s_per_m: float = 0.0) -> list:
+    """A ramp to 3 mm at 2 mm/s and a hold, 100 Hz: a spring of 50 N/m, `damping` on the velocity,
+    noise of 10 mN."""
+    rng = np.random.default_rng(seed)
+    dt = 0.01
+    t = np.arange(0.0, 20.0, dt)
+    x = np.minimum(2e-3 * t, 3e-3)
+    v = np.where(t < 1.5, 2e-3, 0.0)
+    f = 50.0 * x + damping_N_s_per_m * v + 0.01 * rng.normal(size=len(t))
+    return [prepare(Record(f"spring-{seed}", "csv", t, x, f))]
+
+
+def test_a_damping_negative_within_its_error_is_not_meaningless():
+    slight = 0
+    for seed in range(12):
+        trials = record(seed)
+        base, res = fit(build_model("hooke"), trials), fit(build_model("voigt"), trials)
+        eta, se = res.values["eta_N_s_per_m"], res.stderr["eta_N_s_per_m"]
+        assert eta + UNPHYSICAL_SE * se > 0, (seed, eta, se)  # the truth is zero: within the errors
+        if eta < 0:
+            slight += 1
+            assert meaningless(res, base) == "", (seed, eta, se)
+            said = [w for w in res.warnings if w.startswith("viscous.eta_N_s_per_m is negative")]
+            assert said and "consistent with a physical value" in said[0], res.warnings
+            assert not any("meaningless" in w for w in res.warnings), res.warnings
+    assert slight >= 2, slight  # the case this is about happened
+
+
+def test_a_damping_negative_beyond_its_error_is_meaningless_and_says_why():
+    trials = record(0, damping_N_s_per_m=-8.0)
+    base, res = fit(build_model("hooke"), trials), fit(build_model("voigt"), trials)
+    eta, se = res.values["eta_N_s_per_m"], res.stderr["eta_N_s_per_m"]
+    assert eta + UNPHYSICAL_SE * se < 0, (eta, se)
+    why = meaningless(res, base)
+    assert why.startswith("viscous.eta_N_s_per_m is negative") and "beyond 2 standard errors" in why, why
+    assert why.endswith("physically meaningless"), why
