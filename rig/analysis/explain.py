@@ -241,29 +241,25 @@ def meaningless(res: FitResult, base: FitResult) -> str:
     standard errors (`rig.analysis.fit.negative`); a value slightly negative within its error
     is said (`within`) and does not reject. A parameter already negative in `base`, the fit
     without the effect, is the base model's own problem (its fit says so) and is left out."""
-    for p in res.model.params:
-        v = res.values[p.name]
-        if not (p.warn_negative and v < 0) or base.values.get(p.name, 0.0) < 0:
-            continue
-        owner = next((e.name for e in res.model.effects if any(q.name == p.name for q in e.params)), "model")
-        said, bad = negative(f"{owner}.{p.name}", v, p.unit, res.stderr.get(p.name))
-        if bad:
-            return said
-    return ""
+    return next((said for said, bad in _negatives(res, base) if bad), "")
 
 
 def within(res: FitResult, base: FitResult) -> str:
     """The parameters of `res` negative within their errors (not meaningless: `meaningless`), said."""
+    return "; ".join(said for said, bad in _negatives(res, base) if not bad)
+
+
+def _negatives(res: FitResult, base: FitResult) -> list[tuple[str, bool]]:
+    """What `negative` says of each parameter of `res` below zero that must not be (and is not in
+    `base`), and whether it is meaningless."""
     out = []
     for p in res.model.params:
         v = res.values[p.name]
         if not (p.warn_negative and v < 0) or base.values.get(p.name, 0.0) < 0:
             continue
         owner = next((e.name for e in res.model.effects if any(q.name == p.name for q in e.params)), "model")
-        said, bad = negative(f"{owner}.{p.name}", v, p.unit, res.stderr.get(p.name))
-        if not bad:
-            out.append(said)
-    return "; ".join(out)
+        out.append(negative(f"{owner}.{p.name}", v, p.unit, res.stderr.get(p.name)))
+    return out
 
 
 def passes(delta_bic: float, rmse_drop: float, base_adequate: bool) -> bool:
