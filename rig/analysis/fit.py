@@ -841,22 +841,23 @@ UNPHYSICAL_SE = 2.0
 def negative(name: str, v: float, unit: str, se: float | None) -> tuple[str, bool]:
     """What a fit says of a parameter that must not be negative at value `v` < 0 with standard error
     `se`, and whether that is physically meaningless (beyond UNPHYSICAL_SE of its errors)."""
-    if se is not None and math.isfinite(se) and v + UNPHYSICAL_SE * se >= 0.0:
+    known = se is not None and math.isfinite(se)
+    if known and v + UNPHYSICAL_SE * se >= 0.0:
         return (f"{name} is negative ({v:.4g} +/- {se:.2g} {unit}), within {UNPHYSICAL_SE:g} standard "
                 "errors of zero: consistent with a physical value"), False
-    beyond = f", beyond {UNPHYSICAL_SE:g} standard errors" if se is not None and math.isfinite(se) else ""
+    beyond = f", beyond {UNPHYSICAL_SE:g} standard errors" if known else ""
     return f"{name} is negative ({v:.4g} {unit}{beyond}): physically meaningless", True
 
 
 def _warnings(model: Model, values: dict[str, float], at_bound: np.ndarray, integrator: bool,
-              stderr: dict[str, float | None] | None = None) -> list[str]:
+              stderr: dict[str, float | None]) -> list[str]:
     out = []
     for p, bound in zip(model.params, at_bound, strict=True):
         v = values[p.name]
         effect = _owner(model, p)
         owner = effect.name
         if p.warn_negative and v < 0:
-            out.append(negative(f"{owner}.{p.name}", v, p.unit, (stderr or {}).get(p.name))[0])
+            out.append(negative(f"{owner}.{p.name}", v, p.unit, stderr.get(p.name))[0])
         if bound and effect.stage == "lag" and v > 0 and integrator:
             out.append(f"{owner}.{p.name} = {v:.4g} {p.unit}: the force does not relax on this record; "
                        f"the lag acts as an integrator (its rate 1/{p.name} sits at its bound, zero)")
