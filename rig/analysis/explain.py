@@ -38,6 +38,7 @@ SCREEN_SAMPLES = 2000  # per trial
 SCREEN_NFEV = 60  # iterations of a screen (each one a Jacobian)
 REFIT_NFEV = 20  # a leader's refit at full rate, from the screen's answer
 REFIT_LEADERS = 3
+SWAP_LEADERS = 3  # the best candidates by the criterion whose swaps are tried (each a few refits)
 DECISIVE_BIC = -10.0
 SUGGEST_BIC = 0.0  # the same, for a model that is not adequate
 ABSORBED_BIC = 3 * DECISIVE_BIC  # very strong support, negligible error change: a look-alike
@@ -72,10 +73,18 @@ class Suggestion:
     # against the other passing candidates, at the better fits' N_eff (`_among_passing`): its BIC
     # over the best one's (0 for the best); None when it was not compared
     pair_bic: float | None = None
+    # effects of the base model this suggestion drops (a swap: `_swapped`), empty for an addition
+    dropped: tuple[str, ...] = ()
+
+    @property
+    def label(self) -> str:
+        """The effect, and any effect of the base it drops: "drift, with nonlinear_damping dropped"."""
+        return f"{self.effect}, with {' and '.join(self.dropped)} dropped" if self.dropped else self.effect
 
     def as_dict(self) -> dict:
-        return {"effect": self.effect, "rmse_N": self.rmse_N, "rmse_drop": self.rmse_drop,
-                "delta_bic": self.delta_bic, "criterion": "BIC on effective samples", "why": self.why}
+        return {"effect": self.effect, "dropped": list(self.dropped), "rmse_N": self.rmse_N,
+                "rmse_drop": self.rmse_drop, "delta_bic": self.delta_bic,
+                "criterion": "BIC on effective samples", "why": self.why}
 
 
 @dataclass
@@ -145,8 +154,8 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
         screened.append((rss / max(rss0_c, 1e-300), e, res))
     screened.sort(key=lambda x: x[0])
 
-    def score(e: Effect, res_c: FitResult, full: bool) -> Suggestion:
-        model = base.model + e
+    def score(e: Effect, res_c: FitResult, full: bool, dropped: tuple[str, ...] = ()) -> Suggestion:
+        model = without(base.model, dropped) + e
         if full:
             # from the screen's answer a few steps settle it on every sample
             res = fit(model, trials, starts=1, initial=res_c.values, tol=1e-8, max_nfev=REFIT_NFEV,
@@ -164,7 +173,10 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
         dbic = delta_bic(ratio, dk, n_eff)
         rmse = base.overall.rmse_N * float(np.sqrt(ratio))
         drop = 1.0 - float(np.sqrt(ratio))
-        sug = Suggestion(e.name, rmse, drop, float(dbic), _why(e, before, res), res, full_rate=full)
+        sug = Suggestion(e.name, rmse, drop, float(dbic), _why(e, before, res), res, full_rate=full,
+                         dropped=dropped)
+        if dropped:
+            sug.why += f"; with {' and '.join(dropped)} dropped from the model (fit it: {options(model)})"
         bad = meaningless(res, base)
         if bad:
             sug.meaningless = bad
@@ -183,6 +195,12 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
         if top is None or top.full_rate:
             break
         ranked[ranked.index(top)] = score(*by_name[top.effect], True)
+    # a leader that explains the residual while it turns one of the model's own effects
+    # significantly negative, or makes one unnecessary, is offered with that effect dropped
+    for s in sorted(ranked, key=lambda s: s.delta_bic)[:SWAP_LEADERS]:
+        if s.full_rate and (swap := _swapped(s, base, by_name[s.effect][0], score)) is not None:
+            ranked[ranked.index(s)] = swap
+    ranked.sort(key=lambda s: s.delta_bic)
     ranked_ok = [s for s in ranked if not s.meaningless]
     passing = [s for s in ranked_ok if passes(s.delta_bic, s.rmse_drop, base.adequate)]
     # with an answer, only a candidate that could stand in for it is a look-alike worth naming; a
@@ -205,6 +223,51 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
     return Explanation(base, n_eff, ranked, passing, twins, base.adequate, summary,
                        best.effect if best else None, twins, unexplained,
                        closest.effect if closest else None)
+
+
+def without(model: Model, names: tuple[str, ...] | list[str]) -> Model:
+    """`model` with the effects `names` dropped."""
+    return Model([e for e in model.effects if e.name not in names], records=model.records) if names else model
+
+
+def options(model: Model) -> str:
+    """The `rig analyze` options that fit `model` (the terms every curve has, one value per record,
+    come with it)."""
+    names = [e.name for e in model.effects if not any(p.per_record for p in e.params)]
+    return " ".join([f"--model {names[0]}", *(f"--add {n}" for n in names[1:])])
+
+
+def droppable(model: Model) -> list[str]:
+    """The effects a swap may drop: not the elastic law (the model's first effect) and not a term
+    with one value per record (the contact point, the record's zero), which every curve has."""
+    return [e.name for e in model.effects[1:] if not any(p.per_record for p in e.params)]
+
+
+def _swapped(s: Suggestion, base: FitResult, e: Effect, score) -> Suggestion | None:
+    """`s` with an effect of the base dropped, when that is the better model, else None.
+
+    Two ways an addition leaves an effect of the base behind: its fit turns that effect's
+    parameter significantly negative (the addition explains what the effect stood in for, and
+    the effect, still there, bends the other way: `meaningless`), or the fit without the effect
+    is as good by the one criterion (compared at the slimmer model's N_eff, as `auto` drops).
+    A meaningless fit is offered with the effects that went negative dropped, if that fit is
+    physical; a sound one with the effect whose drop the criterion prefers most."""
+    can = [n for n in droppable(base.model) if n != e.name]
+    if s.meaningless:
+        owners = tuple(dict.fromkeys(o for o, p in _negative_owners(s.fit, base) if o in can))
+        if not owners:
+            return None
+        swap = score(e, s.fit, True, owners)
+        return None if swap.meaningless else swap
+    best, best_dbic = None, 0.0
+    for name in can:
+        slim = fit(without(s.fit.model, (name,)), s.fit.trials, starts=1, initial=s.fit.values, tol=1e-8,
+                   max_nfev=REFIT_NFEV, polish=False)
+        dk = len(s.fit.model.params) - len(slim.model.params)
+        dbic = -delta_bic(_rss(s.fit) / max(_rss(slim), 1e-300), dk, slim.n_eff)
+        if dbic < best_dbic and not meaningless(slim, base):
+            best, best_dbic = name, dbic
+    return score(e, s.fit, True, (best,)) if best else None
 
 
 def _among_passing(passing: list[Suggestion], base: FitResult) -> list[Suggestion]:
@@ -253,12 +316,25 @@ def _negatives(res: FitResult, base: FitResult) -> list[tuple[str, bool]]:
     """What `negative` says of each parameter of `res` below zero that must not be (and is not in
     `base`), and whether it is meaningless."""
     out = []
+    for owner, p in _below_zero(res, base):
+        out.append(negative(f"{owner}.{p.name}", res.values[p.name], p.unit, res.stderr.get(p.name)))
+    return out
+
+
+def _negative_owners(res: FitResult, base: FitResult) -> list[tuple[str, str]]:
+    """The effects of `res` whose parameters are meaningless (`negative`), with those parameters."""
+    return [(owner, p.name) for owner, p in _below_zero(res, base)
+            if negative(p.name, res.values[p.name], p.unit, res.stderr.get(p.name))[1]]
+
+
+def _below_zero(res: FitResult, base: FitResult) -> list[tuple[str, object]]:
+    """The parameters of `res` below zero that must not be (and are not in `base`), with their effect."""
+    out = []
     for p in res.model.params:
-        v = res.values[p.name]
-        if not (p.warn_negative and v < 0) or base.values.get(p.name, 0.0) < 0:
+        if not (p.warn_negative and res.values[p.name] < 0) or base.values.get(p.name, 0.0) < 0:
             continue
-        owner = next((e.name for e in res.model.effects if any(q.name == p.name for q in e.params)), "model")
-        out.append(negative(f"{owner}.{p.name}", v, p.unit, res.stderr.get(p.name)))
+        out.append((next((e.name for e in res.model.effects if any(q.name == p.name for q in e.params)),
+                         "model"), p))
     return out
 
 
@@ -375,7 +451,9 @@ def _unexplained(base: FitResult, best: Suggestion | None) -> bool | str:
     if res.adequate:
         return False
     worst = max(((ph, s.rmse_N) for ph, s in res.phases.items() if s), key=lambda x: x[1])
-    what = f"with {best.effect}" if best else f"with {base.model.name} alone"
+    what = f"with {base.model.name} alone"
+    if best:
+        what = f"with {best.effect}" + (f", without {' and '.join(best.dropped)}," if best.dropped else "")
     text = (f"{what} the error is still {res.overall.rmse_N / max(res.noise_N, 1e-300):.2f}x the noise "
             f"(worst in {worst[0]}: {res.f(worst[1])}; residual correlated over {res.white_L:.0f} samples, "
             f"noise {res.noise_L:.0f})")
@@ -391,7 +469,7 @@ def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexpl
     the trials disagreeing) is the closest the catalogue comes, not the answer."""
     parts = []
     if best is not None:
-        parts.append(f"most likely missing: {best.effect} (dBIC {best.delta_bic:.1f}, RMSE "
+        parts.append(f"most likely missing: {best.label} (dBIC {best.delta_bic:.1f}, RMSE "
                      f"{base.f(base.overall.rmse_N)} -> {base.f(best.rmse_N)}, error down "
                      f"{best.rmse_drop * 100:.0f} %)")
         if runner_up is not None and runner_up.delta_bic < best.delta_bic:
@@ -405,7 +483,7 @@ def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexpl
                      f"{base.f(base.noise_N)}; worst in {worst[0]}: {base.f(worst[1])}) and no effect in "
                      "the catalogue explains it")
         if closest is not None:
-            parts.append(f"closest: {closest.effect} (dBIC {closest.delta_bic:.1f}, RMSE "
+            parts.append(f"closest: {closest.label} (dBIC {closest.delta_bic:.1f}, RMSE "
                          f"{base.f(closest.rmse_N)}, error down {closest.rmse_drop * 100:.0f} %), which "
                          f"still leaves a structured residual: {partial}")
         if unexplained:
@@ -427,7 +505,9 @@ def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexpl
 def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = 5) -> list[dict]:
     """Stepwise selection: add the best effect and refit, then drop any earlier addition the
     criterion no longer supports (effects hidden together can make a proxy look best first);
-    repeat while the criterion improves and the model is not adequate.
+    repeat while the criterion improves and the model is not adequate. A step may be a swap:
+    the best suggestion drops an effect of the model it made unneeded or unphysical
+    (`explain`'s `_swapped`), and the step adds the one and drops the other.
 
     Every step's model is refitted from several starts (`refit`): the previous step's
     solution and the catalogue's own, so a step is not bound to the basin the first one found
@@ -448,10 +528,15 @@ def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = 5) -> li
         before = current
         current = refit(best.fit)
         dk = len(current.model.params) - len(before.model.params)
-        dbic = delta_bic(_rss(current) / max(_rss(before), 1e-300), dk, before.n_eff)
-        added.append(best.effect)
-        steps.append({"step": i, "added": best.effect, "removed": None, "fit": current,
-                      "delta_bic": float(dbic), "why": best.why, "indistinguishable": ex.indistinguishable})
+        # at the simpler model's N_eff: the previous one for an addition, the new one for a swap
+        # (which removes, as a drop is judged, below)
+        simpler = current if best.dropped else before
+        dbic = delta_bic(_rss(current) / max(_rss(before), 1e-300), dk, simpler.n_eff)
+        added = [n for n in added if n not in best.dropped] + [best.effect]
+        # a swap: the step adds one effect and drops those of the model it made unneeded
+        steps.append({"step": i, "added": best.effect, "removed": " ".join(best.dropped) or None,
+                      "fit": current, "delta_bic": float(dbic), "why": best.why,
+                      "indistinguishable": ex.indistinguishable})
         for name in list(added[:-1]):
             slimmer = Model([e for e in current.model.effects if e.name != name], name="")
             without = fit(slimmer, current.trials, starts=1, initial=current.values, tol=1e-8,
@@ -521,7 +606,8 @@ def format_auto(steps: list[dict]) -> str:
     for s in steps:
         r = s["fit"]
         ph = "".join(f"{(r.phases[p].rmse_N / k if r.phases[p] else float('nan')):>12.4g}" for p in PHASES)
-        label = f"+{s['added']}" if s["added"] else (f"-{s['removed']}" if s.get("removed") else "(start)")
+        label = " ".join([*([f"+{s['added']}"] if s["added"] else []),
+                          *(f"-{n}" for n in (s.get("removed") or "").split())]) or "(start)"
         lines.append(f"{s['step']:<5}{label:<18}{r.overall.rmse_N / k:>9.4g}{ph}{s['delta_bic']:>10.1f}")
     last = steps[-1]["fit"]
     lines.append(f"final model {last.model.name}: "
