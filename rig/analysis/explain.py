@@ -21,12 +21,13 @@ and below on clean controls; the error drop is what separates a hidden effect fr
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from rig.analysis.data import PHASES, TrialData, decimate
-from rig.analysis.fit import FitResult, evaluate, fit, negative
+from rig.analysis.fit import FEW_PER_PARAM, FitResult, evaluate, fit, negative
 from rig.analysis.residual_shape import describe, not_the_answer
 from rig.analysis.uncertainty import delta_bic
 from rig.models.catalogue import CONTACT, instrument_effects
@@ -57,6 +58,8 @@ SEPARATE_BY = {
                                                          "every decade of time; one exponential settles)",
     frozenset({"speed_relaxation", "relaxation2"}): "a third speed (the relaxation time follows the speed)",
 }
+# what gives a record the independent residuals a richer model needs
+BEYOND_DESIGN = "a longer hold, another speed or another depth would give the record more to tell"
 GENERIC_SEPARATION = "another speed, another depth, or a richer motion (a sine gives excitation order 2)"
 
 
@@ -75,6 +78,7 @@ class Suggestion:
     pair_bic: float | None = None
     # effects of the base model this suggestion drops (a swap: `_swapped`), empty for an addition
     dropped: tuple[str, ...] = ()
+    unsupported: str = ""  # why the record cannot support the model with it (`richness`), if it cannot
 
     @property
     def label(self) -> str:
@@ -102,6 +106,9 @@ class Explanation:
     # the best addition when it still leaves a structured residual: the nearest the catalogue
     # comes, not the answer
     closest: str | None = None
+    # candidates that pass the criterion on a model richer than the record supports (`richness`):
+    # a design question, not a suggestion
+    beyond: list[Suggestion] = field(default_factory=list)
 
     def verdict(self) -> dict:
         """The verdict as fields (the `diagnosis` of `rig analyze --explain --json`)."""
@@ -203,6 +210,12 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
     ranked.sort(key=lambda s: s.delta_bic)
     ranked_ok = [s for s in ranked if not s.meaningless]
     passing = [s for s in ranked_ok if passes(s.delta_bic, s.rmse_drop, base.adequate)]
+    for s in passing:
+        s.unsupported = richness(s.fit)
+    # a model richer than the record supports is compared on too little: there only decisive
+    # evidence counts (a friction that takes 95 % of the error away, not a 10 % gain at N_eff 20)
+    beyond = [s for s in passing if s.unsupported and s.delta_bic >= DECISIVE_BIC]
+    passing = [s for s in passing if s not in beyond]
     # with an answer, only a candidate that could stand in for it is a look-alike worth naming; a
     # strongly supported effect that barely changes the error is news only when nothing passes
     twins = _indistinguishable(passing, trials) if passing else _absorbed(base, ranked_ok)
@@ -219,10 +232,25 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
             closest, best = best, None
     ranked_pair = best is not None and len(passing) > 1 and passing[1].pair_bic is not None
     runner_up = passing[1] if ranked_pair else None
-    summary = _summary(base, best, twins, unexplained, closest, partial, runner_up)
+    summary = _summary(base, best, twins, unexplained, closest, partial, runner_up,
+                       beyond[0] if beyond and best is None else None)
     return Explanation(base, n_eff, ranked, passing, twins, base.adequate, summary,
                        best.effect if best else None, twins, unexplained,
-                       closest.effect if closest else None)
+                       closest.effect if closest else None, beyond)
+
+
+def richness(res: FitResult) -> str:
+    """Why the record cannot support `res`'s model, or "" when it can: fewer than FEW_PER_PARAM
+    independent residuals (the residual's N_eff) per fitted parameter. Below that the standard
+    errors rest on too little, and a further effect compared at that count is chasing the
+    residual's few independent features, not the physics (a creep record's --auto model once held
+    eleven parameters on 20 independent residuals, and an effect it did not need turned negative
+    when a hidden drift was named)."""
+    free = sum(1 for e in res.stderr.values() if e is not None and math.isfinite(e))
+    if not free or res.n_eff >= FEW_PER_PARAM * free:
+        return ""
+    return (f"{free} fitted parameters on {res.n_eff:.0f} independent residuals (fewer than {FEW_PER_PARAM} "
+            "each)")
 
 
 def without(model: Model, names: tuple[str, ...] | list[str]) -> Model:
@@ -462,16 +490,21 @@ def _unexplained(base: FitResult, best: Suggestion | None) -> bool | str:
 
 
 def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexplained: bool | str,
-             closest: Suggestion | None = None, partial: str = "", runner_up: Suggestion | None = None) -> str:
+             closest: Suggestion | None = None, partial: str = "", runner_up: Suggestion | None = None,
+             beyond: Suggestion | None = None) -> str:
     """Best-supported effect first with its evidence, then any look-alike and the protocol that
     would separate them, then what is left unexplained: the answer is never replaced by a note.
     An addition that still leaves a structured residual and explains only part of it (or leaves
-    the trials disagreeing) is the closest the catalogue comes, not the answer."""
+    the trials disagreeing) is the closest the catalogue comes, not the answer; one the record
+    cannot support (`beyond`, when nothing else passes) is a design question."""
     parts = []
     if best is not None:
         parts.append(f"most likely missing: {best.label} (dBIC {best.delta_bic:.1f}, RMSE "
                      f"{base.f(base.overall.rmse_N)} -> {base.f(best.rmse_N)}, error down "
                      f"{best.rmse_drop * 100:.0f} %)")
+        if best.unsupported:
+            parts.append(f"with it {best.unsupported}: named on decisive evidence, its standard errors rest "
+                         "on too little")
         if runner_up is not None and runner_up.delta_bic < best.delta_bic:
             parts.append(f"ranked above {runner_up.effect} (dBIC {runner_up.delta_bic:.1f} against the base) "
                          f"by {runner_up.pair_bic:.1f} at the better fits' effective samples")
@@ -480,8 +513,13 @@ def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexpl
     else:
         worst = max(((ph, s.rmse_N) for ph, s in base.phases.items() if s), key=lambda x: x[1])
         parts.append(f"the model is NOT adequate (RMSE {base.f(base.overall.rmse_N)} vs noise "
-                     f"{base.f(base.noise_N)}; worst in {worst[0]}: {base.f(worst[1])}) and no effect in "
-                     "the catalogue explains it")
+                     f"{base.f(base.noise_N)}; worst in {worst[0]}: {base.f(worst[1])}) and "
+                     + ("the record cannot support a richer model" if beyond else
+                        "no effect in the catalogue explains it"))
+        if beyond is not None:
+            parts.append(f"{beyond.label} would lower the error by {beyond.rmse_drop * 100:.0f} % (dBIC "
+                         f"{beyond.delta_bic:.1f}), but with it {beyond.unsupported}; whether it is there is "
+                         f"a design question, not a fit: {BEYOND_DESIGN}")
         if closest is not None:
             parts.append(f"closest: {closest.label} (dBIC {closest.delta_bic:.1f}, RMSE "
                          f"{base.f(closest.rmse_N)}, error down {closest.rmse_drop * 100:.0f} %), which "
@@ -523,6 +561,11 @@ def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = 5) -> li
             break
         ex = explain(current, registry)
         if not ex.suggestions:
+            if ex.beyond:  # a richer model is a design question: say so where the search stopped
+                b = ex.beyond[0]
+                steps[-1]["stopped"] = (f"stopped: the record cannot support a richer model ({b.label} would "
+                                        f"lower the error by {b.rmse_drop * 100:.0f} %, but with it "
+                                        f"{b.unsupported}); {BEYOND_DESIGN}")
             break
         best = ex.suggestions[0]
         before = current
@@ -613,4 +656,10 @@ def format_auto(steps: list[dict]) -> str:
     lines.append(f"final model {last.model.name}: "
                  + ("adequate (residual at the sensor noise)" if last.adequate else
                     f"NOT adequate (RMSE {last.f(last.overall.rmse_N)} vs noise {last.f(last.noise_N)})"))
+    if steps[-1].get("stopped"):
+        lines.append(steps[-1]["stopped"])
+    if (rich := richness(last)):
+        lines.append(f"the record supports this model only in part: {rich}; its standard errors rest on too "
+                     "little (the model it started from was already this rich)" if len(steps) == 1 else
+                     f"the record supports this model only in part: {rich}")
     return "\n".join(lines)

@@ -399,9 +399,9 @@ def _guessed(model, ps: ParamScaling, trials, init: np.ndarray) -> dict[str, flo
         without = Model([x for x in model.effects if x is not e], model.name, model.records)
         for t in trials:
             known = {k: vals[k] for k in without.param_names}
-            misfit = t.force_N - without.predict(known, t.motion)
+            predicted = without.predict(known, t.motion)
             here = {p.name: vals[model.key(p, t.motion.record)] for p in e.params}
-            got = e.guess(t.motion, misfit, here)
+            got = e.guess(t.motion, t.force_N - predicted, here, predicted)
             if got:
                 out.update({k: v for k, v in got.items() if k in own})
                 break

@@ -159,7 +159,8 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         out["auto"] = [{"step": s["step"], "added": s["added"], "removed": s.get("removed"),
                         "model": s["fit"].model.name, "rmse_N": s["fit"].overall.rmse_N,
                         "phases": {k: (v.rmse_N if v else None) for k, v in s["fit"].phases.items()},
-                        "delta_bic": s["delta_bic"], "adequate": s["fit"].adequate, "why": s.get("why", "")}
+                        "delta_bic": s["delta_bic"], "adequate": s["fit"].adequate, "why": s.get("why", ""),
+                        "stopped": s.get("stopped", "")}
                        for s in steps]
         out["auto_final"] = result_json(steps[-1]["fit"], req.inputs)
     if req.save:

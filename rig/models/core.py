@@ -99,9 +99,10 @@ class Effect:
     # solves for that parameter directly (rig.analysis.separable)
     linear: bool = False
     # where a fit should start its parameters, from the data: (motion, measured minus predicted
-    # force without the effect, the other parameters' values in SI) -> {name: SI value}. For an
-    # effect whose cost moves in steps with a parameter (a let-go between samples), which no
-    # solver finds from a default start
+    # force without the effect, the other parameters' values in SI, the predicted force without
+    # the effect) -> {name: SI value}. For an effect whose cost moves in steps with a parameter
+    # (a let-go between samples), or has many minima (a delay), which no solver finds from a
+    # default start
     guess: Callable | None = None
 
     @property

@@ -182,7 +182,7 @@ def _adhesion(m: Motion, force, pull_off_N, pull_off_m, x_c_m):
     return np.where((m.v_m_s < 0) & (d < 0), pull_off_N * (d / L) * held, 0.0)
 
 
-def _adhesion_guess(m: Motion, misfit_N: np.ndarray, values: dict) -> dict[str, float]:
+def _adhesion_guess(m: Motion, misfit_N: np.ndarray, values: dict, model_N: np.ndarray) -> dict[str, float]:
     """The neck that best fits the misfit on the way out past the contact point: for every sample
     it might let go after, the slope by least squares over the samples before it (the force
     through nought at the contact point) and nought after; the let-go that leaves the least."""

@@ -1,0 +1,101 @@
+"""How often a drift hidden in a real AFM force curve is named, on every curve of the shared
+force-distance files and maps (`../shared/realdata/afm-fd/`): the researcher's workflow as in
+tests/bench/realdata_naming.py. Each curve's `--auto` model from Hertz (a paraboloid of 10 um, the
+approach, the contact point fitted) is its clean model; a drift of a tenth and of a twentieth of
+the approach's force range over the approach's time is added to the force, and `--explain` on the
+clean model must name it first; `--auto` from Hertz on the curve with the drift must add it. The
+clean curve is a control: `--explain` on its `--auto` model must suggest nothing.
+
+Of the four effects hidden in the creep records, only the drift is an effect of an approach's
+own: on one approach at one speed a friction or a drag is a constant (the curve's fitted zero) and
+a delay of the reading is a shift of the contact point. A few minutes on two cores:
+`python tests/bench/afm_naming.py`."""
+
+from __future__ import annotations
+
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from rig.analysis.session import AnalyzeRequest, analyze
+from rig.records import ReadOptions, read_record
+from rig.records.afm import list_curves
+
+AFM = Path(__file__).resolve().parents[3] / "shared" / "realdata" / "afm-fd"
+INDENTER = "paraboloid:R=10um"
+# what the user gives for files that do not hold their calibration (realdata/README.md)
+OVERRIDES = {"fmt-ntmdt-txt-fd_": (0.055, 61.0), "fmt-afm-workshop-fd_mapping_": (20.0, 1e-8)}
+SIZES = (0.1, 0.05)
+PER_RECORD = ("contact_point", "offset")
+
+
+def options(path: Path, curve: int | None = None) -> ReadOptions:
+    k, s = next((v for p, v in OVERRIDES.items() if path.name.startswith(p)), (None, None))
+    return ReadOptions(curve=curve, spring_constant_N_per_m=k, sensitivity_m_per_V=s)
+
+
+def with_drift(rec, size: float):
+    """`rec` with a drift of `size` of its approach's force range over the approach's time."""
+    a = rec.segment == "approach" if rec.segment is not None else np.ones(rec.n, bool)
+    t, f = rec.t_s, rec.force_N
+    span = float(np.ptp(t[a])) or float(np.ptp(t))
+    return replace(rec, force_N=f + size * float(np.ptp(f[a])) * (t - t[a][0]) / span)
+
+
+def _run(path: Path, rec, **kw) -> dict:
+    return analyze(AnalyzeRequest([str(path)], model="hertz", indenter=INDENTER, segment="approach",
+                                  records=[rec], **kw)).json
+
+
+def one(job: tuple[Path, int]) -> dict:
+    path, curve = job
+    t0 = time.time()
+    rec = read_record(path, options(path, curve))
+    clean = _run(path, rec, auto=True)
+    adds = [e for e in clean["auto_final"]["effects"] if e not in ("elastic_contact", *PER_RECORD)]
+    control = _run(path, rec, add=adds, explain=True)
+    out = {"curve": f"{path.name[:40]} #{curve}", "clean": adds, "quiet": not control["suggestions"],
+           "control": control["diagnosis"]["text"][:100], "cases": []}
+    for size in SIZES:
+        hidden = with_drift(rec, size)
+        ex = _run(path, hidden, add=[e for e in adds if e != "drift"], explain=True)
+        d = ex["diagnosis"]
+        auto = _run(path, hidden, auto=True)
+        out["cases"].append({"size": size, "held": "drift" in adds, "named": d["best"] == "drift"
+                             and d["text"].startswith("most likely missing: drift"),
+                             "said": d["text"][:100], "auto_added": "drift" in auto["auto_final"]["effects"],
+                             "auto": " ".join(f"+{s['added']}" if s["added"] else f"-{s['removed']}"
+                                              for s in auto["auto"][1:])})
+    out["seconds"] = time.time() - t0
+    return out
+
+
+def main() -> None:
+    jobs = [(p, c.enum) for p in sorted(AFM.iterdir()) for c in list_curves(p, options(p))]
+    named = cases = added = quiet = 0
+    with ProcessPoolExecutor(2) as pool:
+        for r in pool.map(one, jobs):
+            said = "quiet" if r["quiet"] else "SUGGESTED"
+            print(f"## {r['curve']}: clean +{' +'.join(r['clean']) or '(hertz)'}; control {said}: "
+                  f"{r['control']}  ({r['seconds']:.0f} s)", flush=True)
+            quiet += r["quiet"]
+            for c in r["cases"]:
+                said = "held by the clean model" if c["held"] else ("named" if c["named"] else "MISSED")
+                print(f"   drift {c['size']:<5} {said:<24} auto {c['auto'] or '(none)'} -> "
+                      f"{'added' if c['auto_added'] else 'NOT ADDED'}  {c['said']}", flush=True)
+                cases += not c["held"]
+                named += c["named"] and not c["held"]
+                added += c["auto_added"]
+    n = len(jobs)
+    print(f"named first {named} of {cases} ({100 * named / max(cases, 1):.0f} %); --auto added it in "
+          f"{added} of {2 * n}; clean controls with no suggestion {quiet} of {n}")
+
+
+if __name__ == "__main__":
+    main()
