@@ -262,7 +262,8 @@ def options(model: Model) -> str:
     """The `rig analyze` options that fit `model` (the terms every curve has, one value per record,
     come with it)."""
     names = [e.name for e in model.effects if not any(p.per_record for p in e.params)]
-    return " ".join([f"--model {names[0]}", *(f"--add {n}" for n in names[1:])])
+    first = "hertz" if names[0] == CONTACT else names[0]  # the contact law: its indenter as given
+    return " ".join([f"--model {first}", *(f"--add {n}" for n in names[1:])])
 
 
 def droppable(model: Model) -> list[str]:

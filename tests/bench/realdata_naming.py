@@ -26,6 +26,7 @@ RECORDS = ["polymergel-creep.jpk-force", "brain-creep.jpk-force", "oocyte-cell1/
            "oocyte-cell1/cell1-0005.jpk-force"]
 EFFECTS = ["drift", "friction", "delay"]  # an offset from the first sample is the record's zero
 SIZES = (1.0, 0.5)
+BASE_SIZES = dict(T.SIZES)
 
 
 def _model(names: list[str]) -> Model:
@@ -48,7 +49,7 @@ def case(args: tuple) -> dict:
     record, names, values, effect, mult = args
     t0 = time.time()
     trial = load_trial(T.REALDATA / record, form="force")
-    T.SIZES = {**T.SIZES, effect: T.SIZES[effect] * mult}
+    T.SIZES = {**BASE_SIZES, effect: BASE_SIZES[effect] * mult}  # a worker runs several cases
     hidden = T.hide(trial, effect)
     held = effect in names
     base = fit(_model([n for n in names if n != effect]), [hidden], starts=1, initial=values)
