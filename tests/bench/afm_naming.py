@@ -11,7 +11,8 @@ own: on one approach at one speed a friction or a drag is a constant (the curve'
 a delay of the reading is a shift of the contact point. On one approach at one speed a drift and a
 tilt of the baseline (a force growing with the piezo's travel) are one function of time, so either
 name is the answer; a curve whose force is the same as another's (the AFM Workshop map repeats one
-curve 16 times) counts once. A few minutes on two cores: `python tests/bench/afm_naming.py`."""
+curve 16 times) counts once. About an hour on two cores (a long JPK curve's `--auto` runs take ten
+minutes): `python tests/bench/afm_naming.py`."""
 
 from __future__ import annotations
 
