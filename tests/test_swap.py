@@ -57,7 +57,7 @@ def test_auto_moves_by_a_swap():
         assert moves[1] == ("drift", "viscous"), moves
         final = steps[-1]["fit"].model
         assert final.has("drift") and not final.has("viscous"), final.effect_names
-        assert "+drift -viscous" in format_auto(steps)
+        assert "+drift/-viscous" in format_auto(steps)
 
 
 def test_the_swap_through_the_command_line(tmp_path, capsys):

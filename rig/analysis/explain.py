@@ -611,11 +611,11 @@ def refit(warm: FitResult, starts: int = 3) -> FitResult:
     rss_fresh = float(sum(np.sum(r ** 2) for r in _residuals(model, fresh.values, trials)))
     start = fresh.values if rss_fresh < _rss(warm) else warm.values
     res = fit(model, trials, starts=1, initial=start, tol=1e-8, max_nfev=REFIT_NFEV, polish=False)
-    if stride > 1:
-        # the decimated copy's best start is not always the record's: the model fitted on its own, as
-        # `rig analyze --add` fits it, is one more candidate (a gel's third step stayed 5 % above it)
-        alone = fit(model, trials)
-        res = alone if _rss(alone) < _rss(res) else res
+    # the decimated copy's best start is not always the record's, and a few unpolished steps from it
+    # not always the optimum: the model fitted on its own, as `rig analyze --add` fits it, is one more
+    # candidate (a gel's third step stayed 5 % above it; a swap on an AFM approach 0.3 %)
+    alone = fit(model, trials)
+    res = alone if _rss(alone) < _rss(res) else res
     return res if _rss(res) <= _rss(warm) else warm
 
 
@@ -645,14 +645,17 @@ def format_explain(ex: Explanation, top: int = 6) -> str:
 
 def format_auto(steps: list[dict]) -> str:
     k, u = steps[0]["fit"].force_unit
-    head = f"{'step':<5}{'added':<18}{'RMSE ' + u:>9}" + "".join(f"{p:>12}" for p in PHASES) + f"{'dBIC':>10}"
+    # one word a step (a swap: "+drift/-viscous"), so the table splits on its spaces
+    labels = ["/".join([*([f"+{s['added']}"] if s["added"] else []),
+                        *(f"-{n}" for n in (s.get("removed") or "").split())]) or "(start)" for s in steps]
+    width = max(18, max(map(len, labels)) + 1)
+    head = (f"{'step':<5}{'added':<{width}}{'RMSE ' + u:>9}" + "".join(f"{p:>12}" for p in PHASES)
+            + f"{'dBIC':>10}")
     lines = [head, "-" * len(head)]
-    for s in steps:
+    for s, label in zip(steps, labels, strict=True):
         r = s["fit"]
         ph = "".join(f"{(r.phases[p].rmse_N / k if r.phases[p] else float('nan')):>12.4g}" for p in PHASES)
-        label = " ".join([*([f"+{s['added']}"] if s["added"] else []),
-                          *(f"-{n}" for n in (s.get("removed") or "").split())]) or "(start)"
-        lines.append(f"{s['step']:<5}{label:<18}{r.overall.rmse_N / k:>9.4g}{ph}{s['delta_bic']:>10.1f}")
+        lines.append(f"{s['step']:<5}{label:<{width}}{r.overall.rmse_N / k:>9.4g}{ph}{s['delta_bic']:>10.1f}")
     last = steps[-1]["fit"]
     lines.append(f"final model {last.model.name}: "
                  + ("adequate (residual at the sensor noise)" if last.adequate else
