@@ -261,7 +261,7 @@ def without(model: Model, names: tuple[str, ...] | list[str]) -> Model:
 def options(model: Model) -> str:
     """The `rig analyze` options that fit `model` (the terms every curve has, one value per record,
     come with it)."""
-    names = [e.name for e in model.effects if not any(p.per_record for p in e.params)]
+    names = [e.name for e in model.effects if not e.of_record]
     first = "hertz" if names[0] == CONTACT else names[0]  # the contact law: its indenter as given
     return " ".join([f"--model {first}", *(f"--add {n}" for n in names[1:])])
 
@@ -269,7 +269,7 @@ def options(model: Model) -> str:
 def droppable(model: Model) -> list[str]:
     """The effects a swap may drop: not the elastic law (the model's first effect) and not a term
     with one value per record (the contact point, the record's zero), which every curve has."""
-    return [e.name for e in model.effects[1:] if not any(p.per_record for p in e.params)]
+    return [e.name for e in model.effects[1:] if not e.of_record]
 
 
 def _swapped(s: Suggestion, base: FitResult, e: Effect, score) -> Suggestion | None:
@@ -283,7 +283,7 @@ def _swapped(s: Suggestion, base: FitResult, e: Effect, score) -> Suggestion | N
     physical; a sound one with the effect whose drop the criterion prefers most."""
     can = [n for n in droppable(base.model) if n != e.name]
     if s.meaningless:
-        owners = tuple(dict.fromkeys(o for o, p in _negative_owners(s.fit, base) if o in can))
+        owners = tuple(dict.fromkeys(o for o, _, bad in _negatives(s.fit, base) if bad and o in can))
         if not owners:
             return None
         swap = score(e, s.fit, True, owners)
@@ -333,37 +333,23 @@ def meaningless(res: FitResult, base: FitResult) -> str:
     standard errors (`rig.analysis.fit.negative`); a value slightly negative within its error
     is said (`within`) and does not reject. A parameter already negative in `base`, the fit
     without the effect, is the base model's own problem (its fit says so) and is left out."""
-    return next((said for said, bad in _negatives(res, base) if bad), "")
+    return next((said for _, said, bad in _negatives(res, base) if bad), "")
 
 
 def within(res: FitResult, base: FitResult) -> str:
     """The parameters of `res` negative within their errors (not meaningless: `meaningless`), said."""
-    return "; ".join(said for said, bad in _negatives(res, base) if not bad)
+    return "; ".join(said for _, said, bad in _negatives(res, base) if not bad)
 
 
-def _negatives(res: FitResult, base: FitResult) -> list[tuple[str, bool]]:
-    """What `negative` says of each parameter of `res` below zero that must not be (and is not in
-    `base`), and whether it is meaningless."""
-    out = []
-    for owner, p in _below_zero(res, base):
-        out.append(negative(f"{owner}.{p.name}", res.values[p.name], p.unit, res.stderr.get(p.name)))
-    return out
-
-
-def _negative_owners(res: FitResult, base: FitResult) -> list[tuple[str, str]]:
-    """The effects of `res` whose parameters are meaningless (`negative`), with those parameters."""
-    return [(owner, p.name) for owner, p in _below_zero(res, base)
-            if negative(p.name, res.values[p.name], p.unit, res.stderr.get(p.name))[1]]
-
-
-def _below_zero(res: FitResult, base: FitResult) -> list[tuple[str, object]]:
-    """The parameters of `res` below zero that must not be (and are not in `base`), with their effect."""
+def _negatives(res: FitResult, base: FitResult) -> list[tuple[str, str, bool]]:
+    """Each parameter of `res` below zero that must not be (and is not in `base`): its effect, what
+    `negative` says of it, and whether it is meaningless."""
     out = []
     for p in res.model.params:
         if not (p.warn_negative and res.values[p.name] < 0) or base.values.get(p.name, 0.0) < 0:
             continue
-        out.append((next((e.name for e in res.model.effects if any(q.name == p.name for q in e.params)),
-                         "model"), p))
+        owner = next((e.name for e in res.model.effects if any(q.name == p.name for q in e.params)), "model")
+        out.append((owner, *negative(f"{owner}.{p.name}", res.values[p.name], p.unit, res.stderr.get(p.name))))
     return out
 
 
@@ -582,17 +568,16 @@ def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = 5) -> li
                       "fit": current, "delta_bic": float(dbic), "why": best.why,
                       "indistinguishable": ex.indistinguishable})
         for name in list(added[:-1]):
-            slimmer = Model([e for e in current.model.effects if e.name != name], name="")
-            without = fit(slimmer, current.trials, starts=1, initial=current.values, tol=1e-8,
-                          max_nfev=REFIT_NFEV, polish=False)
-            dk = len(current.model.params) - len(without.model.params)
+            slim = fit(without(current.model, (name,)), current.trials, starts=1, initial=current.values,
+                       tol=1e-8, max_nfev=REFIT_NFEV, polish=False)
+            dk = len(current.model.params) - len(slim.model.params)
             # the slimmer model against the current one, at the slimmer one's N_eff
-            dbic = -delta_bic(_rss(current) / max(_rss(without), 1e-300), dk, without.n_eff)
+            dbic = -delta_bic(_rss(current) / max(_rss(slim), 1e-300), dk, slim.n_eff)
             if dbic < 0:  # simpler is better: the earlier effect was a stand-in
-                without = refit(without)
-                dbic = -delta_bic(_rss(current) / max(_rss(without), 1e-300), dk, without.n_eff)
+                slim = refit(slim)
+                dbic = -delta_bic(_rss(current) / max(_rss(slim), 1e-300), dk, slim.n_eff)
                 added.remove(name)
-                current = without
+                current = slim
                 steps.append({"step": i, "added": None, "removed": name, "fit": current,
                               "delta_bic": float(dbic), "why": f"{name} no longer needed"})
     return steps
@@ -606,15 +591,16 @@ def refit(warm: FitResult, starts: int = 3) -> FitResult:
     model fitted on its own from its catalogue starts at the full rate is kept if it is better."""
     model, trials = warm.model, warm.trials
     stride = max(1, min(t.n for t in trials) // SCREEN_SAMPLES)
-    coarse = [decimate(t, stride) for t in trials] if stride > 1 else trials
-    fresh = fit(model, coarse, starts=starts, tol=1e-8, polish=False)
+    # the model fitted on its own, as `rig analyze --add` fits it, is always a candidate: the decimated
+    # copy's best start is not always the record's, and a few unpolished steps from it not always
+    # the optimum (a gel's third step stayed 5 % above it; a swap on an AFM approach 0.3 %). On a
+    # record short enough not to decimate it is also the screen of the catalogue's starts
+    alone = fit(model, trials)
+    fresh = fit(model, [decimate(t, stride) for t in trials], starts=starts, tol=1e-8,
+                polish=False) if stride > 1 else alone
     rss_fresh = float(sum(np.sum(r ** 2) for r in _residuals(model, fresh.values, trials)))
     start = fresh.values if rss_fresh < _rss(warm) else warm.values
     res = fit(model, trials, starts=1, initial=start, tol=1e-8, max_nfev=REFIT_NFEV, polish=False)
-    # the decimated copy's best start is not always the record's, and a few unpolished steps from it
-    # not always the optimum: the model fitted on its own, as `rig analyze --add` fits it, is one more
-    # candidate (a gel's third step stayed 5 % above it; a swap on an AFM approach 0.3 %)
-    alone = fit(model, trials)
     res = alone if _rss(alone) < _rss(res) else res
     return res if _rss(res) <= _rss(warm) else warm
 
