@@ -6,6 +6,7 @@ damaged files in one line, and the relaxation and creep records read exactly as 
 from __future__ import annotations
 
 import dataclasses
+import os
 import subprocess
 import sys
 import zipfile
@@ -250,6 +251,33 @@ def test_iter_records_loads_the_file_once(monkeypatch):
     got = [r.meta["curve"] for r in iter_records(path)]
     assert got == [0, 1, 2, 3] and len(calls) == 1
 
+
+
+def test_one_curve_is_opened_once_by_the_command_and_again_once_the_file_changed(monkeypatch, tmp_path, capsys):
+    # `rig analyze FILE` lists the file (is it a batch?) and then reads its curve: one opening
+    path = tmp_path / "one.jpk-force"
+    path.write_bytes(_file("fmt-jpk-fd_spot3").read_bytes())
+    (recipe,) = afmformats.formats.formats_by_suffix[path.suffix]
+    load = recipe.recipe["loader"]
+    calls = []
+
+    def counting(*args, **kwargs):
+        calls.append(args)
+        return load(*args, **kwargs)
+
+    monkeypatch.setitem(recipe.recipe, "loader", counting)
+    alone = read_record(path)
+    calls.clear()
+    assert main(["analyze", str(path), "--model", "hertz", "--indenter", "paraboloid:R=10um", "--json"]) == 0
+    assert len(calls) == 1 and '"E_Pa"' in capsys.readouterr().out
+    # what the listing kept is the same record, and a file changed since is read afresh
+    assert len(list_curves(path)) == 1
+    np.testing.assert_array_equal(read_record(path).force_N, alone.force_N)
+    list_curves(path)
+    os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 10**9))
+    calls.clear()
+    read_record(path)
+    assert len(calls) == 1
 
 def _damaged(tmp_path: Path) -> list[tuple[Path, str]]:
     out = []

@@ -266,7 +266,7 @@ def read_afm(path: str | Path, options: ReadOptions | None = None, fmt: AfmForma
     path = Path(path)
     options = options or ReadOptions()
     fmt = fmt or format_of(path)
-    data, caught = _load(path, fmt, options)
+    data, caught = (_listed and _listed.pop(_key(path, fmt, options), None)) or _load(path, fmt, options)
     enums = [_enum(d) for d in data]
     if options.curve is None:
         i = 0
@@ -420,7 +420,13 @@ def list_curves(path: str | Path, options: ReadOptions | None = None) -> list[Cu
     fmt = format_of(path)
     if fmt is HDF5:
         return _list_hdf5(path, options)
-    data, _ = _load(path, fmt, options)
+    data, caught = _load(path, fmt, options)
+    _listed.clear()
+    if len(data) == 1:
+        # `rig analyze FILE` lists a file to learn whether it is a batch, then reads its one curve:
+        # the read takes this load (a JPK curve's opening is a fifth of the whole command's time).
+        # A file of many curves is not kept: a batch reads it curve by curve, letting each go
+        _listed[_key(path, fmt, options)] = (data, caught)
     out = []
     with _translated(path, fmt):
         for d in data:
@@ -596,6 +602,16 @@ def _translated(path: Path, fmt: AfmFormat):
             raise SpecError(_missing_message(keys, fmt), path=str(path)) from None
         except _errors(af) as exc:
             raise SpecError(f"not a readable {fmt.what}: {_why(exc)}", path=str(path)) from None
+
+
+_listed: dict[tuple, tuple[list, list[str]]] = {}  # the last one-curve file `list_curves` loaded
+
+
+def _key(path: Path, fmt: AfmFormat, options: ReadOptions) -> tuple:
+    """What makes a load the same: the file as it is now and the calibration the user gave."""
+    st = path.stat()
+    return (str(path.resolve()), st.st_mtime_ns, st.st_size, fmt.what, options.spring_constant_N_per_m,
+            options.sensitivity_m_per_V)
 
 
 def _load(path: Path, fmt: AfmFormat, options: ReadOptions) -> tuple[list, list[str]]:
