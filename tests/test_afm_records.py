@@ -451,3 +451,13 @@ def test_read_jpk_force_is_still_importable():
     path = _file("fmt-jpk-fd_spot3")
     a, b = read_jpk_force(path), read_record(path)
     assert np.array_equal(a.position_m, b.position_m) and a.meta == b.meta
+
+
+def test_a_relaxation_on_an_approach_is_said_to_bend_the_ramp_not_a_hold(capsys):
+    # an approach has no hold: a relaxation there shows as a ramp that bends with time
+    path = _file("fmt-jpk-fd_spot3")
+    assert main(["analyze", str(path), "--model", "hertz", "--indenter", "paraboloid:R=10um", "--explain"]) == 0
+    out = capsys.readouterr().out
+    said = next(line for line in out.splitlines() if line.startswith("* relaxation "))
+    assert "ramp residual bends with time, not depth: the force relaxes while it is loaded" in said
+    assert "hold residual" not in out
