@@ -390,7 +390,8 @@ def _shape(e: Effect, base: FitResult, res: FitResult) -> str:
     if name in ("relaxation", "relaxation2", "fractional_relaxation") and not held:
         tau = v.get({"relaxation": "tau1_s", "relaxation2": "tau_m_s"}.get(name, "tau_f_s"))
         many = "over many time scales, " if name == "fractional_relaxation" else ""
-        return f"ramp residual bends with time, not depth: the force relaxes while it is loaded ({many}tau about {tau:.3g} s)"
+        return ("ramp residual bends with time, not depth: the force relaxes while it is loaded "
+                f"({many}tau about {tau:.3g} s)")
     if name == "relaxation2":
         return f"hold residual still decaying with tau about {v['tau_m_s']:.3g} s"
     if name == "relaxation":
