@@ -161,12 +161,14 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
         screened.append((rss / max(rss0_c, 1e-300), e, res))
     screened.sort(key=lambda x: x[0])
 
-    def score(e: Effect, res_c: FitResult, full: bool, dropped: tuple[str, ...] = ()) -> Suggestion:
+    def score(e: Effect, res_c: FitResult, full: bool, dropped: tuple[str, ...] = (),
+              fitted: FitResult | None = None) -> Suggestion:
         model = without(base.model, dropped) + e
         if full:
-            # from the screen's answer a few steps settle it on every sample
-            res = fit(model, trials, starts=1, initial=res_c.values, tol=1e-8, max_nfev=REFIT_NFEV,
-                      polish=False)
+            # from the screen's answer a few steps settle it on every sample (`fitted`: that fit,
+            # already made, as a swap's slimmer model is)
+            res = fitted or fit(model, trials, starts=1, initial=res_c.values, tol=1e-8, max_nfev=REFIT_NFEV,
+                                polish=False)
             ratio = float(np.sum(np.concatenate(res.residuals) ** 2)) / max(rss0, 1e-300)
             before = base
         else:
@@ -290,13 +292,14 @@ def _swapped(s: Suggestion, base: FitResult, e: Effect, score) -> Suggestion | N
         return None if swap.meaningless else swap
     best, best_dbic = None, 0.0
     for name in can:
+        # the swapped model itself (the base without `name`, plus `e`), fitted as `score` fits it
         slim = fit(without(s.fit.model, (name,)), s.fit.trials, starts=1, initial=s.fit.values, tol=1e-8,
                    max_nfev=REFIT_NFEV, polish=False)
         dk = len(s.fit.model.params) - len(slim.model.params)
         dbic = -delta_bic(_rss(s.fit) / max(_rss(slim), 1e-300), dk, slim.n_eff)
         if dbic < best_dbic and not meaningless(slim, base):
-            best, best_dbic = name, dbic
-    return score(e, s.fit, True, (best,)) if best else None
+            best, best_dbic = (name, slim), dbic
+    return score(e, s.fit, True, (best[0],), fitted=best[1]) if best else None
 
 
 def _among_passing(passing: list[Suggestion], base: FitResult) -> list[Suggestion]:
