@@ -514,9 +514,8 @@ def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexpl
                      + ("the record cannot support a richer model" if beyond else
                         "no effect in the catalogue explains it"))
         if beyond is not None:
-            parts.append(f"{beyond.label} would lower the error by {beyond.rmse_drop * 100:.0f} % (dBIC "
-                         f"{beyond.delta_bic:.1f}), but with it {beyond.unsupported}; whether it is there is "
-                         f"a design question, not a fit: {BEYOND_DESIGN}")
+            parts.append(f"{_beyond(beyond)}; whether it is there is a design question, not a fit: "
+                         f"{BEYOND_DESIGN}")
         if closest is not None:
             parts.append(f"closest: {closest.label} (dBIC {closest.delta_bic:.1f}, RMSE "
                          f"{base.f(closest.rmse_N)}, error down {closest.rmse_drop * 100:.0f} %), which "
@@ -535,6 +534,12 @@ def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexpl
     if best is not None and unexplained:
         parts.append(f"still unexplained: {unexplained}")
     return "; ".join(parts)
+
+
+def _beyond(b: Suggestion) -> str:
+    """What a candidate beyond the richness floor would do, and why it is not fitted."""
+    return (f"{b.label} would lower the error by {b.rmse_drop * 100:.0f} % (dBIC {b.delta_bic:.1f}), "
+            f"but with it {b.unsupported}")
 
 
 def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = 5) -> list[dict]:
@@ -559,10 +564,8 @@ def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = 5) -> li
         ex = explain(current, registry)
         if not ex.suggestions:
             if ex.beyond:  # a richer model is a design question: say so where the search stopped
-                b = ex.beyond[0]
-                steps[-1]["stopped"] = (f"stopped: the record cannot support a richer model ({b.label} would "
-                                        f"lower the error by {b.rmse_drop * 100:.0f} %, but with it "
-                                        f"{b.unsupported}); {BEYOND_DESIGN}")
+                steps[-1]["stopped"] = (f"stopped: the record cannot support a richer model "
+                                        f"({_beyond(ex.beyond[0])}); {BEYOND_DESIGN}")
             break
         best = ex.suggestions[0]
         before = current
