@@ -65,3 +65,22 @@ def test_auto_stops_where_the_record_can_support_no_more_and_says_why(capsys):
     assert "stopped: the record cannot support a richer model" in text
     said = "the record supports this model only in part: 7 fitted parameters on 20 independent residuals"
     assert said in text
+
+
+@needs_brain
+def test_a_decisive_suggestion_below_the_floor_says_so_in_its_words_and_its_json():
+    pytest.importorskip("afmformats", reason="reading JPK files needs the afm extra (afmformats)")
+    from rig.analysis.data import load_trial
+    from rig.analysis.explain import explain
+    from rig.analysis.fit import fit
+    from rig.models import CATALOGUE, build_model
+    from tests.test_realdata_explain import hide
+
+    # a friction of a twentieth of the force range: error down some 80 %, decisive at 20 residuals
+    trial = hide(load_trial(BRAIN, form="force"), "friction")
+    ex = explain(fit(build_model("proposed"), [trial]), dict(CATALOGUE))
+    best = ex.suggestions[0]
+    assert best.effect == "friction" and best.delta_bic < -10, ex.summary
+    said = best.as_dict()["unsupported"]
+    assert said and said.endswith("independent residuals (fewer than 5 each)"), said
+    assert f"with it {said}: named on decisive evidence" in ex.summary

@@ -88,7 +88,9 @@ class Suggestion:
     def as_dict(self) -> dict:
         return {"effect": self.effect, "dropped": list(self.dropped), "rmse_N": self.rmse_N,
                 "rmse_drop": self.rmse_drop, "delta_bic": self.delta_bic,
-                "criterion": "BIC on effective samples", "why": self.why}
+                "criterion": "BIC on effective samples", "why": self.why,
+                # named on decisive evidence below the richness floor: why its errors rest on too little
+                "unsupported": self.unsupported or None}
 
 
 @dataclass

@@ -66,6 +66,7 @@ def one(job: tuple[Path, int]) -> dict:
     adds = [e for e in clean["auto_final"]["effects"] if e not in ("elastic_contact", *PER_RECORD)]
     control = _run(path, rec, add=adds, explain=True)
     out = {"curve": f"{path.name[:40]} #{curve}", "clean": adds, "quiet": not control["suggestions"],
+           "beyond": any(s["unsupported"] for s in control["suggestions"]),
            "control": control["diagnosis"]["text"][:100], "cases": []}
     for size in SIZES:
         hidden = with_drift(rec, size)
@@ -90,13 +91,14 @@ def main() -> None:
             if key not in seen:
                 seen.add(key)
                 jobs.append((p, c.enum))
-    named = cases = added = quiet = 0
+    named = cases = added = quiet = beyond = 0
     with ProcessPoolExecutor(2) as pool:
         for r in pool.map(one, jobs):
             said = "quiet" if r["quiet"] else "SUGGESTED"
             print(f"## {r['curve']}: clean +{' +'.join(r['clean']) or '(hertz)'}; control {said}: "
                   f"{r['control']}  ({r['seconds']:.0f} s)", flush=True)
             quiet += r["quiet"]
+            beyond += r["beyond"]
             for c in r["cases"]:
                 said = "held by the clean model" if c["held"] else ("named" if c["named"] else "MISSED")
                 print(f"   drift {c['size']:<5} {said:<24} auto {c['auto'] or '(none)'} -> "
@@ -106,7 +108,8 @@ def main() -> None:
                 added += c["auto_added"]
     n = len(jobs)
     print(f"named first {named} of {cases} ({100 * named / max(cases, 1):.0f} %); --auto added it in "
-          f"{added} of {2 * n}; clean controls with no suggestion {quiet} of {n}")
+          f"{added} of {2 * n}; clean controls with no suggestion {quiet} of {n}, with one the curve cannot "
+          f"support {beyond}")
 
 
 if __name__ == "__main__":

@@ -40,6 +40,7 @@ def clean(record: str) -> tuple[str, list[str], dict, dict]:
     _, res = T.explain_cleanly(record)
     ex = explain(res, dict(CATALOGUE))
     control = {"quiet": not ex.suggestions, "said": ex.summary[:110], "rich": richness(res),
+               "unsupported": any(s.unsupported for s in ex.suggestions),
                "model": f"{res.model.name} ({len(res.model.params)} params, N_eff {res.n_eff:.0f})",
                "seconds": time.time() - t0}
     return record, res.model.effect_names, res.values, control
@@ -72,13 +73,17 @@ def main(records: list[str]) -> None:
                   f"{'quiet' if c['quiet'] else 'SUGGESTED'}: {c['said']}"
                   + (f"; beyond the floor: {c['rich']}" if c["rich"] else ""), flush=True)
         jobs = [(r, names, values, e, m) for r, names, values, _ in cleans for e in EFFECTS for m in SIZES]
-        rows = list(pool.map(case, jobs))
+        rows = []
+        for r in pool.map(case, jobs):  # in order, each as soon as it can (the run takes most of an hour)
+            rows.append(r)
+            said = "held by the clean model" if r["held"] else ("named" if r["named"] else "MISSED")
+            got = "added" if r["auto_added"] else "NOT ADDED"
+            got += f"; {r['auto_rich']}" if r["auto_rich"] else ""
+            print(f"{r['record'][:24]:<25}{r['effect']:<9}{r['mult']:>4}  {said:<24} auto "
+                  f"{r['auto'] or '(none)'} -> {got}  {r['seconds']:.0f} s\n      {r['ranked']}  {r['said']}",
+                  flush=True)
     named = cases = added = auto_cases = rich = 0
     for r in rows:
-        said = "held by the clean model" if r["held"] else ("named" if r["named"] else "MISSED")
-        got = ("added" if r["auto_added"] else "NOT ADDED") + (f"; {r['auto_rich']}" if r["auto_rich"] else "")
-        print(f"{r['record'][:24]:<25}{r['effect']:<9}{r['mult']:>4}  {said:<24} auto {r['auto'] or '(none)'}"
-              f" -> {got}  {r['seconds']:.0f} s\n      {r['ranked']}  {r['said']}", flush=True)
         if not r["held"]:
             cases += 1
             named += r["named"]
@@ -86,9 +91,11 @@ def main(records: list[str]) -> None:
         added += r["auto_added"]
         rich += not r["auto_rich"]
     quiet = sum(c["quiet"] for *_, c in cleans)
+    beyond = sum(c["unsupported"] for *_, c in cleans)
     print(f"named first {named} of {cases} ({100 * named / max(cases, 1):.0f} %); --auto added it in "
           f"{added} of {auto_cases} ({100 * added / max(auto_cases, 1):.0f} %), its model within the floor in "
-          f"{rich}; clean controls with no suggestion {quiet} of {len(cleans)}")
+          f"{rich}; clean controls with no suggestion {quiet} of {len(cleans)}, with one the record cannot "
+          f"support {beyond}")
 
 
 if __name__ == "__main__":
