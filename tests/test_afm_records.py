@@ -278,6 +278,10 @@ def test_one_curve_is_opened_once_by_the_command_and_again_once_the_file_changed
     calls.clear()
     read_record(path)
     assert len(calls) == 1
+    # another curve exported under the same name is that curve (afmformats keeps archives open)
+    path.write_bytes(_file("fmt-jpk-fd_flipsign").read_bytes())
+    other = read_record(path)
+    assert other.n == read_record(_file("fmt-jpk-fd_flipsign")).n != alone.n
 
 def _damaged(tmp_path: Path) -> list[tuple[Path, str]]:
     out = []

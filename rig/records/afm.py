@@ -650,12 +650,27 @@ def _load_jpk(af, path: Path, override: dict[str, float]) -> list:
     file's headers twice more (14 of the 20 ms a single curve takes to load, a sixteenth of a
     one-curve `rig analyze`)."""
     (recipe,) = af.formats.formats_by_suffix[path.suffix]
+    _forget_archive(path)
     out = []
     for dd in recipe.loader(path, meta_override=override):
         dd["metadata"]["format"] = f"{recipe['maker']} ({recipe['descr']})"
         data_class = af.formats.default_data_classes_by_modality[dd["metadata"]["imaging mode"]]
         out.append(data_class(data=dd["data"], metadata=dd["metadata"]))
     return out
+
+
+def _forget_archive(path: Path) -> None:
+    """Close afmformats' open archive of `path`, if it keeps one. It keeps the last 32 JPK archives
+    open by their path, so a file written again under the same name (a re-export, while `rig web`
+    or a notebook runs on) was read through the old archive's index: "not a complete zip archive"."""
+    try:
+        from afmformats.formats.fmt_jpk.jpk_reader import ArchiveCache
+    except ImportError:
+        return
+    for key in (path, str(path)):
+        arc = ArchiveCache.open_archives.pop(key, None)
+        if arc is not None:
+            arc.close()
 
 
 def _check_content(path: Path, fmt: AfmFormat) -> None:

@@ -12,7 +12,7 @@ a delay of the reading is a shift of the contact point. On one approach at one s
 tilt of the baseline (a force growing with the piezo's travel) are one function of time, so either
 name is the answer; a curve whose force is the same as another's (the AFM Workshop map repeats one
 curve 16 times) counts once. About an hour on two cores (a long JPK curve's `--auto` runs take ten
-minutes): `python tests/bench/afm_naming.py`."""
+minutes): `python tests/bench/afm_naming.py` (`--controls`: the clean curves alone)."""
 
 from __future__ import annotations
 
@@ -58,8 +58,8 @@ def _run(path: Path, rec, **kw) -> dict:
                                   records=[rec], **kw)).json
 
 
-def one(job: tuple[Path, int]) -> dict:
-    path, curve = job
+def one(job: tuple[Path, int, bool]) -> dict:
+    path, curve, controls_only = job
     t0 = time.time()
     rec = read_record(path, options(path, curve))
     clean = _run(path, rec, auto=True)
@@ -68,7 +68,7 @@ def one(job: tuple[Path, int]) -> dict:
     out = {"curve": f"{path.name[:40]} #{curve}", "clean": adds, "quiet": not control["suggestions"],
            "beyond": any(s["unsupported"] for s in control["suggestions"]),
            "control": control["diagnosis"]["text"][:100], "cases": []}
-    for size in SIZES:
+    for size in () if controls_only else SIZES:
         hidden = with_drift(rec, size)
         ex = _run(path, hidden, add=[e for e in adds if e not in DRIFT], explain=True)
         d = ex["diagnosis"]
@@ -83,14 +83,14 @@ def one(job: tuple[Path, int]) -> dict:
     return out
 
 
-def main() -> None:
+def main(controls_only: bool = False) -> None:
     jobs, seen = [], set()
     for p in sorted(AFM.iterdir()):
         for c in list_curves(p, options(p)):
             key = hashlib.sha1(read_record(p, options(p, c.enum)).force_N.tobytes()).hexdigest()
             if key not in seen:
                 seen.add(key)
-                jobs.append((p, c.enum))
+                jobs.append((p, c.enum, controls_only))
     named = cases = added = quiet = beyond = 0
     with ProcessPoolExecutor(2) as pool:
         for r in pool.map(one, jobs):
@@ -113,4 +113,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(controls_only="--controls" in sys.argv[1:])
