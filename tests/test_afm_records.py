@@ -252,7 +252,6 @@ def test_iter_records_loads_the_file_once(monkeypatch):
     assert got == [0, 1, 2, 3] and len(calls) == 1
 
 
-
 def test_one_curve_is_opened_once_by_the_command_and_again_once_the_file_changed(monkeypatch, tmp_path, capsys):
     # `rig analyze FILE` lists the file (is it a batch?) and then reads its curve: one opening
     path = tmp_path / "one.jpk-force"
@@ -282,6 +281,7 @@ def test_one_curve_is_opened_once_by_the_command_and_again_once_the_file_changed
     path.write_bytes(_file("fmt-jpk-fd_flipsign").read_bytes())
     other = read_record(path)
     assert other.n == read_record(_file("fmt-jpk-fd_flipsign")).n != alone.n
+
 
 def _damaged(tmp_path: Path) -> list[tuple[Path, str]]:
     out = []

@@ -169,8 +169,8 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
         if full:
             # from the screen's answer a few steps settle it on every sample (`fitted`: that fit,
             # already made, as a swap's slimmer model is)
-            res = fitted or fit(model, trials, starts=1, initial=res_c.values, tol=1e-8, max_nfev=REFIT_NFEV,
-                                polish=False)
+            res = fitted if fitted is not None else fit(model, trials, starts=1, initial=res_c.values, tol=1e-8,
+                                                        max_nfev=REFIT_NFEV, polish=False)
             ratio = float(np.sum(np.concatenate(res.residuals) ** 2)) / max(rss0, 1e-300)
             before = base
         else:
