@@ -38,9 +38,16 @@ CLOCK_MODULES = {
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's, which reads the group from the marker
 def pytest_collection_modifyitems(config, items):
+    try:
+        import pytest_rerunfailures  # noqa: F401 - its flaky marker reruns on the host's evidence
+        rerun = pytest.mark.flaky(reruns=1, condition=_machine_was_taken)
+    except ImportError:
+        rerun = None
     for item in items:
         if _on_the_clock(item):
             item.add_marker(pytest.mark.xdist_group("clock"))
+            if rerun is not None:
+                item.add_marker(rerun)
     if hasattr(config, "workerinput"):
         # the clock tests first, as one unit: they run back to back on one worker while the other
         # waits once, instead of each module of them waiting for an analysis test in progress
@@ -49,6 +56,43 @@ def pytest_collection_modifyitems(config, items):
 
 def _on_the_clock(item) -> bool:
     return item.module.__name__.rpartition(".")[2] in CLOCK_MODULES
+
+
+# A clock test has the machine to itself, but not the host under a virtual machine: a host that
+# takes the virtual CPUs away (steal time, counted by the kernel in /proc/stat) delays ticks and
+# pty bytes as no code of the rig can. A clock test that fails while the host took at least a
+# tick's worth of time from this machine is run once more (pytest-rerunfailures, reported as a
+# rerun); its assertions are the same, and a failure with nothing taken, or a second one, fails.
+_STOLEN_AT: float | None = None
+STOLEN_MS = 10.0  # one clock tick of the kernel's accounting; a late tick is 5 ms
+
+
+def stolen_ms() -> float | None:
+    """CPU time the hypervisor took from this machine's virtual CPUs since boot (None: unknown)."""
+    try:
+        with open("/proc/stat") as fh:
+            fields = fh.readline().split()  # cpu user nice system idle iowait irq softirq steal ...
+        return int(fields[8]) * 1000.0 / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError, AttributeError):
+        return None
+
+
+def _stolen_during_test() -> float:
+    now = stolen_ms()
+    return 0.0 if now is None or _STOLEN_AT is None else now - _STOLEN_AT
+
+
+def _machine_was_taken() -> bool:
+    return _stolen_during_test() >= STOLEN_MS
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    report = outcome.get_result()
+    if report.failed and _on_the_clock(item) and _STOLEN_AT is not None:
+        report.sections.append(("machine", f"the host took {_stolen_during_test():.0f} ms of CPU from this "
+                                           "virtual machine during the test (steal time, /proc/stat)"))
 
 
 class _Machine:
@@ -144,9 +188,10 @@ def share_the_machine(request):
     trial faulted; a 4 ms reply counted a failed transaction), and two clock tests side by side,
     one a worker, failed too (a failed transaction too many, missed ticks): the clock tests run
     one at a time, alone."""
-    global _IDLE
+    global _IDLE, _STOLEN_AT
     machine = _the_machine(request.config)
     if machine is None:
+        _STOLEN_AT = stolen_ms()
         yield
         return
     if _IDLE is None:
@@ -163,6 +208,7 @@ def share_the_machine(request):
         yield
     elif clock:
         machine.take_alone()
+        _STOLEN_AT = stolen_ms()
         yield
     else:
         machine.give_back()

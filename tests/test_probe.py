@@ -12,7 +12,7 @@ import yaml
 from rig.sim.params import SimParams
 from rig.sim.server import WireSim
 
-from rig.diagnostics.probe import probe
+from rig.diagnostics.probe import loop_lateness, probe
 from rig.specs.config import RigConfig
 from rig.views.probe_report import EXIT_OK, EXIT_PROBLEMS, EXIT_SILENT
 from tests.conftest import ROOT
@@ -198,6 +198,22 @@ def test_replies_slower_than_half_the_period(sim):
     timing = next(p for p in report.problems if p.device == "timing")
     assert "more than half the 10 ms loop period" in timing.message
     assert "loop.rate_Hz" in timing.fields
+
+
+def test_a_tick_the_loop_rides_out_is_not_called_late_but_a_run_of_them_is():
+    # the trial loop's rule: a 14 ms tick among 4 ms ones at 10 ms starts the next 4 ms after its
+    # slot, within the 5 ms tolerance, and the slack after it catches up
+    scattered = [4.0] * 200
+    for k in range(5, 200, 20):
+        scattered[k] = 14.0
+    assert loop_lateness(scattered, 10.0, 5.0) == (0, 0)
+    # two in a row push the third tick 8 ms behind its slot: late
+    assert loop_lateness([4.0, 14.0, 14.0, 4.0, 4.0, 4.0], 10.0, 5.0) == (1, 0)
+    # a bus slower than the period falls behind every tick until whole periods are skipped
+    late, skipped = loop_lateness([12.0] * 100, 10.0, 5.0)
+    assert late > 50 and skipped >= 15
+    # one 35 ms stall skips the slots it covered, then the loop is on time again
+    assert loop_lateness([4.0, 35.0] + [4.0] * 10, 10.0, 5.0) == (0, 2)
 
 
 def test_profile_without_comm_timeout_register_is_reported_not_refused(sim):

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import yaml
 from rig.drivers.spy import WireSpy
+from rig.drivers.wireframes import FROM_DEVICE
 from rig.sim.params import SimParams
 from rig.sim.server import WireSim
 
@@ -86,7 +87,13 @@ def test_rtu_trial_spy_holds_the_exact_frames_of_the_driver_tests(tmp_path):
              if (m := re.search(r"from 0x00CC feedback_position: .*\(int32 (-?\d+)\)", d.text))}
     logged = np.unique(np.round(log.samples["position_mm"] * 100).astype(int))
     assert set(logged) <= steps and max(steps) == 400
-    assert all(d.crc_ok for d in decoded if d.record.channel == "rtu")
+    # A reply is cut short only when it came after the driver's timeout (a busy machine holds a
+    # pty's bytes now and then): the driver counted each such transaction as failed, and its two
+    # pieces (what came in time, the rest read as a late reply) are replies, never requests.
+    bad = [d for d in decoded if d.record.channel == "rtu" and d.crc_ok is False]
+    errors = log.health[-1]["bus_errors"]
+    assert all(d.record.direction == FROM_DEVICE for d in bad)
+    assert len(bad) <= 2 * errors, (len(bad), errors)
     # load-cell lines as the simulated cell writes them, about 200 a second
     lines = [r.data for r in spy.records if r.channel == "cell" and not r.partial]
     assert all(re.fullmatch(rb"[+-]\d+\.\d{4} N\r\n", x) for x in lines)
