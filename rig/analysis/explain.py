@@ -595,6 +595,11 @@ def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = 5) -> li
                 current = slim
                 steps.append({"step": i, "added": None, "removed": name, "fit": current,
                               "delta_bic": float(dbic), "why": f"{name} no longer needed"})
+    else:
+        if not current.adequate:  # the bound ended the search, not the record: say so
+            steps[-1]["stopped"] = (f"stopped after {max_steps} step{'s' * (max_steps > 1)}, the most allowed "
+                                    "(--auto-steps); "
+                                    "the model is not adequate yet")
     return steps
 
 

@@ -43,6 +43,7 @@ class AnalyzeRequest:
     compare: bool = False
     explain: bool = False
     auto: bool = False
+    auto_steps: int = 5  # with auto: at most this many steps
     design: str | None = None  # where a designed protocol is written
     design_config: Any = None  # the rig (RigConfig) whose limits it must respect
     save: str | None = None
@@ -154,7 +155,7 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         else:
             out["design"] = {"file": str(write_design(d, req.design)), **d.as_dict()}
             design_text = format_design(d, req.design)
-    steps = auto(res, inputs.registry) if req.auto else None
+    steps = auto(res, inputs.registry, max_steps=req.auto_steps) if req.auto else None
     if steps is not None:
         out["auto"] = [{"step": s["step"], "added": s["added"], "removed": s.get("removed"),
                         "model": s["fit"].model.name, "rmse_N": s["fit"].overall.rmse_N,
