@@ -36,6 +36,21 @@ CLOCK_MODULES = {
 }
 
 
+def pytest_configure(config):
+    if hasattr(config, "workerinput"):
+        return
+    # Hundreds of tests start `python -m rig` (the pages, the daemon, the simulated devices on the
+    # wire), each importing the project from this tree. Where PYTHONDONTWRITEBYTECODE is set no
+    # import caches its compiled code, so every process compiled every module again (0.1-0.2 s
+    # each); compiled once here (into __pycache__, which git ignores), they read it, as an
+    # installed package's processes do. A module edited afterwards is compiled afresh, as ever.
+    import compileall
+
+    for folder in ("rig", "drivers", "sim_device", "docs_build", "tests"):
+        if (ROOT / folder).is_dir():
+            compileall.compile_dir(ROOT / folder, quiet=2)
+
+
 @pytest.hookimpl(tryfirst=True)  # before xdist's, which reads the group from the marker
 def pytest_collection_modifyitems(config, items):
     try:
