@@ -604,13 +604,13 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         if getattr(args, flag) not in (None, False):
             raise RigError(f"--{flag.replace('_', '-')} is for a batch (--each, a folder, a glob or a map file "
                            "alone): one record gives one analysis")
-    if args.auto_steps != 5 and not args.auto:
+    if args.auto_steps is not None and not args.auto:
         raise RigError("--auto-steps N bounds --auto's search: give --auto with it")
     design_config = _design_args(args)  # refused before the long work, not after it
     done = analyze(AnalyzeRequest(
         inputs=args.inputs, model=args.model, add=args.add or [], holdout=args.holdout or [],
         plugins=args.plugin or [], block=args.block, compare=args.compare, explain=args.explain,
-        auto=args.auto, auto_steps=args.auto_steps, design=args.design, design_config=design_config,
+        auto=args.auto, auto_steps=args.auto_steps or 5, design=args.design, design_config=design_config,
         save=args.save,
         report=args.report, indenter=args.indenter, poisson=args.poisson, segment=args.segment,
         form=args.form, curve=args.curve, spring_constant_N_per_m=args.spring_constant,
@@ -621,7 +621,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     return 0
 
 
-BATCH_REFUSED = ("compare", "auto", "holdout", "design", "save", "bootstrap", "profile", "curve")
+BATCH_REFUSED = ("compare", "auto", "auto_steps", "holdout", "design", "save", "bootstrap", "profile", "curve")
 
 
 def cmd_analyze_each(args: argparse.Namespace) -> int:
@@ -1047,7 +1047,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rank the effects the model lacks by how much each would reduce the error")
     r.add_argument("--auto", action="store_true",
                    help="add effects one by one while the error falls; print the steps")
-    r.add_argument("--auto-steps", type=_positive_int, default=5, metavar="N",
+    r.add_argument("--auto-steps", type=_positive_int, metavar="N",
                    help="with --auto: stop after N steps (default 5); each step refits the model from "
                         "several starts, minutes on a long record")
     r.add_argument("--design", metavar="FILE",

@@ -46,18 +46,16 @@ def pytest_configure(config):
     # installed package's processes do. A module edited afterwards is compiled afresh, as ever.
     import compileall
 
-    for folder in ("rig", "drivers", "sim_device", "docs_build", "tests"):
+    for folder in ("rig", "drivers", "sim_device", "docs_build"):
         if (ROOT / folder).is_dir():
             compileall.compile_dir(ROOT / folder, quiet=2)
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's, which reads the group from the marker
 def pytest_collection_modifyitems(config, items):
-    try:
-        import pytest_rerunfailures  # noqa: F401 - its flaky marker reruns on the host's evidence
-        rerun = pytest.mark.flaky(reruns=1, condition=_machine_was_taken)
-    except ImportError:
-        rerun = None
+    # pytest-rerunfailures' flaky marker reruns on the host's evidence (absent, or -p no:rerunfailures: none)
+    rerun = (pytest.mark.flaky(reruns=1, condition=_machine_was_taken)
+             if config.pluginmanager.hasplugin("rerunfailures") else None)
     for item in items:
         if _on_the_clock(item):
             item.add_marker(pytest.mark.xdist_group("clock"))
@@ -99,6 +97,12 @@ def _stolen_during_test() -> float:
 
 def _machine_was_taken() -> bool:
     return _stolen_during_test() >= STOLEN_MS
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item):
+    global _STOLEN_AT
+    _STOLEN_AT = None  # a setup that fails before share_the_machine must not inherit the last window
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -220,6 +224,7 @@ def share_the_machine(request):
                     "versions the test extra asks for: pip install '.[test]'")
     if _IDLE:
         _set_idle(not clock)
+        _STOLEN_AT = stolen_ms()
         yield
     elif clock:
         machine.take_alone()

@@ -1,7 +1,8 @@
-"""`--auto` and `--explain` on what the user reads: a step is no worse than its model fitted on
-its own (the real gel's case, minutes long: tests/bench/test_bench_auto_steps.py), a suggestion
-whose fit turns any of the model's parameters negative is not made, and a drop is judged at the
-simpler model's N_eff."""
+"""`--auto` and `--explain` on what the user reads: a suggestion whose fit turns any of the model's
+parameters negative is not made, a drop is judged at the simpler model's N_eff, and a bound on
+the steps says it ended the search. That a step is no worse than its model fitted on its own is
+checked on the real gel, where a step once stayed in the first step's basin, in
+tests/bench/test_bench_auto_steps.py (minutes long); `refit` keeps that fit among its candidates."""
 
 from __future__ import annotations
 
@@ -98,11 +99,6 @@ def test_a_stand_in_is_dropped_at_the_simpler_models_count(tmp_path, monkeypatch
     assert steps[i]["delta_bic"] == pytest.approx(-delta_bic(rss[0] / rss[1], dk, slimmer.n_eff), rel=1e-9)
     assert steps[i]["delta_bic"] < 0  # what the user reads: the simpler model is better
     assert {"drift", "friction"} <= set(steps[-1]["fit"].model.effect_names)
-    # every step is no worse than its model fitted on its own (`rig analyze --add`); on the gel's
-    # real record, where a step once stayed in the first step's basin: tests/bench/test_bench_auto_steps.py
-    for s in steps[1:]:
-        alone = fit(s["fit"].model, trials)
-        assert s["fit"].overall.rmse_N <= 1.01 * alone.overall.rmse_N, (s["fit"].model.name,)
 
 
 def test_auto_steps_bounds_the_search_and_says_where_it_stopped(tmp_path, capsys):

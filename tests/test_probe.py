@@ -207,7 +207,7 @@ def test_a_tick_the_loop_rides_out_is_not_called_late_but_a_run_of_them_is():
     for k in range(5, 200, 20):
         scattered[k] = 14.0
     assert loop_lateness(scattered, 10.0, 5.0) == (0, 0)
-    # two in a row push the third tick 8 ms behind its slot: late
+    # two in a row push the fourth tick 8 ms behind its slot: late
     assert loop_lateness([4.0, 14.0, 14.0, 4.0, 4.0, 4.0], 10.0, 5.0) == (1, 0)
     # a bus slower than the period falls behind every tick until whole periods are skipped
     late, skipped = loop_lateness([12.0] * 100, 10.0, 5.0)

@@ -119,6 +119,7 @@ class TrialResult:
     period_errors_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     bus_transactions: int = 0
     notices: list[str] = field(default_factory=list)  # what the operator should know of a completed trial
+    bus_errors: int = 0  # failed transactions over the whole trial (the log's health lags by up to a period)
 
 
 @dataclass
@@ -454,7 +455,8 @@ class Trial:
         return TrialResult(outcome, self.log_path, self._seq, self._late, self._missed,
                            self.clock.now() - t0, fault_msg,
                            np.abs(periods - self.period) * 1000.0,
-                           self.slider.stats.transactions, list(self.notices))
+                           self.slider.stats.transactions, list(self.notices),
+                           bus_errors=self.slider.stats.errors)
 
     def _leave_loop(self) -> None:
         """From now on stops go out at once; one that came after the loop's last tick goes now."""
