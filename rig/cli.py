@@ -610,7 +610,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     done = analyze(AnalyzeRequest(
         inputs=args.inputs, model=args.model, add=args.add or [], holdout=args.holdout or [],
         plugins=args.plugin or [], block=args.block, compare=args.compare, explain=args.explain,
-        auto=args.auto, auto_steps=args.auto_steps or 5, design=args.design, design_config=design_config,
+        auto=args.auto, auto_steps=args.auto_steps, design=args.design, design_config=design_config,
         save=args.save,
         report=args.report, indenter=args.indenter, poisson=args.poisson, segment=args.segment,
         form=args.form, curve=args.curve, spring_constant_N_per_m=args.spring_constant,

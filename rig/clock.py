@@ -6,6 +6,13 @@ import time
 from typing import Protocol
 
 
+def slots_behind(lateness: float, period: float) -> int:
+    """The loop's catch-up rule: the slots a tick starting `lateness` after its own skips (every
+    whole period it fell behind, none within one). The trial loop and `rig probe`, which replays
+    measured bus times through it, both use it."""
+    return int(lateness / period) if lateness > period else 0
+
+
 class Clock(Protocol):
     def now(self) -> float:
         """Seconds on this clock (arbitrary origin, monotonic)."""

@@ -99,10 +99,12 @@ def _machine_was_taken() -> bool:
     return _stolen_during_test() >= STOLEN_MS
 
 
-@pytest.hookimpl(tryfirst=True)
+@pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_setup(item):
     global _STOLEN_AT
-    _STOLEN_AT = None  # a setup that fails before share_the_machine must not inherit the last window
+    _STOLEN_AT = None  # never the last test's window
+    yield
+    _STOLEN_AT = stolen_ms()  # opened once the fixtures are up: a clock test has the machine by now
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -207,10 +209,9 @@ def share_the_machine(request):
     trial faulted; a 4 ms reply counted a failed transaction), and two clock tests side by side,
     one a worker, failed too (a failed transaction too many, missed ticks): the clock tests run
     one at a time, alone."""
-    global _IDLE, _STOLEN_AT
+    global _IDLE
     machine = _the_machine(request.config)
     if machine is None:
-        _STOLEN_AT = stolen_ms()
         yield
         return
     if _IDLE is None:
@@ -224,11 +225,9 @@ def share_the_machine(request):
                     "versions the test extra asks for: pip install '.[test]'")
     if _IDLE:
         _set_idle(not clock)
-        _STOLEN_AT = stolen_ms()
         yield
     elif clock:
         machine.take_alone()
-        _STOLEN_AT = stolen_ms()
         yield
     else:
         machine.give_back()

@@ -544,7 +544,10 @@ def _beyond(b: Suggestion) -> str:
             f"but with it {b.unsupported}")
 
 
-def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = 5) -> list[dict]:
+AUTO_STEPS = 5  # --auto's steps unless --auto-steps says otherwise
+
+
+def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = AUTO_STEPS) -> list[dict]:
     """Stepwise selection: add the best effect and refit, then drop any earlier addition the
     criterion no longer supports (effects hidden together can make a proxy look best first);
     repeat while the criterion improves and the model is not adequate. A step may be a swap:
@@ -598,8 +601,7 @@ def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = 5) -> li
     else:
         if not current.adequate:  # the bound ended the search, not the record: say so
             steps[-1]["stopped"] = (f"stopped after {max_steps} step{'s' * (max_steps > 1)}, the most allowed "
-                                    "(--auto-steps); "
-                                    "the model is not adequate yet")
+                                    "(--auto-steps); the model is not adequate yet")
     return steps
 
 

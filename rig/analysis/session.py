@@ -22,7 +22,7 @@ from rig.analysis.analyze import (
 )
 from rig.analysis.creep import creep_json, format_creep
 from rig.analysis.data import PHASES
-from rig.analysis.explain import auto, explain, format_auto, format_explain
+from rig.analysis.explain import AUTO_STEPS, auto, explain, format_auto, format_explain
 from rig.analysis.fit import FitResult, fit
 from rig.analysis.modulus import format_modulus, format_pa, modulus_vs_depth, plateau_drift
 from rig.analysis.report import write_report
@@ -43,7 +43,7 @@ class AnalyzeRequest:
     compare: bool = False
     explain: bool = False
     auto: bool = False
-    auto_steps: int = 5  # with auto: at most this many steps
+    auto_steps: int | None = None  # with auto: at most this many steps (None: AUTO_STEPS)
     design: str | None = None  # where a designed protocol is written
     design_config: Any = None  # the rig (RigConfig) whose limits it must respect
     save: str | None = None
@@ -155,7 +155,7 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         else:
             out["design"] = {"file": str(write_design(d, req.design)), **d.as_dict()}
             design_text = format_design(d, req.design)
-    steps = auto(res, inputs.registry, max_steps=req.auto_steps) if req.auto else None
+    steps = auto(res, inputs.registry, max_steps=req.auto_steps or AUTO_STEPS) if req.auto else None
     if steps is not None:
         out["auto"] = [{"step": s["step"], "added": s["added"], "removed": s.get("removed"),
                         "model": s["fit"].model.name, "rmse_N": s["fit"].overall.rmse_N,

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from rig import __version__
-from rig.clock import Clock, RealClock
+from rig.clock import Clock, RealClock, slots_behind
 from rig.control.estimator import StiffnessRLS
 from rig.control.force import STIFFNESS_FLOOR_SHARE, ForceLoop
 from rig.control.forcestats import StepFigures, StepMeter
@@ -583,8 +583,8 @@ class Trial:
         clock.sleep_until(scheduled)
         now = clock.now()
         lateness = now - scheduled
-        if lateness > self.period:  # fell behind by whole periods: skip, and say so
-            skipped = int(lateness / self.period)
+        skipped = slots_behind(lateness, self.period)
+        if skipped:  # fell behind by whole periods: skip, and say so
             self._missed += skipped
             L.slot += skipped
             scheduled = L.t0 + L.slot * self.period

@@ -16,6 +16,7 @@ import os
 import statistics
 import time
 
+from rig.clock import slots_behind
 from rig.drivers.alarms import alarm_meaning
 from rig.drivers.spy import MemoryTap, Tee
 from rig.drivers.wireframes import FROM_DEVICE, TO_DEVICE
@@ -396,19 +397,17 @@ class _Probe:
 def loop_lateness(ticks_ms: list[float], period_ms: float, tolerance_ms: float) -> tuple[int, int]:
     """(late, skipped) ticks of a loop whose ticks take `ticks_ms` each, by the trial loop's rule
     (rig.control.trial): a tick starts at its slot or when the one before ends, whichever is
-    later; one starting more than `tolerance_ms` after its slot is late, and whole periods behind
-    are skipped. A single long tick is ridden out by the slack of the ticks after it."""
+    later; whole periods behind are skipped (`slots_behind`), and one starting more than
+    `tolerance_ms` after its slot is late. A single long tick is ridden out by the slack of the
+    ticks after it."""
     end = 0.0
     slot = late = skipped = 0
     for took in ticks_ms:
         start = max(end, slot * period_ms)
-        lateness = start - slot * period_ms
-        if lateness > period_ms:
-            behind = int(lateness / period_ms)
-            skipped += behind
-            slot += behind
-            lateness = start - slot * period_ms
-        late += lateness > tolerance_ms
+        behind = slots_behind(start - slot * period_ms, period_ms)
+        skipped += behind
+        slot += behind
+        late += start - slot * period_ms > tolerance_ms
         slot += 1
         end = start + took
     return late, skipped
