@@ -304,3 +304,93 @@ def test_a_batch_places_each_curve_as_the_file_lists_it(small_map, tmp_path):
         assert (r["x_m"], r["y_m"], r["grid_x"], r["grid_y"]) == (c.x_m, c.y_m, c.grid_x, c.grid_y)
     assert [bool(r["error"]) for r in rows] == [c == 4 for c in sorted(listed)]
     assert "force" in rows[4]["error"]
+
+
+def _refits(res):
+    """The parts of `res`'s one trial that the systematic error refits (rig.analysis.systematic)."""
+    from rig.analysis.systematic import _choices, cut
+
+    return [cut(res.trials[0], start, end) for _, start, end in _choices(res)]
+
+
+def test_a_refits_estimates_are_the_full_fits_values_and_errors(small_map):
+    from rig.analysis.fit import fit_estimates
+
+    parts = 0
+    for curve in (0, 3, 6):
+        model, trials = _trials(small_map, curve, "paraboloid:R=5um")
+        res = fit(model, trials)
+        for part in _refits(res):
+            full = fit(res.model, [part], starts=1, initial=res.values)
+            lean = fit_estimates(res.model, [part], starts=1, initial=res.values)
+            assert lean.values == full.values
+            assert lean.stderr == full.stderr
+            parts += 1
+    assert parts >= 6  # the depth cuts and the halved baseline, on each curve
+
+
+def test_a_tared_records_refit_counts_its_zeros_error_as_the_full_fit_does(paper_075_log):
+    """A record tared before its push (the rig's own trials) carries its zero's error in the
+    covariance, which needs the noise: the lean refit measures it as the full fit does."""
+    from rig.analysis.data import load_trial
+    from rig.analysis.fit import fit_estimates, noise_blocks
+    from rig.models.catalogue import CATALOGUE
+    from rig.models.core import Model
+
+    trial = load_trial(paper_075_log.log_path)
+    assert any(noise_blocks([trial])[3])  # a tared record: the zero's error counts
+    model = Model([CATALOGUE["linear_elastic"]])
+    full = fit(model, [trial], starts=1)
+    lean = fit_estimates(model, [trial], starts=1)
+    assert lean.values == full.values
+    assert lean.stderr == full.stderr
+    assert full.zero_variance  # the zero's share is in those errors
+
+
+def test_the_fast_writer_writes_the_map_afmformats_export_writes(tmp_path, monkeypatch):
+    """`rig sim-map` writes each curve's group itself (sim_device.afm_map._exporter): the same
+    datasets, filters, chunks, attributes and attribute types as afmformats' own export, and
+    afmformats loads the same curves and metadata from both."""
+    import h5py
+    import rig.sim.afm_map as afm_map
+    from afmformats.mod_force_distance import AFMForceDistance
+
+    spec = MapSpec(grid=(3, 2), region="drift")
+    fast = write_map(tmp_path / "fast.h5", spec, seed=4)
+
+    def theirs(curves):
+        return lambda h5, meta, cols: AFMForceDistance(data=cols, metadata=meta).export_data(h5, fmt="hdf5")
+
+    monkeypatch.setattr(afm_map, "_exporter", theirs)
+    slow = write_map(tmp_path / "slow.h5", spec, seed=4)
+    with h5py.File(fast) as a, h5py.File(slow) as b:
+        assert dict(a.attrs) == dict(b.attrs)
+        assert list(a) == list(b) == [str(i) for i in range(6)]
+        for g in a:
+            ga, gb = a[g], b[g]
+            assert sorted(ga.attrs) == sorted(gb.attrs)
+            for k in ga.attrs:
+                ia, ib = ga.attrs.get_id(k), gb.attrs.get_id(k)
+                assert ia.dtype == ib.dtype and ia.shape == ib.shape, k
+                assert ia.get_type().get_class() == ib.get_type().get_class(), k
+                if k != "path":  # each file's own name
+                    assert ga.attrs[k] == gb.attrs[k], k
+            assert list(ga) == list(gb)
+            for d in ga:
+                x, y = ga[d], gb[d]
+                assert (x.dtype, x.chunks, x.compression, x.compression_opts, x.fletcher32) == \
+                    (y.dtype, y.chunks, y.compression, y.compression_opts, y.fletcher32), d
+                assert dict(x.attrs) == dict(y.attrs)
+                assert np.array_equal(x[()], y[()])
+    mine, their = afmformats_load(fast), afmformats_load(slow)
+    for c, d in zip(mine, their, strict=True):
+        assert {k: v for k, v in c.metadata.items() if k != "path"} == \
+            {k: v for k, v in d.metadata.items() if k != "path"}
+        for col in c.columns:
+            assert np.array_equal(c[col], d[col])
+
+
+def afmformats_load(path: Path) -> list:
+    import afmformats
+
+    return list(afmformats.load_data(path))

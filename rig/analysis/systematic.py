@@ -33,7 +33,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from rig.analysis.data import TrialData
-from rig.analysis.fit import FitResult, fit
+from rig.analysis.fit import FitResult, fit_estimates
 from rig.models.core import Motion
 
 # a choice's shift counts beyond this many of its own noise's SD: at 2 about one curve in seven that
@@ -165,7 +165,7 @@ def systematic(res: FitResult) -> Systematic | None:
     for what, start, end in _choices(res, not_made):
         part = cut(res.trials[0], start, end)
         try:
-            got = fit(res.model, [part], starts=1, initial=res.values)
+            got = fit_estimates(res.model, [part], starts=1, initial=res.values)
         except (ValueError, np.linalg.LinAlgError, FloatingPointError):
             continue
         c = Choice(what, part.n, got.values, got.stderr)
