@@ -114,3 +114,28 @@ def test_auto_steps_bounds_the_search_and_says_where_it_stopped(tmp_path, capsys
     assert [s["step"] for s in steps] == [0, 1], steps
     assert steps[-1]["stopped"] == ("stopped after 1 step, the most allowed (--auto-steps); the model "
                                     "is not adequate yet")
+
+
+QI = REALDATA / "afm-fd" / "fmt-jpk-fd_2020.02.07-16.29.05.036.jpk-qi-data"
+
+
+def test_auto_goes_past_an_adequate_model_while_explain_still_names_an_effect(capsys):
+    """A real JPK QI curve whose Hertz fit is adequate: `--explain` names a drift on decisive
+    evidence, so `--auto` must not stop at the adequate model before it; its final model is one
+    on which `--explain` names nothing, and the text says what it added."""
+    _jpk(QI)
+    hertz = ["--curve", "2", "--model", "hertz", "--indenter", "paraboloid:R=10um", "--segment", "approach"]
+    assert main(["analyze", str(QI), *hertz, "--explain", "--json"]) == 0
+    ex = json.loads(capsys.readouterr().out)
+    assert ex["adequate"] and ex["diagnosis"]["best"] in ("drift", "tilt")
+    assert main(["analyze", str(QI), *hertz, "--auto", "--json"]) == 0
+    auto = json.loads(capsys.readouterr().out)
+    added = [s["added"] for s in auto["auto"][1:] if s["added"]]
+    assert added and added[0] == ex["diagnosis"]["best"]
+    own = ("elastic_contact", "contact_point", "offset")
+    adds = [a for e in auto["auto_final"]["effects"] if e not in own for a in ("--add", e)]
+    assert main(["analyze", str(QI), *hertz, *adds, "--explain", "--json"]) == 0
+    assert not json.loads(capsys.readouterr().out)["suggestions"]
+    assert main(["analyze", str(QI), *hertz, "--auto"]) == 0
+    text = capsys.readouterr().out
+    assert f"+{added[0]}" in text and "final model" in text and "adequate" in text
