@@ -442,9 +442,11 @@ def force_law(spec: MapSpec, in_region: bool) -> dict:
     return law
 
 
-def write_map(path: str | Path, spec: MapSpec | None = None, seed: int = 0) -> Path:
+def write_map(path: str | Path, spec: MapSpec | None = None, seed: int = 0,
+              progress: Callable[[int, int], None] | None = None) -> Path:
     """Write the map as afmformats' HDF5 (`path`, conventionally .h5) and its truth beside it
-    (`truth_path(path)`); the same settings and seed give the same curves. Returns `path`."""
+    (`truth_path(path)`); the same settings and seed give the same curves. `progress(done,
+    total)` is called as the curves are written. Returns `path`."""
     import numpy as np
 
     spec = spec or MapSpec()
@@ -497,6 +499,8 @@ def write_map(path: str | Path, spec: MapSpec | None = None, seed: int = 0) -> P
         # track_order: the groups list in raster order, as the curves were taken
         with h5py.File(tmp, "w", track_order=True) as h5:
             for i in range(n):
+                if progress is not None:
+                    progress(i, n)
                 effect = spec.region if sample["region"][i] else None
                 c = _curve(spec, float(sample["E_Pa"][i]), float(contact[i]), effect, rng)
                 cols = c["columns"]
@@ -627,6 +631,34 @@ def add_map_parser(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
+class _Progress:
+    """The curves written, their rate and the time left, on stderr: each tenth of a map that takes
+    long enough to wonder about (a 256x256 map takes minutes), on one line at a terminal."""
+
+    def __init__(self, t0: float, after_s: float = 2.0) -> None:
+        import sys
+
+        self.t0, self.after_s, self.stream, self.shown = t0, after_s, sys.stderr, 0
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+
+    def __call__(self, done: int, total: int) -> None:
+        import time
+
+        tenth = 10 * done // max(total, 1)
+        elapsed = time.perf_counter() - self.t0
+        if done == 0 or tenth == self.shown or elapsed < self.after_s:
+            return
+        self.shown = tenth
+        rate = done / elapsed
+        line = f"  {done}/{total} curves written, {rate:.0f}/s, about {(total - done) / rate:.0f} s left"
+        end = "" if self.tty else "\n"
+        print(f"\r{line}\x1b[K" if self.tty else line, end=end, file=self.stream, flush=True)
+
+    def close(self) -> None:
+        if self.tty and self.shown > 0:
+            print(file=self.stream, flush=True)
+
+
 def cmd_sim_map(args: argparse.Namespace) -> int:
     """Write the map the arguments describe and say what was written."""
     import time
@@ -639,7 +671,11 @@ def cmd_sim_map(args: argparse.Namespace) -> int:
     if not str(args.out).endswith(".h5"):
         raise RigError(f"{args.out}: afmformats reads its HDF5 maps only under the suffix .h5")
     t0 = time.perf_counter()
-    path = write_map(args.out, spec, seed=args.seed)
+    shown = _Progress(t0)
+    try:
+        path = write_map(args.out, spec, seed=args.seed, progress=shown)
+    finally:
+        shown.close()
     truth = json.loads(truth_path(path).read_text())
     n = len(truth["curves"])
     region = truth["region"]

@@ -313,3 +313,25 @@ def test_the_command_line_parser_costs_no_numpy_import():
     code = "import sys, rig.sim.afm_map; print('numpy' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.stdout.strip() == "False", out.stderr
+
+
+def test_a_long_write_says_how_far_it_is_on_stderr(capsys):
+    """A map that takes longer than a moment (256x256 takes minutes) says the curves written, the
+    rate and the time left, each tenth of the way, on stderr: the summary on stdout stays clean."""
+    import time
+
+    from rig.sim.afm_map import _Progress
+
+    shown = _Progress(time.perf_counter() - 10.0)  # ten seconds in: long enough to say
+    for i in range(200):
+        shown(i, 200)
+    shown.close()
+    out, err = capsys.readouterr()
+    lines = err.splitlines()
+    assert out == "" and len(lines) == 9, lines  # every tenth but the start
+    assert lines[0].startswith("  20/200 curves written,") and lines[-1].startswith("  180/200 curves written,")
+    assert all("/s, about" in line and line.endswith("s left") for line in lines)
+    quiet = _Progress(time.perf_counter())  # a map written within the moment says nothing
+    for i in range(200):
+        quiet(i, 200)
+    assert capsys.readouterr().err == ""
