@@ -572,6 +572,7 @@ def auto(base: FitResult, registry: dict[str, Effect], max_steps: int = AUTO_STE
     for i in range(1, max_steps + 1):
         ex = explain(current, registry)
         if not ex.suggestions:
+            steps[-1]["explanation"] = ex  # of the final model: a caller that shows it need not redo it
             if ex.beyond:  # a richer model is a design question: say so where the search stopped
                 steps[-1]["stopped"] = (f"stopped: the record cannot support a richer model "
                                         f"({_beyond(ex.beyond[0])}); {BEYOND_DESIGN}")

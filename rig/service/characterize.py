@@ -500,7 +500,7 @@ def _fit_all(req: Request, logs: list[str], records: list[Record], model_name: s
     final = steps[-1]["fit"]
     for s in steps[1:]:
         journal.write("model", added=s["added"], removed=s["removed"], delta_bic=s["delta_bic"], why=s["why"])
-    ex = explain(final, inp.registry)
+    ex = steps[-1].get("explanation") or explain(final, inp.registry)  # the search's last, when it ended there
     v = ex.verdict()
     turn.model = final.model.name
     turn.adequate = bool(final.adequate)
