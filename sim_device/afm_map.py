@@ -49,6 +49,8 @@ from rig.errors import RigError
 if TYPE_CHECKING:
     import numpy as np
 
+PROGRESS_AFTER_S = 10.0  # `rig sim-map` says how far it is once a write has taken this long
+
 REGIONS = ("thin_layer", "drift", "tilt", "adhesion", "drag")
 
 # Dimitriadis et al. 2002, an incompressible layer bonded to the substrate (True) or lying on
@@ -338,8 +340,8 @@ def _curve(spec: MapSpec, E: float, contact_m: float, effect: str | None, rng: n
 # -- the map ------------------------------------------------------------------------------------
 
 
-def _exporter(curves: int) -> Callable[[Any, dict, dict], None]:
-    """A function writing one curve into an open HDF5 file as afmformats' own export writes it
+def _exporter(h5: Any) -> Callable[[dict, dict], None]:
+    """A function writing one curve into the open HDF5 file `h5` as afmformats' own export writes it
     (`AFMData.export_data(h5, fmt="hdf5")`: a group named by the enum, each column a gzip'd and
     checksummed dataset with its unit, the metadata as afmformats parses it in the group's
     attributes, the file's "software" attributes), written in the same order and with the same
@@ -375,10 +377,10 @@ def _exporter(curves: int) -> Callable[[Any, dict, dict], None]:
 
     parsed: dict[tuple, MetaData] = {}
 
-    def export(h5, meta: dict, columns: dict) -> None:
-        if not h5.attrs.get("software"):
-            h5.attrs["software"] = "afmformats"
-            h5.attrs["software version"] = af_version
+    h5.attrs["software"] = "afmformats"  # the file's, as afmformats' export sets them before its group
+    h5.attrs["software version"] = af_version
+
+    def export(meta: dict, columns: dict) -> None:
         enum = meta["enum"]
         group = h5.create_group(str(enum))
         for col in sorted(columns):  # afmformats' `columns`: sorted, the index column not stored
@@ -443,10 +445,10 @@ def force_law(spec: MapSpec, in_region: bool) -> dict:
 
 
 def write_map(path: str | Path, spec: MapSpec | None = None, seed: int = 0,
-              progress: Callable[[int, int], None] | None = None) -> Path:
+              progress: Callable[[int], None] | None = None) -> Path:
     """Write the map as afmformats' HDF5 (`path`, conventionally .h5) and its truth beside it
-    (`truth_path(path)`); the same settings and seed give the same curves. `progress(done,
-    total)` is called as the curves are written. Returns `path`."""
+    (`truth_path(path)`); the same settings and seed give the same curves. `progress(1)` is
+    called as each curve is written. Returns `path`."""
     import numpy as np
 
     spec = spec or MapSpec()
@@ -491,16 +493,14 @@ def write_map(path: str | Path, spec: MapSpec | None = None, seed: int = 0,
         "session id": session,
     }
     curves = []
-    export = _exporter(n)
     path.parent.mkdir(parents=True, exist_ok=True)
     # written beside the target and renamed: a reader never sees half a map
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         # track_order: the groups list in raster order, as the curves were taken
         with h5py.File(tmp, "w", track_order=True) as h5:
+            export = _exporter(h5)
             for i in range(n):
-                if progress is not None:
-                    progress(i, n)
                 effect = spec.region if sample["region"][i] else None
                 c = _curve(spec, float(sample["E_Pa"][i]), float(contact[i]), effect, rng)
                 cols = c["columns"]
@@ -516,10 +516,12 @@ def write_map(path: str | Path, spec: MapSpec | None = None, seed: int = 0,
                     "duration retract": n_ret / spec.rate_Hz,
                     "z range": c["truth"]["z_range_m"],
                 })
-                export(h5, meta, cols)
+                export(meta, cols)
                 curves.append({"enum": i, "grid_index": [int(ix[i]), int(iy[i])],
                                "position_m": [float(x[i]), float(y[i])], "in_region": bool(sample["region"][i]),
                                **c["truth"]})
+                if progress is not None:
+                    progress(1)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -631,34 +633,6 @@ def add_map_parser(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
-class _Progress:
-    """The curves written, their rate and the time left, on stderr: each tenth of a map that takes
-    long enough to wonder about (a 256x256 map takes minutes), on one line at a terminal."""
-
-    def __init__(self, t0: float, after_s: float = 2.0) -> None:
-        import sys
-
-        self.t0, self.after_s, self.stream, self.shown = t0, after_s, sys.stderr, 0
-        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
-
-    def __call__(self, done: int, total: int) -> None:
-        import time
-
-        tenth = 10 * done // max(total, 1)
-        elapsed = time.perf_counter() - self.t0
-        if done == 0 or tenth == self.shown or elapsed < self.after_s:
-            return
-        self.shown = tenth
-        rate = done / elapsed
-        line = f"  {done}/{total} curves written, {rate:.0f}/s, about {(total - done) / rate:.0f} s left"
-        end = "" if self.tty else "\n"
-        print(f"\r{line}\x1b[K" if self.tty else line, end=end, file=self.stream, flush=True)
-
-    def close(self) -> None:
-        if self.tty and self.shown > 0:
-            print(file=self.stream, flush=True)
-
-
 def cmd_sim_map(args: argparse.Namespace) -> int:
     """Write the map the arguments describe and say what was written."""
     import time
@@ -670,10 +644,15 @@ def cmd_sim_map(args: argparse.Namespace) -> int:
                    layer_thickness_um=args.layer_thickness_um, layer_bonded=not args.not_bonded)
     if not str(args.out).endswith(".h5"):
         raise RigError(f"{args.out}: afmformats reads its HDF5 maps only under the suffix .h5")
+    from rig.progress import Progress
+
     t0 = time.perf_counter()
-    shown = _Progress(t0)
+    n = spec.grid[0] * spec.grid[1]
+    # said only for a map that takes a while (a 256x256 one takes minutes); a page's small map,
+    # whose output it shows, writes within a second or two
+    shown = Progress(n, what="curves written", after_s=PROGRESS_AFTER_S)
     try:
-        path = write_map(args.out, spec, seed=args.seed, progress=shown)
+        path = write_map(args.out, spec, seed=args.seed, progress=shown.add)
     finally:
         shown.close()
     truth = json.loads(truth_path(path).read_text())

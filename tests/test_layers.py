@@ -27,7 +27,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 LAYERS = ["base", "drivers", "sim", "models", "specs", "recording", "records", "control", "views",
           "analysis", "service", "diagnostics", "web", "cli"]
-BASE = {"rig", "rig.errors", "rig.clock", "rig.realtime"}
+BASE = {"rig", "rig.errors", "rig.clock", "rig.realtime", "rig.progress"}
 FOLDERS = {"rig": ROOT / "rig", "rig.drivers": ROOT / "drivers", "rig.sim": ROOT / "sim_device"}
 
 

@@ -358,8 +358,8 @@ def test_the_fast_writer_writes_the_map_afmformats_export_writes(tmp_path, monke
     spec = MapSpec(grid=(3, 2), region="drift")
     fast = write_map(tmp_path / "fast.h5", spec, seed=4)
 
-    def theirs(curves):
-        return lambda h5, meta, cols: AFMForceDistance(data=cols, metadata=meta).export_data(h5, fmt="hdf5")
+    def theirs(h5):
+        return lambda meta, cols: AFMForceDistance(data=cols, metadata=meta).export_data(h5, fmt="hdf5")
 
     monkeypatch.setattr(afm_map, "_exporter", theirs)
     slow = write_map(tmp_path / "slow.h5", spec, seed=4)

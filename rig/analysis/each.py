@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 import statistics
-import sys
 import time
 from collections import Counter
 from dataclasses import asdict, dataclass, field
@@ -24,6 +23,7 @@ from typing import Any
 from rig.analysis.batch import BatchRequest, Curve, expand_inputs, key_of, plan, row_order, run
 from rig.analysis.table import Journal, columns, journal_of, read_rows, table_format, write_table
 from rig.errors import RigError
+from rig.progress import Progress
 
 __all__ = ["EachResult", "analyze_curves", "format_summary", "on_grid", "run_each"]
 
@@ -46,45 +46,6 @@ class EachResult:
     @property
     def failed(self) -> list[dict]:
         return [r for r in self.rows if r.get("error")]
-
-
-class Progress:
-    """Curves done, rate and time left, on one line of stderr (a terminal) or every tenth (a log)."""
-
-    def __init__(self, total: int, stream=None, every_s: float = 0.5) -> None:
-        self.total, self.done, self.t0 = total, 0, time.monotonic()
-        self.stream = stream or sys.stderr
-        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
-        self._last, self._decile, self.every_s = 0.0, 0, every_s
-
-    def add(self, n: int) -> None:
-        self.done += n
-        now = time.monotonic()
-        decile = 10 * self.done // max(self.total, 1)
-        if self.tty and (now - self._last >= self.every_s or self.done == self.total):
-            self._last = now
-            print(f"\r{self.line(now)}\x1b[K", end="" if self.done < self.total else "\n", file=self.stream,
-                  flush=True)
-        elif not self.tty and decile > self._decile:
-            self._decile = decile
-            print(self.line(now), file=self.stream, flush=True)
-
-    def line(self, now: float) -> str:
-        dt = max(now - self.t0, 1e-9)
-        rate = self.done / dt
-        left = (self.total - self.done) / rate if rate > 0 else math.inf
-        eta = "" if self.done >= self.total else f", about {_duration(left)} left"
-        return f"  {self.done}/{self.total} curves, {rate:.3g}/s{eta}"
-
-
-def _duration(s: float) -> str:
-    if not math.isfinite(s):
-        return "?"
-    if s < 90:
-        return f"{s:.0f} s"
-    if s < 5400:
-        return f"{s / 60:.0f} min"
-    return f"{s / 3600:.1f} h"
 
 
 def run_each(inputs: list[str], req: BatchRequest, *, table: str | None = None, resume: bool = False,
