@@ -90,13 +90,14 @@ def stolen_ms() -> float | None:
         return None
 
 
-def _stolen_during_test() -> float:
+def stolen_during_test_ms() -> float:
+    """CPU time the host took from this machine since the running test's fixtures were up."""
     now = stolen_ms()
     return 0.0 if now is None or _STOLEN_AT is None else now - _STOLEN_AT
 
 
 def _machine_was_taken() -> bool:
-    return _stolen_during_test() >= STOLEN_MS
+    return stolen_during_test_ms() >= STOLEN_MS
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -112,7 +113,7 @@ def pytest_runtest_makereport(item, call):
     outcome = yield
     report = outcome.get_result()
     if report.failed and _on_the_clock(item) and _STOLEN_AT is not None:
-        report.sections.append(("machine", f"the host took {_stolen_during_test():.0f} ms of CPU from this "
+        report.sections.append(("machine", f"the host took {stolen_during_test_ms():.0f} ms of CPU from this "
                                            "virtual machine during the test (steal time, /proc/stat)"))
 
 

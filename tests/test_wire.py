@@ -21,7 +21,7 @@ from rig.service.run import RunOptions, run_trial
 from rig.specs.config import RigConfig
 from rig.specs.protocol import parse_protocol
 from rig.views.replay import summarize
-from tests.conftest import ROOT
+from tests.conftest import ROOT, stolen_during_test_ms
 
 # a ramp and a hold long enough for the estimator to settle (its hold-end figure is compared):
 # 11 s at speed 1 (the paper's 15 mm at 1.5 mm/s and a 12 s hold took 25 s, alone on the machine)
@@ -116,7 +116,16 @@ def run_with_fault(sim, tmp_path, at_s: float, faults: dict, transport="rtu", cl
 def test_one_dropped_reply_rides_through(wire_sim, tmp_path, transport):
     result, log = run_with_fault(wire_sim, tmp_path, 2.0, {"drop_replies": 1}, transport)
     assert result.outcome == "completed"
-    assert log.health[-1]["bus_errors"] == 1
+    errors = log.health[-1]["bus_errors"]
+    assert errors >= 1  # the dropped reply is counted
+    # and only it, unless the host froze this machine for longer than a transaction's timeout: a
+    # reply the simulator had no CPU to send is a real timeout to the rig (seen in CI: 2 errors
+    # with 2010 ms taken). Each extra one needs a timeout's worth taken, and they stay rare.
+    timeout_ms = 1000.0 * wired_config(wire_sim, transport).slider.timeout_s
+    extra = errors - 1
+    taken_ms = stolen_during_test_ms()
+    assert extra == 0 or (taken_ms >= extra * timeout_ms
+                          and extra <= 0.01 * log.health[-1]["bus_transactions"]), (errors, taken_ms)
     assert not [e for e in log.events if e["kind"] == "fault"]
 
 
