@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from warnings import catch_warnings, simplefilter
@@ -587,10 +588,10 @@ def _result(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) -> 
     lengths = [t.n for t in trials]
     to_si = ps.jacobian(z)
     doubts: list[str] = []
-    blocks, quiet, still, tared = noise_blocks(trials)
-    zeros = _zero_variances(tared, noise, scales)
     used: list[str] = []
-    cov = _covariance(best, to_si, blocks, doubts, quiet, still, zeros, used)
+    blocks_of = noise_blocks(trials)
+    blocks, quiet, still, _ = blocks_of
+    cov, zeros = _sandwich(best, to_si, blocks_of, scales, lambda: noise, doubts, used)
     zero_variance = _zero_share(best.jac, to_si, blocks, zeros, model.param_names)
     stderr = _stderr(cov, model.param_names)
     bound = ps.at_bound(z, lo, hi, AT_BOUND)
@@ -647,13 +648,24 @@ def _estimates(model, ps: ParamScaling, trials, scales, best, lo, hi, nfev, t0) 
     reads the noise only for a record's tare (`_zero_variances`), and its notes change nothing."""
     si = ps.to_si(best.x)
     values = {k: float(v) for k, v in zip(model.param_names, si, strict=True)}
-    blocks, quiet, still, tared = noise_blocks(trials)
-    zeros = [0.0] * len(tared)  # as `_zero_variances` gives records with no tare
-    if any(tared):
+
+    def noise() -> Noise:
         residuals = [t.force_N - p for t, p in zip(trials, evaluate(model, values, trials), strict=True)]
-        zeros = _zero_variances(tared, noise_of(trials, residuals), scales)
-    cov = _covariance(best, ps.jacobian(best.x), blocks, None, quiet, still, zeros, None)
+        return noise_of(trials, residuals)
+
+    cov, _ = _sandwich(best, ps.jacobian(best.x), noise_blocks(trials), scales, noise)
     return Estimates(values, _stderr(cov, model.param_names))
+
+
+def _sandwich(best, to_si: np.ndarray, blocks_of: tuple, scales: Scales, noise: Callable[[], Noise],
+              doubts: list[str] | None = None, used: list[str] | None = None
+              ) -> tuple[np.ndarray | None, list[float]]:
+    """The covariance both `_result` and `_estimates` report, and the zeros' variances it holds,
+    on the trials' `noise_blocks`. `noise` is called only for a record tared before its push, the
+    one whose zero's error needs it (`_zero_variances`): a refit that reads no table skips it."""
+    blocks, quiet, still, tared = blocks_of
+    zeros = _zero_variances(tared, noise(), scales) if any(tared) else [0.0] * len(tared)
+    return _covariance(best, to_si, blocks, doubts, quiet, still, zeros, used), zeros
 
 
 def _one_phrase(used: list[str]) -> str:
