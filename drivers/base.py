@@ -59,6 +59,11 @@ class LinkStats:
 
 @runtime_checkable
 class Slider(Protocol):
+    """What the trial needs of a linear slider: readings that carry their freshness, one move
+    at a time that the drive executes itself, and a stop. ``stats`` counts the bus's
+    transactions and errors. Backends: `drivers.modbus_slider` (Modbus RTU and TCP) and the
+    in-process simulator."""
+
     stats: LinkStats
 
     def position(self) -> Reading[float]:
@@ -87,6 +92,10 @@ class Slider(Protocol):
 
 @runtime_checkable
 class LoadCell(Protocol):
+    """What the trial needs of a load cell: its newest reading, with a timestamp and whether it
+    is valid. ``stats`` counts good and bad lines and readings out of range. Backends:
+    `drivers.serial_loadcell` (ASCII over a serial line) and the in-process simulator."""
+
     stats: LinkStats
 
     def latest(self) -> ForceReading | None:

@@ -48,6 +48,21 @@ class Scales:
 
 @dataclass
 class TrialData:
+    """One record on a uniform time grid, as every fit sees it: the ``motion`` (time,
+    indentation, velocity), the measured ``force_N`` and each sample's ``phase`` (ramp,
+    hold_early, hold_late, return, or "" outside every phase).
+
+    ``scales`` are the record's own force, length and time scales (from its data, never a
+    tissue's), which relative parameter bounds and hidden-effect sizes are taken from.
+    ``baseline_N`` and ``baseline_noise_N``: the force at rest before contact and its noise;
+    ``contact_m`` and ``contact_estimated``: where contact was placed (an estimate from the force
+    alone is refined by every fit, as a parameter of the record). ``held``: samples whose force
+    a controller held, fitted in creep form (`rig.analysis.creep`), with ``held_force_N``,
+    ``creep_weight_N_per_m`` and ``held_noise_ar`` for that form. ``force_unit`` and
+    ``length_unit`` say how to show its numbers; ``notes`` and ``meta``: what loading it found
+    and what the file says beyond its samples.
+    """
+
     name: str
     motion: Motion
     force_N: np.ndarray

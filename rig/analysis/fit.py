@@ -71,6 +71,27 @@ class ErrorStats:
 
 @dataclass
 class FitResult:
+    """What `fit` found: the values with their errors, the residual, and how far to trust them.
+
+    - ``model``, ``trials``: what was fitted to what; ``values`` and ``stderr`` per parameter in
+      SI (a standard error is None where the record does not determine it), ``covariance`` (SI,
+      allowing for correlated residuals) and ``correlations()``.
+    - ``predictions`` and ``residuals`` (measured minus model), per trial; ``overall`` and
+      ``phases``: the error table; ``per_trial``: the same per record.
+    - ``noise_N`` and ``noise``: the sensor noise measured from the record (``noise_source`` says
+      where); ``noise_L`` and ``white_L``: the noise's and the residual's correlation times
+      (samples); ``n_eff``: the independent residuals (samples over the residual's correlation
+      time), the count every comparison of models uses.
+    - ``bic`` on ``bic_samples`` effective samples (`rig.analysis.criterion`); ``adequate``
+      and ``limits``: whether the residual is at the noise's level, and how far a right model's
+      may go.
+    - ``warnings``: what the user should read before the numbers (a bound hit, parameters the
+      record cannot tell apart, too few independent residuals); ``error_noise``: the noise model
+      the standard errors were given; ``zero_variance``: the share of each variance that comes
+      from the records' tared zeros.
+    - ``nfev`` and ``seconds``: the fit's cost; ``z``: its internal (order-one) variables.
+    """
+
     model: Model
     trials: list[TrialData]
     values: dict[str, float]

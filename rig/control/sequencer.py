@@ -50,6 +50,17 @@ RAMP_REACHED_TICKS = 5  # judged on the force averaged over this many ticks, not
 
 
 class Sequencer:
+    """A protocol's steps in time: each tick it is told where the probe is and what the force
+    reads, and it says where the probe should go (the step in progress, its setpoint and speed),
+    when a step is done, and when the protocol is.
+
+    ``index`` is the running step (-1 while taring), ``step_t0`` its start, ``done`` set when
+    the last step ends, ``fault`` the reason if a step cannot go on (an approach that reaches
+    its depth limit without finding the surface). Positions are in the protocol's frames
+    (`rig.specs.frames`), from ``start_mm``. It moves nothing itself: the trial's loop sends
+    what it asks.
+    """
+
     def __init__(self, proto: Protocol, *, start_mm: float, accel_mm_s2: float, tare_s: float,
                  tolerance_mm: float, rate_Hz: float) -> None:
         self.steps: list[tuple[int, Step]] = proto.run_steps()

@@ -61,6 +61,16 @@ class StopSent:
 
 @dataclass
 class Ending:
+    """How a trial ends, as a small state machine: ``phase`` (running, stopping, returning,
+    faulted), the operator's ``mode`` (hold, abort, estop) or the ``fault`` that ended it,
+    ``since_t`` (when: the settle time counts from there) and the STOP standing (``stop``).
+
+    ``on_request`` takes an operator's request or says why it is refused (a fault already
+    stopped the trial; another stop is in progress, unless an estop overrides it or a hold cuts
+    an abort's return); ``on_fault`` takes precedence over everything. ``outcome`` is what the
+    operator is told.
+    """
+
     phase: Phase = Phase.RUNNING
     mode: StopMode | None = None
     fault: Fault | None = None

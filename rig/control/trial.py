@@ -214,6 +214,14 @@ class StopTicket:
 
 
 class Trial:
+    """One trial of a protocol on a slider and a load cell: the 100 Hz loop, its safety checks,
+    the estimator and the log.
+
+    ``run()`` tares, runs the steps and writes the MCAP log; ``request_stop``
+    asks for a hold, an abort or an estop (`Ending`); a fault stops the slider before anything
+    else happens. The outcome, the log's name and the loop's health come back in the result.
+    """
+
     post_fault_s = 0.5
     return_speed_mm_s = 5.0
     resend_stop_s = 0.1  # re-send an unconfirmed STOP this often

@@ -33,6 +33,18 @@ STAGES = ("geometry", "drive", "rate", "lag", "branch", "sensor", "delay")
 
 @dataclass(frozen=True)
 class Param:
+    """One fitted parameter of an effect: its name, unit, starting value and bounds together.
+
+    ``name`` is unique across a model, and effects that name the same parameter share it (the
+    earliest stage's bounds and start define it). ``init``, ``lo`` and ``hi`` are in SI unless
+    ``relative`` says they are in the record's own scales (a catalogue parameter starts at a
+    fraction of the record's force, length and time, so one catalogue fits a tissue and a cell).
+    ``scale`` is the typical magnitude the fit divides by (default: ``|init|``, or 1).
+    ``warn_negative``: a negative value is physically meaningless (the fit says so, and
+    ``--explain`` rejects a candidate that needs one significantly). ``per_record``: one value per
+    record fitted together (``name@0``, ``name@1``, ...), as where each record's surface lies.
+    """
+
     name: str  # unique across a model; effects that name the same parameter share it
     unit: str
     init: float
@@ -121,6 +133,16 @@ class Effect:
 
 @dataclass
 class Model:
+    """A force model: a list of effects, each acting at its stage of the chain from geometry to
+    the sensor (``STAGES``), with the parameters they declare.
+
+    Built by adding effects (``build_model("hertz") + CATALOGUE["drift"]``); ``params`` lists
+    every fitted parameter in order (a per-record one expanded once per record when ``records``
+    > 1), and ``name`` is the effects joined with ``+`` unless given. A model refuses two effects
+    of one name, more than one rate, lag or delay stage, more than one force-dependent geometry,
+    and one parameter name with two units. ``predict`` gives the force for a trial's motion.
+    """
+
     effects: list[Effect]
     name: str = ""
     records: int = 1  # fitted together: a per-record parameter has this many values
