@@ -65,6 +65,11 @@ GENERIC_SEPARATION = "another speed, another depth, or a richer motion (a sine g
 
 @dataclass
 class Suggestion:
+    """One candidate effect as `explain` scored it: the error with it (``rmse_N``, and the share
+    of the base's removed), its ``delta_bic`` against the base model, why it helps (``why``:
+    where the error fell), its ``fit``, and why it cannot be the answer if it cannot
+    (``meaningless``, ``unsupported``). ``dropped``: effects of the base a swap removes."""
+
     effect: str
     rmse_N: float
     rmse_drop: float  # fraction of the base RMSE removed
@@ -95,6 +100,12 @@ class Suggestion:
 
 @dataclass
 class Explanation:
+    """What `explain` found on a fit: every candidate ranked (``ranked``), those that pass
+    (``suggestions``, best first), the best one's name (``best``), pairs of effects these
+    records cannot tell apart (``lookalikes``), what the best addition still leaves
+    (``unexplained``, ``closest``), candidates the record is too poor to support (``beyond``),
+    and the verdict as one text (``summary``, ``verdict()``)."""
+
     base: FitResult
     n_eff: float
     ranked: list[Suggestion]  # every candidate, best first
@@ -143,6 +154,15 @@ def candidates(model: Model, registry: dict[str, Effect],
 
 
 def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData] | None = None) -> Explanation:
+    """Which effect `base`'s model most likely misses: every candidate of `registry` the model
+    can take (`candidates`) is fitted in turn, screened on a decimated copy and the leaders refitted
+    on every sample, and ranked by the BIC on the residual's independent samples. A candidate
+    is suggested when it passes the criterion (decisively, for an adequate model), is not
+    physically meaningless beyond its own error, and the record supports the richer model; a
+    leader that makes one of the model's own effects unneeded is offered as a swap. The
+    `Explanation` holds the ranking, the suggestions, the look-alikes these records cannot
+    separate, and the verdict as the user reads it (``summary``).
+    """
     trials = trials or base.trials
     r_all = np.concatenate(base.residuals)
     n_eff = base.n_eff

@@ -54,6 +54,9 @@ __all__ = ["ErrorStats", "Estimates", "FitResult", "error_table", "evaluate", "f
 
 @dataclass
 class ErrorStats:
+    """The residual (measured - model) summarised over a set of samples: RMSE, mean, standard
+    deviation and count, in newtons."""
+
     rmse_N: float
     mean_N: float
     std_N: float
@@ -247,6 +250,8 @@ class FitResult:
 
 
 def evaluate(model: Model, values: dict[str, float], trials: list[TrialData]) -> list[np.ndarray]:
+    """`model`'s prediction of each trial's force at `values` (SI), one array per trial
+    (`predict_trial`; each trial is told its position among them for per-record parameters)."""
     for i, t in enumerate(trials):
         t.motion.record = i
     return [predict_trial(model, values, t) for t in trials]
@@ -276,6 +281,7 @@ def predict_position(model: Model, values: dict[str, float], t: TrialData) -> np
 
 
 def error_table(trials: list[TrialData], residuals: list[np.ndarray]) -> tuple[ErrorStats, dict]:
+    """The residuals' `ErrorStats` over every sample, and per phase (None for a phase no trial has)."""
     r_all = np.concatenate(residuals)
     phases = {ph: ErrorStats.of(np.concatenate([r[t.mask(ph)] for t, r in zip(trials, residuals, strict=True)]))
               for ph in PHASES}
@@ -283,6 +289,8 @@ def error_table(trials: list[TrialData], residuals: list[np.ndarray]) -> tuple[E
 
 
 def noise_of(trials: list[TrialData], residuals: list[np.ndarray]) -> Noise:
+    """The sensor noise a perfect model's residual would show on these trials, measured from
+    their force at rest and the residuals (`rig.analysis.noise.measure`)."""
     return measure([t.baseline_N for t in trials], residuals)
 
 

@@ -47,6 +47,11 @@ QUIET_SIGMAS = 4.0  # two blocks in a row this many block-scatters off the line 
 
 @dataclass(frozen=True)
 class Noise:
+    """The force sensor's noise as measured on a record: its level (``std_N``, quantisation
+    included), its spectrum (``ar``, and ``scale_samples``: samples per independent value), its
+    quantisation (``quantum_N``, ``origin_N``), a slow wander under it (``walk_N2``), where it was
+    measured (``source``, ``level_N``, ``samples``) and how sure that is (``spread``)."""
+
     std_N: float  # what a perfect model's residual shows: the noise with its quantisation error
     scale_samples: float  # integral time scale: samples per independent value (1 for white noise)
     source: str

@@ -34,6 +34,12 @@ from rig.records import ReadOptions
 
 @dataclass
 class AnalyzeRequest:
+    """One `rig analyze` as fields: the ``inputs`` (files, or ``records`` already read), the
+    ``model`` and the effects to ``add``, what to do beyond the fit (``explain``, ``auto``,
+    ``compare``, ``design``, ``bootstrap``, ``profile``, ``save``, ``report``) and how to read the
+    records (``indenter``, ``segment``, ``form``, ``curve``, the AFM calibration). The command
+    line's options map onto these one to one."""
+
     inputs: list[str]
     model: str = "proposed"
     add: list[str] = field(default_factory=list)
@@ -65,11 +71,17 @@ class AnalyzeRequest:
 
 @dataclass
 class Analysis:
+    """What `analyze` gives: the result as JSON (``json``, what ``--json`` prints) and as the
+    text the command prints (``text``)."""
+
     json: dict
     text: str
 
 
 def analyze(req: AnalyzeRequest) -> Analysis:
+    """Run one `rig analyze`: read the records, build the model, fit it (with the systematic
+    error and the modulus where the model holds an indenter's contact), and do what the request asks
+    beyond that. Bad input raises `RigError` with what is wrong and where."""
     options = ReadOptions(curve=req.curve, spring_constant_N_per_m=req.spring_constant_N_per_m,
                           sensitivity_m_per_V=req.sensitivity_m_per_V, block=req.block)
     inputs = load_inputs(req.inputs, req.holdout, req.plugins, options, indenter=req.indenter,

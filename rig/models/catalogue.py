@@ -283,6 +283,14 @@ def named_models(registry: dict[str, Effect]) -> list[str]:
 
 def build_model(name: str, extra: list[str] | None = None,
                 registry: dict[str, Effect] | None = None) -> Model:
+    """The model called `name` (a named model such as "hertz" or "proposed", one effect of the
+    catalogue, or a model as the tool prints it, "hertz+drift"), with the effects in `extra`
+    added in order. `registry` is the catalogue to draw from (default: `CATALOGUE`; a record's
+    indenter adds its contact law and the viscoelastic and bottom effects that need it).
+
+    Raises `RigError` for an unknown name (with the nearest one) or an effect that needs an
+    indenter the record does not give.
+    """
     from rig.errors import RigError, did_you_mean
 
     reg = registry or CATALOGUE
