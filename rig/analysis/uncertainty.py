@@ -23,27 +23,8 @@ residual (the likelihood of what the fit left: the fitted directions out, `_reml
   (`_quiet_refutes`): a model's smooth misfit in contact reads as a large walk, and on real AFM
   curves inflated the standard errors 10-50x with a noise the approach shows no trace of.
 
-Why this one. The previous version (AR(1) prewhitening, rho clipped at 0.99, bandwidth twice
-the prewhitened residual's time scale, so almost always 2) held the truth within 1.96 SE only
-34-59 % of the time for AR(1) noise at rho 0.998 and 1-15 % under a random-walk drift, over
-300 seeds: near a unit root everything rests on 1 - rho, which a residual's least squares
-reads about 4/N too large (the fit absorbed the slow part of the noise) and the clip cut; and
-a drift under white noise hardly moves the lag-one correlation. The textbook Andrews-Monahan
-estimator (VAR(1) on the scores, eigenvalues clipped at 0.97) did no better there (54-73 %,
-8-21 %). A block bootstrap or refit would cost a hundred fits. AR(8) prewhitening with the drift
-check alone then covered AR(1) and low-pass noise (92-98 %) but a walk under white noise only
-24-84 %: an AR(8) follows part of a large walk (white plus a walk is an ARIMA(0,1,1) whose
-moving-average root is near one, an AR of very long memory), so the drift check finds nothing
-in what it leaves and the rest is missed; capping the order fixed one walk and broke another
-walk and the low-pass noises. Chosen as a whole by likelihood, the walk wins where it is one and
-the AR everywhere else (a smooth noise is far from white plus a walk). The restricted likelihood
-matters: the offset and slope took most of a walk's low frequencies out of the residual, and
-the plain likelihood of the residual would read the walk as smaller. White plus a walk costs
-one FFT (K's eigenvectors are sines, so its likelihood at any ratio of the two variances is a
-weighted sum), the AR's likelihood one filtering. Measured over 200 seeds
-(tests/bench/test_bench_coverage.py prints the table): AR(1), low-pass noise and white plus a
-walk 1, 3 and 10 times the noise over the record all cover 86-98 %. A walk under a coloured noise
-is covered only by the AR's drift check: the weak case left.
+Why this noise model and not the simpler ones it replaced (each measured for coverage over
+hundreds of seeds): docs/explanation/standard-errors.md, "Why this one".
 
 `hac_covariance` appends to `notes` why an estimate is doubtful: a bound was hit (the AR
 filter at the record's length, the bandwidth at its limit), a drift or a walk was included, or the
