@@ -20,6 +20,10 @@ from rig.specs.config import RigConfig
 
 @dataclass
 class Devices:
+    """The slider and load cell a trial runs on, opened from the config, with what stops the
+    drive if this controller dies (``backstop``), the warnings every start repeats, and the
+    simulator or wire spy behind them if any. `close` releases all of them, best effort."""
+
     slider: Slider
     loadcell: LoadCell | None  # None: no load cell (loadcell.backend: none)
     rig: object | None = None  # the SimRig behind in-process devices (tests, fault injection)
@@ -44,6 +48,8 @@ class Devices:
 
 
 def uses_wire(config: RigConfig, speed: float) -> bool:
+    """Whether a trial at `speed` talks to its devices over real lines (a real rig; the simulated
+    one on Modbus and serial lines at speed 1 unless `sim.wire` is none)."""
     if config.slider.backend != "sim":
         return True
     return speed == 1.0 and config.sim.wire != "none"

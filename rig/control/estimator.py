@@ -42,6 +42,10 @@ class RlsStep:
 
 
 class StiffnessRLS:
+    """The online stiffness estimate: f(t) = k x(t-1) + e(t) by recursive least squares with the
+    forgetting law of the module's docstring. `update` takes one tick's previous position and
+    force; `k` and `stiffness_std_N_per_m` are the estimate and its standard error (N/m)."""
+
     def __init__(self, *, rate_Hz: float, law: str = "constant_information", memory_s: float = 0.3,
                  smoothing_s: float = 0.1, lambda_min: float = 0.8, lambda_max: float = 0.9999,
                  noise_N: float = 0.08, initial_stiffness_N_per_m: float = 0.0,

@@ -18,6 +18,9 @@ from rig.specs.config import LimitsConfig
 
 @dataclass(frozen=True)
 class TickState:
+    """What one tick knows that a safety limit can be checked against: the force the tissue
+    carries, the slider's position and measured speed, the load cell's age, the drive's alarm."""
+
     force_N: float  # what the limit applies to: the force the tissue carries (from the free-air zero)
     position_abs_mm: float  # slider coordinates (the travel window is in these)
     speed_mm_s: float | None  # from the last two fresh positions; None: not measurable this tick
@@ -31,11 +34,18 @@ class TickState:
 
 @dataclass(frozen=True)
 class Fault:
+    """Why a trial stops on its own: a ``kind`` a program can act on and a ``message`` the
+    operator reads."""
+
     kind: str  # force_limit, force_range, travel, overspeed, loadcell_stale, drive_alarm, move, ...
     message: str
 
 
 def check(state: TickState, limits: LimitsConfig) -> Fault | None:
+    """The first limit this tick breaks, or None: a drive alarm, a load cell over its range or
+    silent beyond `loadcell_stale_ms`, a force that is not a number or above `max_force_N`, a
+    position outside the travel window, a speed above the limit times `overspeed_factor`. In that
+    order: a stale or invalid force is a fault before its value is compared with anything."""
     if state.alarm_code:
         return Fault("drive_alarm", f"drive alarm code 0x{state.alarm_code:02X}")
     if state.force_over_range:

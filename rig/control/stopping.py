@@ -35,6 +35,9 @@ class StopMode(enum.Enum):
 
 
 class Phase(enum.Enum):
+    """Where a trial's ending stands: running its protocol, returning to the start (an abort),
+    stopping where it is (a hold or an estop), or stopped by a fault."""
+
     RUNNING = "running"
     RETURNING = "returning"
     STOPPING = "stopping"

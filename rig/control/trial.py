@@ -109,6 +109,11 @@ class EndPlace:
 
 @dataclass
 class TrialResult:
+    """How a trial ended, as the operator is told: the ``outcome`` (and the ``fault`` if one
+    ended it), the log, the samples recorded, the loop's timing (late and missed ticks, the
+    period errors) and the bus's transactions and errors; ``notices``: what the operator should
+    know of a trial that completed."""
+
     outcome: str  # completed, fault, aborted, stopped, estopped
     log_path: Path
     samples: int
