@@ -300,16 +300,18 @@ def test_a_protocol_at_the_cap_is_checked_and_planned_in_little_time_and_memory(
     proto = parse_protocol(AT_THE_CAP, "cap.yaml")
     assert proto.executed_steps == 9999 <= cfg.limits.max_protocol_steps
     tracemalloc.start()
-    began = time.perf_counter()
+    # the work's own CPU time: on a loaded machine the wall clock measured the load (20 s of
+    # wall for 3.3 s of CPU, under tracemalloc, beside a benchmark on both cores)
+    began = time.process_time()
     check_limits(proto, cfg)
     p = plan(proto, cfg)
     order = p.excitation_order(1.0 / cfg.sim.slider.steps_per_mm)
-    took = time.perf_counter() - began
+    took = time.process_time() - began
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     assert order == 1 and p.duration_s == pytest.approx(2500 * (5.04 + 60 + 2.1) + 2499 * 30 + 0.5)
     assert peak < 40e6, f"{peak / 1e6:.0f} MB"  # the samples alone would be 210 MB
-    assert took < 20, took  # about 0.5 s alone on the machine; generous for a shared one
+    assert took < 20, took  # 3.3 s of CPU under tracemalloc here (0.4 s without)
     code, out, _ = _check(tmp_path, capsys, AT_THE_CAP)
     assert code == 0 and "depths    10 mm in each of 2500 repeats" in out, out
 

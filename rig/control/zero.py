@@ -37,6 +37,9 @@ ZERO_FILE = ".loadcell-zero.json"
 
 @dataclass(frozen=True)
 class Zero:
+    """The load cell's free-air zero a trial measures force from: its value, where it came from,
+    and whether it is only assumed (a trial's own tare, not a reading out of contact)."""
+
     value_N: float
     source: str  # said in the log and in messages
     assumed: bool = False  # a trial's tare taken as the zero, not a measurement out of contact

@@ -69,6 +69,11 @@ MAGIC = b"\x89MCAP0\r\n"
 
 @dataclass
 class TrialLog:
+    """An MCAP trial log as read back (`read_log`): the samples as columns, the events and health
+    records, the trial's metadata and attachments (its config and protocol as run, the sample
+    columns), and whether the writer finished (``complete``; ``read_error`` says why a truncated
+    file stopped)."""
+
     path: Path
     samples: dict[str, np.ndarray]  # column name -> values, one entry per tick
     step_kind: list[str]

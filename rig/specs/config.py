@@ -240,6 +240,13 @@ class DaemonConfig:
 
 @dataclass
 class RigConfig:
+    """A rig as its YAML config describes it: the loop's rate, the safety limits, the estimator,
+    force control, the slider's and load cell's backends and links, the recorder, the daemon,
+    the simulator's parameters, and optionally a saved model run in the loop, the probe's
+    indenter and the load cell's calibration. The defaults are the built-in simulated rig;
+    `load_config` reads and checks a file, and ``text()`` is the config exactly as run (logged
+    with every trial)."""
+
     name: str = "simulated rig"
     loop: LoopConfig = field(default_factory=LoopConfig)
     limits: LimitsConfig = field(default_factory=LimitsConfig)
@@ -291,6 +298,8 @@ def load_config(path: str | Path | None) -> RigConfig:
 
 
 def parse_config(text: str, path: str = "<config>") -> RigConfig:
+    """The config in `text` (YAML), checked: an unknown key, a wrong type or a value out of its
+    range raises `RigError` naming the file, the line and the key."""
     node = load_marked(path, text)
     _refuse_keys(node, ("source_text", "source_path"), path)
     cfg = bind(RigConfig, node, path)

@@ -22,6 +22,8 @@ from rig.specs.yamlspec import MapView, Marked, load_marked, read_text
 
 @dataclass(frozen=True)
 class Ramp:
+    """Move to `to_mm` (the protocol's frame) at `speed_mm_s`."""
+
     to_mm: float
     speed_mm_s: float
     accel_mm_s2: float | None = None
@@ -103,6 +105,8 @@ STEP_KINDS = ("ramp", "hold", "return", "approach", "ramp_force", "hold_force")
 
 @dataclass(frozen=True)
 class ProtocolLimits:
+    """Limits a protocol sets for itself: each tightens the rig's own, never loosens it (None: the rig's)."""
+
     max_force_N: float | None = None
     max_speed_mm_s: float | None = None
     travel_mm: tuple[float, float] | None = None
@@ -110,6 +114,10 @@ class ProtocolLimits:
 
 @dataclass
 class Protocol:
+    """A protocol file as run: its ``steps`` in order (ramps, holds, returns, approaches, force
+    ramps and holds), repeated ``repeat`` times with ``rest_s`` between, within its own
+    ``limits``; ``source_text`` is logged with every trial."""
+
     name: str
     steps: list[Step]
     description: str = ""
@@ -174,6 +182,8 @@ def load_protocol(path: str | Path, config: RigConfig | None = None) -> Protocol
 
 
 def parse_protocol(text: str, path: str = "<protocol>") -> Protocol:
+    """The protocol in `text` (YAML), checked step by step: a wrong key, kind or value raises
+    `RigError` naming the file, the line and the step."""
     root = MapView(load_marked(path, text), path)
     root.check_keys(("name", "description", "steps", "repeat", "rest_s", "limits"))
     name = root.text("name", required=True)
