@@ -14,6 +14,9 @@ def slots_behind(lateness: float, period: float) -> int:
 
 
 class Clock(Protocol):
+    """The time a trial's loop runs on: `RealClock` at speed 1, `VirtualClock` otherwise (the
+    simulated rig at `--speed 0` jumps to each deadline; at N it runs N times real time)."""
+
     def now(self) -> float:
         """Seconds on this clock (arbitrary origin, monotonic)."""
 

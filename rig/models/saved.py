@@ -22,6 +22,10 @@ FORMAT = "indentation-rig model 1"
 
 @dataclass
 class SavedModel:
+    """A fitted model as `rig analyze --save` writes it for the loop: the model, its values (SI)
+    and standard errors, the trials it was fitted on, the noise and the error there. The records'
+    own parameters (where each surface and zero lay) are not kept: the loop knows its own."""
+
     model: Model
     values: dict[str, float]  # SI
     stderr: dict[str, float | None] = field(default_factory=dict)
@@ -73,6 +77,7 @@ def savable(model) -> str | None:
 
 
 def from_fit(res, trials: list[str]) -> SavedModel:
+    """The `SavedModel` of a fit, or `RigError` if its model cannot run in the loop."""
     why = savable(res.model)
     if why:
         raise RigError(f"--save: {why}")
@@ -87,6 +92,7 @@ def from_fit(res, trials: list[str]) -> SavedModel:
 
 
 def save(saved: SavedModel, path: str | Path) -> Path:
+    """Write `saved` to `path` as JSON; `RigError` if it cannot be written."""
     path = Path(path)
     try:
         path.write_text(saved.text())
@@ -96,6 +102,7 @@ def save(saved: SavedModel, path: str | Path) -> Path:
 
 
 def loads(text: str, source: str = "<model>") -> SavedModel:
+    """The saved model in `text`, checked: `RigError` naming `source` and what is wrong."""
     def bad(msg: str) -> RigError:
         return RigError(f"{source}: {msg}")
 
@@ -178,6 +185,7 @@ def model_for_run(config, path: str | None = None) -> SavedModel | None:
 
 
 def load(path: str | Path) -> SavedModel:
+    """The saved model in the file at `path` (`loads`)."""
     path = Path(path)
     try:
         text = path.read_text()

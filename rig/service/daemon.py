@@ -231,6 +231,11 @@ def _joined(head: str, notes: list[str]) -> str:
 
 
 class Daemon:
+    """The rig's controller as a service: it owns the devices, takes start, stop and status
+    requests on a Unix socket (`rig start`, `rig stop`, `rig status`), runs one trial at a time
+    on its own thread, and keeps what the next trial needs (the load cell's free-air zero). A
+    stop never waits for a lock held across a bus transaction."""
+
     def __init__(self, config: RigConfig, socket_path: Path | None = None, *, log=sys.stderr,
                  spy_path: str | None = None) -> None:
         self.config = config

@@ -22,6 +22,11 @@ from rig.views.progress import ProgressBar
 
 @dataclass
 class RunOptions:
+    """How `run_trial` runs one trial beyond its protocol and config: who and what for the log's
+    header (specimen, operator, notes, dimensions), where the log goes, the clock's speed,
+    the progress line, what to publish live or spy on, a saved model for the loop, and the
+    callbacks a caller (the daemon, a test) hooks into the loop."""
+
     specimen: str = "specimen"
     operator: str = ""
     notes: str = ""
