@@ -88,6 +88,8 @@ def run_each(inputs: list[str], req: BatchRequest, *, table: str | None = None, 
                 shown.add(len(rows))
         finished = True
     finally:
+        if shown:
+            shown.close()  # a terminal's line left open by a run that stopped short
         if journal:
             journal.close()
     rows = sorted(done.values(), key=lambda r: order[key_of(r)]) + others
