@@ -9,8 +9,9 @@ row raise `DeviceError`, which the loop turns into a fault.
 
 STOP on the input command is level-sensitive, as on the real drive: while it is set the
 drive ignores every move. `prepare()` (on connect) releases a STOP that another process
-left set and reads the register back; every write must be acknowledged, and a write
-that is not raises `DeviceError` (a STOP is retried first: it must not be lost).
+left set and reads the register back, asking again after a lost reply (connect is not on
+the loop's clock); every write must be acknowledged, and a write that is not raises
+`DeviceError` (a STOP is retried first: it must not be lost).
 
 The client is owned by one thread (pymodbus does not allow parallel calls on a client).
 """
@@ -110,6 +111,11 @@ def _no_delay(client) -> object:
     return sock
 
 
+# Connect-time requests (release, read-back, the drive's communication timeout) are idempotent
+# and not on the loop's clock: a lost reply is asked again, up to this many times in all.
+SETUP_ATTEMPTS = 3
+
+
 class ModbusSlider:
     def __init__(self, link: ModbusLink, registers: RegisterMap, steps_per_mm: float, *,
                  current_percent: float = 100.0, stop_decel_mm_s2: float = 2000.0,
@@ -175,17 +181,32 @@ class ModbusSlider:
     def _write(self, what: str, address: int, values: list[int]) -> bool:
         return self._call(what, self.client.write_registers, address, values) is not None
 
-    def _write_checked(self, what: str, address: int, values: list[int]) -> None:
-        if not self._write(what, address, values):
+    def _write_checked(self, what: str, address: int, values: list[int], attempts: int = 1) -> None:
+        if self._again(what, self.client.write_registers, address, values, attempts=attempts) is None:
             raise DeviceError(f"slider ({self.link.describe()}): {what} not acknowledged "
                               f"({self.last_error})")
 
+    def _again(self, what: str, fn, *args, attempts: int, **kwargs):
+        """`_call` up to `attempts` times, for idempotent requests outside the loop's tick.
+
+        On connect the loop's budget (one timeout, no retry) would turn one lost reply, which
+        the loop itself rides through, into a trial that never starts; each failure is still
+        counted, and `max_consecutive_errors` still bounds the whole."""
+        for _ in range(max(attempts, 1)):
+            reply = self._call(what, fn, *args, **kwargs)
+            if reply is not None:
+                return reply
+        return None
+
     # ------------------------------------------------------------ interface
     def prepare(self) -> None:
-        """On connect: release any STOP/ZHOME level left set (by us or another master), verified."""
-        self._write_checked("release input command", self.regs.input_command, [0, 0])
-        reply = self._call("read input command", self.client.read_holding_registers,
-                           self.regs.input_command, count=2)
+        """On connect: release any STOP/ZHOME level left set (by us or another master), verified.
+
+        Each request is tried up to `SETUP_ATTEMPTS` times: both are idempotent."""
+        self._write_checked("release input command", self.regs.input_command, [0, 0],
+                            attempts=SETUP_ATTEMPTS)
+        reply = self._again("read input command", self.client.read_holding_registers,
+                            self.regs.input_command, count=2, attempts=SETUP_ATTEMPTS)
         if reply is None:
             raise DeviceError(f"slider ({self.link.describe()}): cannot read back the input command "
                               f"register ({self.last_error})")
@@ -280,8 +301,9 @@ class ModbusSlider:
         if address is None:
             return False
         want = round(timeout_s * 1000)
-        self._write_checked("comm timeout", address, to_words(want))
-        reply = self._call("read comm timeout", self.client.read_holding_registers, address, count=2)
+        self._write_checked("comm timeout", address, to_words(want), attempts=SETUP_ATTEMPTS)
+        reply = self._again("read comm timeout", self.client.read_holding_registers, address, count=2,
+                            attempts=SETUP_ATTEMPTS)
         got = from_words(*reply.registers[:2]) if reply is not None else None
         if got != want:
             raise DeviceError(f"slider ({self.link.describe()}): communication timeout written as "

@@ -88,6 +88,22 @@ def test_exception_reply_is_counted_and_ridden_through():
         dev.close()
 
 
+def test_connect_asks_again_after_a_lost_reply_and_still_verifies():
+    release = (rtu("01 10 007C 0002 04 0000 0000"), rtu("01 10 007C 0002"))
+    read_back = rtu("01 03 007C 0002")
+    # the read-back is refused once (busy), then answered: the trial opens, the error counted
+    _, slider = run_script([release, (read_back, rtu("01 83 06")), (read_back, rtu("01 03 04 0000 0000"))],
+                           lambda s: s.prepare())
+    assert slider.stats.errors == 1 and slider.stats.transactions == 3
+    # a STOP that stays set is still refused after the retry: verification is not retried away
+    with pytest.raises(DeviceError, match="STOP stays set"):
+        run_script([release, (read_back, rtu("01 83 06")), (read_back, rtu("01 03 04 0000 0020"))],
+                   lambda s: s.prepare())
+    # and a drive that never answers the read-back fails after three attempts, saying why
+    with pytest.raises(DeviceError, match="cannot read back the input command register"):
+        run_script([release] + [(read_back, rtu("01 83 06"))] * 3, lambda s: s.prepare())
+
+
 def test_load_cell_poll_request_and_parse():
     master, slave, path = raw_pty()
     cell = SerialLoadCell(path, mode="poll", request=b"W\r")
