@@ -593,8 +593,8 @@ def _progress(done: int, total: int) -> None:
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
-    from rig.analysis.each import is_batch
-    from rig.analysis.session import AnalyzeRequest, analyze
+    from rig.analysis.batch.each import is_batch
+    from rig.analysis.workflow.session import AnalyzeRequest, analyze
     from rig.records import ReadOptions
 
     options = ReadOptions(spring_constant_N_per_m=args.spring_constant, sensitivity_m_per_V=args.sensitivity)
@@ -627,9 +627,9 @@ BATCH_REFUSED = ("compare", "auto", "auto_steps", "holdout", "design", "save", "
 def cmd_analyze_each(args: argparse.Namespace) -> int:
     """Every curve on its own: a table (--table), a summary; the exit status is 0, or 64 plus the
     number of curves that could not be analysed (up to 125, clear of the other statuses)."""
-    from rig.analysis.batch import BatchRequest
-    from rig.analysis.each import format_rows, format_summary, run_each
-    from rig.analysis.table import jsonable
+    from rig.analysis.batch.each import format_rows, format_summary, run_each
+    from rig.analysis.batch.engine import BatchRequest
+    from rig.analysis.batch.table import jsonable
 
     given = [f for f in BATCH_REFUSED if getattr(args, f) not in (None, False)]
     if given:
@@ -649,8 +649,8 @@ def cmd_analyze_each(args: argparse.Namespace) -> int:
                    scheduler=args.scheduler, progress=not args.json or sys.stderr.isatty())
     summary = format_summary(res, req, args.min_quality)
     if args.report:
-        from rig.analysis.each import parameters, passes
-        from rig.analysis.map_report import write_map_report
+        from rig.analysis.batch.each import parameters, passes
+        from rig.analysis.batch.map_report import write_map_report
 
         kept = [r for r in res.rows if passes(r, args.min_quality)]
         summary += f"\nreport: {write_map_report(kept, args.report, parameters(kept), summary)}"
@@ -681,7 +681,7 @@ def _design_args(args: argparse.Namespace):
 
 
 def cmd_import(args: argparse.Namespace) -> int:
-    from rig.analysis.data import load_trial
+    from rig.analysis.trials.data import load_trial
     from rig.records.csvfile import write_trial_csv
 
     trial = load_trial(args.file, args.block)

@@ -14,8 +14,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rig.analysis.data import prepare
-from rig.analysis.fit import fit
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import prepare
 from rig.models import CATALOGUE, build_model
 from rig.models.catalogue import CONTACT, CONTACT_POINT, contact_effect
 from rig.models.contact import parse_indenter
@@ -137,7 +137,7 @@ def _shortcut(seed: int, kind: str) -> list[tuple[bool, bool, bool]]:
     """For a perfect and a missing model's fit: whether the verdict came without simulating the
     limits, whether the simulated limits then say the same, and whether they are at or above the
     tolerances."""
-    from rig.analysis.adequacy import ADEQUATE_PHASE, ADEQUATE_RMSE, ADEQUATE_WHITE
+    from rig.analysis.stats.adequacy import ADEQUATE_PHASE, ADEQUATE_RMSE, ADEQUATE_WHITE
 
     model = build_model("hertz", registry={**CATALOGUE, CONTACT: contact_effect(parse_indenter(INDENTER)),
                                            CONTACT_POINT.name: CONTACT_POINT})

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.analysis.data import prepare
+from rig.analysis.trials.data import prepare
 from rig.cli import main
 from rig.errors import SpecError
 from rig.records import CurveInfo, ReadOptions, iter_records, list_curves, read_record

@@ -64,10 +64,10 @@ def test_a_stand_in_is_dropped_at_the_simpler_models_count(tmp_path, monkeypatch
     which the README did not say)."""
     from dataclasses import replace
 
-    from rig.analysis import explain as explain_module
-    from rig.analysis.data import load_trial
-    from rig.analysis.fit import fit
-    from rig.analysis.uncertainty import delta_bic
+    from rig.analysis.diagnosis import explain as explain_module
+    from rig.analysis.fitting.fit import fit
+    from rig.analysis.stats.uncertainty import delta_bic
+    from rig.analysis.trials.data import load_trial
     from rig.models import CATALOGUE, build_model
     from tests.test_explain import simulate
 

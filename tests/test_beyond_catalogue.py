@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from rig.sim.params import FractionalParams, PreconditioningParams, SpeedRelaxationParams
 
-from rig.analysis.data import load_trial
-from rig.analysis.explain import explain, format_explain
-from rig.analysis.fit import fit
-from rig.analysis.residual_shape import describe, not_the_answer
+from rig.analysis.diagnosis.explain import explain, format_explain
+from rig.analysis.diagnosis.residual_shape import describe, not_the_answer
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import load_trial
 from rig.models import CATALOGUE, build_model
 from rig.models.core import Model, Motion
 from rig.models.fractional import modes

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.analysis.data import load_trial
-from rig.analysis.fit import fit, predict_position
+from rig.analysis.fitting.fit import fit, predict_position
+from rig.analysis.trials.data import load_trial
 from rig.cli import main
 from rig.models import build_model
 from rig.models.core import Motion
@@ -137,8 +137,8 @@ def test_the_json_gives_the_creep_in_lengths(creep_log, capsys):
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_the_length_noise_is_read_on_the_holds_not_the_force_ramps(seed):
     """A force ramp's position runs ahead and turns within the lags the noise is read at: counted
-    beside the holds it read the length noise twice what it is (rig.analysis.data.creep_weight)."""
-    from rig.analysis.data import creep_weight
+    beside the holds it read the length noise twice what it is (rig.analysis.trials.data.creep_weight)."""
+    from rig.analysis.trials.data import creep_weight
 
     rng = np.random.default_rng(seed)
     sigma_m, sigma_N = 30e-6, 0.04

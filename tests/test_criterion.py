@@ -1,5 +1,5 @@
 """--compare ranks every model by one likelihood with one noise: BIC on the records' effective
-sample count (rig.analysis.criterion). The ranking and every difference are the same whatever
+sample count (rig.analysis.stats.criterion). The ranking and every difference are the same whatever
 unit the forces are in, since a unit adds the same constant to every model's BIC."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import json
 import pytest
 from rig.sim.params import DriftParams
 
-from rig.analysis.data import load_trial
+from rig.analysis.trials.data import load_trial
 from rig.cli import main
 from rig.records.csvfile import write_trial_csv
 from rig.specs.config import RigConfig

@@ -9,9 +9,9 @@ import json
 
 import pytest
 
-from rig.analysis.data import load_trial
-from rig.analysis.explain import explain
-from rig.analysis.fit import fit
+from rig.analysis.diagnosis.explain import explain
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import load_trial
 from rig.cli import main
 from rig.models import CATALOGUE, build_model
 from rig.specs.config import RigConfig, load_config
@@ -153,7 +153,7 @@ def test_a_slowed_candidate_fills_the_time_given_along_the_same_path():
     """`slowed` keeps a candidate's path, holds and return, slows its ramps by one factor so that
     the whole takes the time given (never longer), never below SLOWEST of their speed, and leaves
     a candidate that already takes that long alone."""
-    from rig.analysis.design import SLOWEST, Shape, rig_candidates, slowed
+    from rig.analysis.diagnosis.design import SLOWEST, Shape, rig_candidates, slowed
 
     config = RigConfig()
     shape = Shape(depth_m=0.03, speed_m_s=0.0015, hold_s=30.0, return_m_s=0.005, duration_s=60.0)

@@ -203,7 +203,7 @@ def test_the_notebook_api_gives_a_dataframe_and_a_grid(tmp_path):
     xarray Dataset; a Parquet table reads back as the same frame."""
     pytest.importorskip("pandas", reason="the table extra (pandas) is not installed")
     pytest.importorskip("xarray", reason="the table extra (xarray) is not installed")
-    from rig.analysis.each import analyze_curves, on_grid
+    from rig.analysis.batch.each import analyze_curves, on_grid
 
     df = analyze_curves(str(MAP), indenter="paraboloid:R=10um", workers=1, progress=False)
     assert list(df["curve"]) == [0, 1, 2, 3] and df["error"].eq("").all()
@@ -228,7 +228,7 @@ def test_a_script_without_the_main_guard_is_told_what_to_do(tmp_path):
     they cannot start, and the error says so instead of a broken pool."""
     pytest.importorskip("pandas", reason="the table extra (pandas) is not installed")
     script = tmp_path / "no_guard.py"
-    script.write_text("from rig.analysis.each import analyze_curves\n"
+    script.write_text("from rig.analysis.batch.each import analyze_curves\n"
                       f"analyze_curves({str(MAP)!r}, indenter='paraboloid:R=10um', workers=2,\n"
                       "               progress=False)\n")
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)

@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.analysis.analyze import load_inputs
-from rig.analysis.fit import fit
-from rig.analysis.session import AnalyzeRequest, analyze
-from rig.analysis.systematic import DEPTH_SHARES, cut, interval, systematic
+from rig.analysis.fitting.fit import fit
+from rig.analysis.intervals.systematic import DEPTH_SHARES, cut, interval, systematic
+from rig.analysis.workflow.analyze import load_inputs
+from rig.analysis.workflow.session import AnalyzeRequest, analyze
 from rig.models.catalogue import build_model
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.analysis.session import AnalyzeRequest, analyze
+from rig.analysis.workflow.session import AnalyzeRequest, analyze
 from tests.bench.errors_harness import curve, hertz, noise, one_seed, write
 from tests.conftest import per_seed
 
@@ -82,8 +82,8 @@ def test_the_slowest_noise_a_rest_allows():
     """The noise's slowest root moves up by its bias and three standard errors of the rest's
     samples: far for a short rest of a slow noise, hardly for a long one, not at all for white
     noise or a noise measured on the residual."""
-    from rig.analysis.adequacy import slowest_allowed
-    from rig.analysis.noise import AT_REST, Noise, integral_scale_ar
+    from rig.analysis.stats.adequacy import slowest_allowed
+    from rig.analysis.stats.noise import AT_REST, Noise, integral_scale_ar
 
     def rest(rho: float, n: int, source: str = AT_REST) -> Noise:
         ar = (rho,) if rho else ()
@@ -128,7 +128,7 @@ def test_the_bootstrap_says_when_its_coverage_cannot_be_checked():
 def _against_the_true_noise(seed: int, tmp: str) -> float:
     """One curve, white at rest and an AR(1) at 0.95 twice as loud in contact: the reported
     standard error of E over the one the sandwich gives with the noise's true covariance."""
-    import rig.analysis.fit as fitting
+    import rig.analysis.fitting.fit as fitting
     seen = {}
     real = fitting.hac_covariance
 

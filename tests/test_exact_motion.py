@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.analysis import data
-from rig.analysis.data import prepare, savgol_slope
-from rig.analysis.explain import explain
-from rig.analysis.fit import fit
+from rig.analysis.diagnosis.explain import explain
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials import data
+from rig.analysis.trials.data import prepare, savgol_slope
 from rig.models import CATALOGUE, build_model
 from rig.records import read_record
 from tests.conftest import per_seed
@@ -91,7 +91,7 @@ def test_an_exact_position_keeps_its_corners():
 
 
 def _smoothed_velocity(x: np.ndarray, dt: float) -> np.ndarray:
-    """rig.analysis.data._velocity as it was before exact positions were told apart."""
+    """rig.analysis.trials.data._velocity as it was before exact positions were told apart."""
     n = len(x)
     if n < 7:
         return np.gradient(x, dt)

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.analysis.data import load_trial
-from rig.analysis.explain import auto, explain, format_explain
-from rig.analysis.fit import fit
+from rig.analysis.diagnosis.explain import auto, explain, format_explain
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import load_trial
 from rig.cli import main
 from rig.models import CATALOGUE, build_model
 from rig.recording.logs import export_csv, read_log

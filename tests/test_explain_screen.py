@@ -3,9 +3,9 @@
 
 from __future__ import annotations
 
-from rig.analysis.data import decimate, load_trial
-from rig.analysis.explain import Suggestion, _indistinguishable
-from rig.analysis.fit import fit
+from rig.analysis.diagnosis.explain import Suggestion, _indistinguishable
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import decimate, load_trial
 from rig.models import CATALOGUE, build_model
 from rig.specs.config import RigConfig
 from tests.conftest import run_sim

@@ -163,7 +163,7 @@ def test_console_blocks_fit_the_text_column_in_a_browser(site, page, tmp_path):
 # --- --design agrees with the verdict and with itself ------------------------------------------
 
 def test_every_designed_candidate_says_what_its_steps_do():
-    from rig.analysis.design import Shape, candidate_steps
+    from rig.analysis.diagnosis.design import Shape, candidate_steps
 
     for c in candidate_steps(Shape(0.03, 0.003, 60.0, 0.005, 106.0), 0.01, 0.05):
         holds = [p for kind, p in c.steps if kind == "hold"]

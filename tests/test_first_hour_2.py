@@ -295,7 +295,7 @@ def _analysis(*, cp_u=1e-9, cp_sys=0.0, depth=1e-7, r=1.0, touched=500, samples=
 
 
 def test_the_quality_rating_follows_its_documented_rule():
-    from rig.analysis.quality import rate
+    from rig.analysis.batch.quality import rate
 
     assert rate(_analysis()) == (10.0, {"contact": 3.0, "fit": 4.0, "baseline": 2.0, "artefacts": 1.0})
     # each part at its other end

@@ -4,16 +4,16 @@ noise by the fractional branch: adequate, nothing to add, every parameter within
 errors of the truth.
 
 The rate convolved is the one the analysis reads off the record's positions in contact
-(rig.analysis.data), so what is checked is the branch against its exact response, not how a
+(rig.analysis.trials.data), so what is checked is the branch against its exact response, not how a
 rate is estimated."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from rig.analysis.data import prepare
-from rig.analysis.explain import explain
-from rig.analysis.fit import fit
+from rig.analysis.diagnosis.explain import explain
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import prepare
 from rig.models import CATALOGUE, build_model
 from rig.records.record import Record
 from rig.specs.frames import Frame

@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rig.analysis.data import load_trial
-from rig.analysis.fit import fit
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import load_trial
 from rig.models import build_model
 from rig.models.core import Motion, first_order_lag, floored_recursion
 from rig.models.online import OnlineModel

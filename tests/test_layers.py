@@ -16,6 +16,9 @@
     web         the lab in a browser: a client of the daemon's socket, a reader of logs and tables
     cli         argument parsing and printing
 
+Inside `analysis`, the subpackages are layers of their own, in the order of
+`rig.analysis.LAYERS` (stats, trials, fitting, intervals, diagnosis, material, workflow, batch).
+
 Imports inside functions count too: a lazy import is still a dependency.
 """
 
@@ -99,6 +102,34 @@ def test_no_import_cycle_between_packages():
     for layer in LAYERS:
         if layer not in state:
             visit(layer, [])
+
+
+def test_no_analysis_subpackage_imports_one_above_it():
+    from rig.analysis import LAYERS as SUBS
+
+    mods = modules()
+    inside = {name: path for name, path in mods.items() if name.startswith("rig.analysis.")}
+    unknown = sorted(name for name in inside if name.split(".")[2] not in SUBS)
+    assert not unknown, f"analysis modules outside its subpackages (add to rig.analysis.LAYERS): {unknown}"
+    wrong = []
+    for name, path in sorted(inside.items()):
+        own = SUBS.index(name.split(".")[2])
+        for target in sorted(imports(path)):
+            if target == "rig.analysis":
+                wrong.append(f"{name} imports the facade rig.analysis (import from the subpackage)")
+            elif target in inside and SUBS.index(target.split(".")[2]) > own:
+                wrong.append(f"{name} ({SUBS[own]}) imports {target} ({target.split('.')[2]})")
+    assert not wrong, "analysis subpackages import ones above them:\n" + "\n".join(wrong)
+
+
+def test_the_analysis_facade_names_only_what_exists():
+    import importlib
+
+    import rig.analysis as analysis
+
+    for name, where in analysis._PUBLIC.items():
+        module = importlib.import_module(f"rig.analysis.{where}")
+        assert getattr(analysis, name) is getattr(module, name)
 
 
 def test_the_installed_package_lists_every_subpackage():

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rig.analysis.line import fit_line, off_line
+from rig.analysis.stats.line import fit_line, off_line
 
 
 @pytest.mark.parametrize("seed", range(5))

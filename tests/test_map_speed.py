@@ -1,6 +1,6 @@
 """What makes a map's curves fast to analyse gives the same numbers as what it replaced: the lean
-prediction (rig.analysis.lean) against the model's own, the contact fit from sums
-(rig.analysis.contact_fit) against the general variable projection, the contact point's scan in
+prediction (rig.analysis.fitting.lean) against the model's own, the contact fit from sums
+(rig.analysis.fitting.contact_fit) against the general variable projection, the contact point's scan in
 one pass against one point at a time, the quiet approach judged a stretch at a time against block
 by block, the adequacy limits' shared draws, the AR orders chosen and the
 draws whitened all at once against one row at a time, and an afmformats HDF5 map listed from its
@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 from rig.sim.afm_map import MapSpec, write_map
 
-from rig.analysis import adequacy, contact_fit, separable
-from rig.analysis.analyze import load_inputs
-from rig.analysis.draws import Draws
-from rig.analysis.fit import fit, with_record_params
-from rig.analysis.lean import predictor
-from rig.analysis.noise import (
+from rig.analysis.fitting import contact_fit, separable
+from rig.analysis.fitting.fit import fit, with_record_params
+from rig.analysis.fitting.lean import predictor
+from rig.analysis.stats import adequacy
+from rig.analysis.stats.draws import Draws
+from rig.analysis.stats.noise import (
     MIN_BASELINE,
     QUIET_SIGMAS,
     ar_fit_rows,
@@ -30,6 +30,7 @@ from rig.analysis.noise import (
     quiet_length,
     whiten,
 )
+from rig.analysis.workflow.analyze import load_inputs
 from rig.models.catalogue import build_model
 from rig.records import ReadOptions, each_record, list_curves
 from rig.records.afm import HDF5, _list_hdf5, _load, count_curves
@@ -287,7 +288,7 @@ def test_the_quiet_approach_judged_a_stretch_at_a_time_is_judged_block_by_block(
 def test_a_batch_places_each_curve_as_the_file_lists_it(small_map, tmp_path):
     import h5py
 
-    from rig.analysis.batch import BatchRequest, analyze_chunk, plan
+    from rig.analysis.batch.engine import BatchRequest, analyze_chunk, plan
 
     broken = tmp_path / "broken.h5"
     broken.write_bytes(small_map.read_bytes())
@@ -307,14 +308,14 @@ def test_a_batch_places_each_curve_as_the_file_lists_it(small_map, tmp_path):
 
 
 def _refits(res):
-    """The parts of `res`'s one trial that the systematic error refits (rig.analysis.systematic)."""
-    from rig.analysis.systematic import _choices, cut
+    """The parts of `res`'s one trial that the systematic error refits (rig.analysis.intervals.systematic)."""
+    from rig.analysis.intervals.systematic import _choices, cut
 
     return [cut(res.trials[0], start, end) for _, start, end in _choices(res)]
 
 
 def test_a_refits_estimates_are_the_full_fits_values_and_errors(small_map):
-    from rig.analysis.fit import fit_estimates
+    from rig.analysis.fitting.fit import fit_estimates
 
     parts = 0
     for curve in (0, 3, 6):
@@ -332,8 +333,8 @@ def test_a_refits_estimates_are_the_full_fits_values_and_errors(small_map):
 def test_a_tared_records_refit_counts_its_zeros_error_as_the_full_fit_does(paper_075_log):
     """A record tared before its push (the rig's own trials) carries its zero's error in the
     covariance, which needs the noise: the lean refit measures it as the full fit does."""
-    from rig.analysis.data import load_trial
-    from rig.analysis.fit import fit_estimates, noise_blocks
+    from rig.analysis.fitting.fit import fit_estimates, noise_blocks
+    from rig.analysis.trials.data import load_trial
     from rig.models.catalogue import CATALOGUE
     from rig.models.core import Model
 

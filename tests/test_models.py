@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.analysis.analyze import compare, holdout_json
-from rig.analysis.data import load_trial
-from rig.analysis.fit import fit
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import load_trial
+from rig.analysis.workflow.analyze import compare, holdout_json
 from rig.cli import main
 from rig.errors import RigError, SpecError
 from rig.models import CATALOGUE, NAMED_MODELS, Motion, build_model

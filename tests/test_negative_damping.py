@@ -87,7 +87,7 @@ def test_negative_damping_comes_from_the_record_not_the_tissue(seed, tmp_path, c
     for rec in (marked["cut"], behind["cut"]):
         res = _fit(rec, "proposed", capsys)
         tau2.append(res["parameters"]["tau2_N_s_per_m2"]["value"])
-        # (its damping: the elastic cubic may be flagged on a 10 s cut, `rig.analysis.fit.physics`)
+        # (its damping: the elastic cubic may be flagged on a 10 s cut, `rig.analysis.fitting.fit.physics`)
         said = res["warnings"]
         assert tau2[-1] > 0 and not any("tau2" in w and "negative" in w for w in said), said
     assert abs(tau2[0] / TAU2 - 1) < 0.1  # and, with the contact where it is marked, the simulator's own

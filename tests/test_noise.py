@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from rig.analysis.data import load_trial
-from rig.analysis.explain import explain
-from rig.analysis.fit import fit
-from rig.analysis.noise import from_baseline, from_residual, integral_scale
+from rig.analysis.diagnosis.explain import explain
+from rig.analysis.fitting.fit import fit
+from rig.analysis.stats.noise import from_baseline, from_residual, integral_scale
+from rig.analysis.trials.data import load_trial
 from rig.models import CATALOGUE, build_model
 from rig.specs.config import RigConfig
 from tests.conftest import PROTOCOLS, run_sim

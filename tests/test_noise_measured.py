@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.analysis import noise as noise_module
-from rig.analysis.data import prepare
-from rig.analysis.fit import fit
-from rig.analysis.noise import from_baseline, from_residual
+from rig.analysis.fitting.fit import fit
+from rig.analysis.stats import noise as noise_module
+from rig.analysis.stats.noise import from_baseline, from_residual
+from rig.analysis.trials.data import prepare
 from rig.cli import main
 from rig.models import build_model
 from rig.records.record import Record

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from rig.analysis.noise import ar_fit, ar_fit_rows, autocovariance, integral_scales, structure_function
+from rig.analysis.stats.noise import ar_fit, ar_fit_rows, autocovariance, integral_scales, structure_function
 
 
 def _series(kind: str, n: int, seed: int) -> np.ndarray:

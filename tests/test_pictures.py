@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.analysis import report as report_mod
+from rig.analysis.workflow import report as report_mod
 from rig.cli import main
 
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
@@ -263,7 +263,7 @@ def _map_rows(with_positions: bool = True) -> list[dict]:
 
 
 def test_map_report_draws_um_axes_kpa_and_the_contact_height(tmp_path, monkeypatch):
-    from rig.analysis import map_report
+    from rig.analysis.batch import map_report
 
     made = spy(monkeypatch, map_report, "map_figure")
     rows = _map_rows()
@@ -287,7 +287,7 @@ def test_map_report_draws_um_axes_kpa_and_the_contact_height(tmp_path, monkeypat
 
 
 def test_map_report_without_positions_keeps_grid_numbers(tmp_path, monkeypatch):
-    from rig.analysis import map_report
+    from rig.analysis.batch import map_report
 
     made = spy(monkeypatch, map_report, "map_figure")
     map_report.write_map_report(_map_rows(with_positions=False), tmp_path, ["E_Pa"], "12 curves")
@@ -301,7 +301,7 @@ def test_simulated_map_report_topography_follows_the_truth(tmp_path, monkeypatch
     the surface the simulation drew, to a nanometre."""
     import json
 
-    from rig.analysis import map_report
+    from rig.analysis.batch import map_report
 
     pytest.importorskip("afmformats", reason="reading the map needs the afm extra (afmformats)")
     made = spy(monkeypatch, map_report, "map_figure")

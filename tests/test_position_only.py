@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.analysis.analyze import record_placement
-from rig.analysis.data import load_trial
-from rig.analysis.explain import explain
-from rig.analysis.fit import fit
-from rig.analysis.session import AnalyzeRequest, analyze
+from rig.analysis.diagnosis.explain import explain
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import load_trial
+from rig.analysis.workflow.analyze import record_placement
+from rig.analysis.workflow.session import AnalyzeRequest, analyze
 from rig.cli import main
 from rig.models import CATALOGUE, build_model
 from rig.recording.logs import read_log

@@ -9,9 +9,9 @@ import json
 
 import numpy as np
 
-from rig.analysis.data import prepare
-from rig.analysis.fit import fit
-from rig.analysis.profile import interval, trading
+from rig.analysis.fitting.fit import fit
+from rig.analysis.intervals.profile import interval, trading
+from rig.analysis.trials.data import prepare
 from rig.cli import main
 from rig.models import build_model
 from rig.records.csvfile import write_trial_csv

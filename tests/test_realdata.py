@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.analysis.data import decimate, load_trial, prepare
-from rig.analysis.fit import fit
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import decimate, load_trial, prepare
 from rig.cli import main
 from rig.models import CATALOGUE, build_model
 from rig.models.catalogue import P, named_models

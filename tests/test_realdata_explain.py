@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.analysis.data import TrialData, load_trial
-from rig.analysis.explain import auto, explain
-from rig.analysis.fit import fit
+from rig.analysis.diagnosis.explain import auto, explain
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import TrialData, load_trial
 from rig.cli import main
 from rig.models import CATALOGUE, build_model
 from rig.models.core import Model

@@ -12,8 +12,8 @@ import sys
 import numpy as np
 import pytest
 
-from rig.analysis.data import load_trial
-from rig.analysis.fit import fit
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import load_trial
 from rig.cli import main
 from rig.errors import SpecError
 from rig.models import build_model

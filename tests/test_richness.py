@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from rig.analysis.explain import richness
-from rig.analysis.fit import FEW_PER_PARAM
+from rig.analysis.diagnosis.explain import richness
+from rig.analysis.fitting.fit import FEW_PER_PARAM
 from rig.cli import main
 
 BRAIN = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "brain-creep.jpk-force"
@@ -70,9 +70,9 @@ def test_auto_stops_where_the_record_can_support_no_more_and_says_why(capsys):
 @needs_brain
 def test_a_decisive_suggestion_below_the_floor_says_so_in_its_words_and_its_json():
     pytest.importorskip("afmformats", reason="reading JPK files needs the afm extra (afmformats)")
-    from rig.analysis.data import load_trial
-    from rig.analysis.explain import explain
-    from rig.analysis.fit import fit
+    from rig.analysis.diagnosis.explain import explain
+    from rig.analysis.fitting.fit import fit
+    from rig.analysis.trials.data import load_trial
     from rig.models import CATALOGUE, build_model
     from tests.test_realdata_explain import hide
 

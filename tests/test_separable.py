@@ -10,10 +10,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from rig.analysis import fit as fit_module
-from rig.analysis import separable
-from rig.analysis.analyze import load_inputs
-from rig.analysis.fit import fit
+from rig.analysis.fitting import fit as fit_module
+from rig.analysis.fitting import separable
+from rig.analysis.fitting.fit import fit
+from rig.analysis.workflow.analyze import load_inputs
 from rig.models.catalogue import CATALOGUE, build_model
 from tests.test_material import E_TRUE, ROOT, hertz_curve
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from rig.sim.afm_map import COLUMNS, DIMITRIADIS, MapSpec, add_map_parser, truth_path, write_map
 
-from rig.analysis.session import AnalyzeRequest, analyze
+from rig.analysis.workflow.session import AnalyzeRequest, analyze
 from rig.errors import RigError
 from rig.records import ReadOptions, each_record, iter_records, list_curves, read_record
 

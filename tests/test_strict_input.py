@@ -122,9 +122,9 @@ def _inert(m, force, inert_N):
 def test_a_parameter_the_data_cannot_determine_is_reported_so_not_as_exact(paper_075_log):
     import math
 
-    from rig.analysis.analyze import result_json
-    from rig.analysis.data import load_trial
-    from rig.analysis.fit import fit
+    from rig.analysis.fitting.fit import fit
+    from rig.analysis.trials.data import load_trial
+    from rig.analysis.workflow.analyze import result_json
     from rig.models.catalogue import CATALOGUE
     from rig.models.core import Effect, Model, Param
 

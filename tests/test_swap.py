@@ -13,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rig.analysis.data import prepare
-from rig.analysis.explain import auto, explain, format_auto
-from rig.analysis.fit import fit
+from rig.analysis.diagnosis.explain import auto, explain, format_auto
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import prepare
 from rig.cli import main
 from rig.models import CATALOGUE, build_model
 from rig.records.csvfile import write_trial_csv

@@ -12,11 +12,11 @@ from rig.sim.params import DriftParams
 from scipy.optimize import least_squares
 from scipy.signal import lfilter
 
-from rig.analysis.analyze import result_json
-from rig.analysis.data import load_trial
-from rig.analysis.explain import explain
-from rig.analysis.fit import fit
-from rig.analysis.uncertainty import bic, delta_bic, hac_covariance, white_covariance
+from rig.analysis.diagnosis.explain import explain
+from rig.analysis.fitting.fit import fit
+from rig.analysis.stats.uncertainty import bic, delta_bic, hac_covariance, white_covariance
+from rig.analysis.trials.data import load_trial
+from rig.analysis.workflow.analyze import result_json
 from rig.models import CATALOGUE, build_model
 from rig.specs.config import RigConfig
 from tests.conftest import run_sim
@@ -269,7 +269,7 @@ def test_a_tares_error_counts_in_the_standard_errors(seed):
     under every sample, which its residual cannot show: `zeros` puts it in the sandwich. Over 300
     draws of three ramps sharing one slope, the slope's 1.96-SE interval covers the truth about
     95 % of the time with it, and far less without."""
-    from rig.analysis.uncertainty import hac_covariance
+    from rig.analysis.stats.uncertainty import hac_covariance
 
     rng = np.random.default_rng(seed)
     m, sigma, n_tare = 400, 1.0, 50

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from rig.analysis.data import prepare
-from rig.analysis.explain import meaningless
-from rig.analysis.fit import UNPHYSICAL_SE, fit
+from rig.analysis.diagnosis.explain import meaningless
+from rig.analysis.fitting.fit import UNPHYSICAL_SE, fit
+from rig.analysis.trials.data import prepare
 from rig.models import build_model
 from rig.records.record import Record
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rig.analysis.data import prepare
+from rig.analysis.trials.data import prepare
 from rig.models import build_model
 from rig.records.record import Record
 from rig.specs.frames import Frame

@@ -32,7 +32,7 @@ import pytest
 from scipy.integrate import quad
 from scipy.optimize import brentq
 
-from rig.analysis.session import AnalyzeRequest, analyze
+from rig.analysis.workflow.session import AnalyzeRequest, analyze
 from rig.errors import RigError
 from rig.models.catalogue import build_model
 from rig.models.contact import Indenter, geometry_factor
@@ -320,7 +320,7 @@ def test_the_models_need_the_indenter_and_say_so():
 
 
 def test_the_models_take_their_parameters_in_si_units(tmp_path):
-    from rig.analysis.analyze import load_inputs
+    from rig.analysis.workflow.analyze import load_inputs
 
     path = simulated_record(tmp_path / "r.csv", "paraboloid", SLS, "rh", 0, {})
     reg = load_inputs([str(path)], [], [], indenter="paraboloid:R=5um").registry

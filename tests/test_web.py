@@ -300,8 +300,8 @@ def _map_table(tmp: Path) -> Path:
     pytest.importorskip("afmformats", reason="the simulated map is written and read through afmformats")
     from rig.sim.afm_map import MapSpec, write_map
 
-    from rig.analysis.batch import BatchRequest
-    from rig.analysis.each import run_each
+    from rig.analysis.batch.each import run_each
+    from rig.analysis.batch.engine import BatchRequest
 
     maps = tmp / "tables"
     maps.mkdir()

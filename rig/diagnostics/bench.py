@@ -434,8 +434,8 @@ def format_bench(r: dict) -> str:
 def bench_fit(ode_fit: bool = True) -> dict:
     """Joint fit of the proposed model to three 100 s simulated trials at 100 Hz; and the same
     fit with the model integrated by scipy's solve_ivp inside least_squares, for comparison."""
-    from rig.analysis.data import load_trial
-    from rig.analysis.fit import fit
+    from rig.analysis.fitting.fit import fit
+    from rig.analysis.trials.data import load_trial
     from rig.models.catalogue import build_model
     from rig.service.run import RunOptions, run_trial
 

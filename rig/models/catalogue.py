@@ -126,7 +126,7 @@ E = Effect
 
 
 def P(name: str, unit: str, init: float, lo: float = -INF, hi: float = INF, **kw) -> Param:
-    """A catalogue parameter: init and bounds in the record's own units (see rig.analysis.scaling)."""
+    """A catalogue parameter: init and bounds in the record's own units (see rig.analysis.fitting.scaling)."""
     return Param(name, unit, init, lo, hi, relative=True, **kw)
 
 
@@ -155,7 +155,7 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in [
     E("nonlinear_damping", "drive", (P("tau2_N_s_per_m2", "N s/m^2", 0.1, warn_negative=True),),
       _nonlinear_damping, "tau2 x dx/dt (paper)",
       "ramp residual proportional to depth x speed; a drop at the ramp end"),
-    # fitted as its rate 1/tau1 (rig.analysis.scaling) down to 1e-8 (a lag 1e8 loading times
+    # fitted as its rate 1/tau1 (rig.analysis.fitting.scaling) down to 1e-8 (a lag 1e8 loading times
     # long, an integrator over any record): a creep that never settles is followed that way
     E("relaxation", "lag", (P("tau1_s", "s", 0.5, 1e-4, 1e8),),
       _relaxation, "f + tau1 df/dt = drive (paper)",
@@ -243,7 +243,7 @@ def contact_effect(indenter, poisson: float = 0.5) -> Effect:
 # The contact point as a parameter of the record (AFM practice): anywhere from a travel before the
 # first estimate to just short of the deepest point, which a threshold can miss by far. An indenter
 # brings it; so does every record whose contact was only estimated from its force (an approach),
-# one value per record (rig.analysis.fit.with_record_params). Not among the candidates `--explain`
+# one value per record (rig.analysis.fitting.fit.with_record_params). Not among the candidates `--explain`
 # tries: for a record whose surface is known, contact_offset is that.
 CONTACT_POINT = E("contact_point", "geometry", (P("x_c_m", "m", 0.0, -1.0, 0.99, per_record=True),),
                   _contact_point, "indentation = max(x - x_c, 0), x_c fitted from the first estimate",
@@ -252,7 +252,7 @@ CONTACT_POINT = E("contact_point", "geometry", (P("x_c_m", "m", 0.0, -1.0, 0.99,
 
 
 # The offset as the zero of a record that does not know it (its contact only estimated from the
-# force): one value per record (rig.analysis.fit.with_record_params).
+# force): one value per record (rig.analysis.fitting.fit.with_record_params).
 RECORD_ZERO = E("offset", "sensor", (P("offset_N", "N", 0.0, per_record=True),),
                 _offset, "constant force offset: the record's zero, one per record",
                 "residual constant, also before contact and after retraction", linear=True,

@@ -108,7 +108,7 @@ class Effect:
     source: str = "catalogue"
     needs_force: bool = False  # geometry that depends on the force itself (frame compliance)
     # a drive or sensor term that is its one parameter times a term free of it: the fit then
-    # solves for that parameter directly (rig.analysis.separable)
+    # solves for that parameter directly (rig.analysis.fitting.separable)
     linear: bool = False
     # where a fit should start its parameters, from the data: (motion, measured minus predicted
     # force without the effect, the other parameters' values in SI, the predicted force without

@@ -51,7 +51,7 @@ The correction multiplies the contact force. It is a drive term, E g(d) (B - 1) 
 contact's E g(d) (sharing E_Pa), not a geometry one that stretches the depth: the drive sees
 the indentation after the record's contact point, where a geometry effect would run before it
 (the record's contact point is appended last when the fit sets a record's own parameters,
-rig.analysis.fit.with_record_params) and so measure chi from the wrong zero. The term is exact
+rig.analysis.fitting.fit.with_record_params) and so measure chi from the wrong zero. The term is exact
 for Hertz's paraboloid and for Sneddon's sphere alike (the series is the paraboloid's: for the
 sphere it holds while d << R, as Dimitriadis's derivation does). A cone or pyramid needs
 Gavara and Chadwick's (2012) correction (a different series, in d tan(alpha) / h) and a flat

@@ -41,8 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.analysis.analyze import load_inputs
-from rig.analysis.design import (
+from rig.analysis.diagnosis.design import (
     FORCE_SHARE,
     SLOWEST,
     ApproachFirst,
@@ -56,8 +55,9 @@ from rig.analysis.design import (
     slowed,
     trial_limit_N,
 )
-from rig.analysis.explain import Explanation, auto, explain
-from rig.analysis.fit import FitResult, fit
+from rig.analysis.diagnosis.explain import Explanation, auto, explain
+from rig.analysis.fitting.fit import FitResult, fit
+from rig.analysis.workflow.analyze import load_inputs
 from rig.control.trial import TrialResult
 from rig.errors import RigError
 from rig.models.catalogue import build_model

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.analysis.batch import BatchRequest
-from rig.analysis.table import read_rows
+from rig.analysis.batch.engine import BatchRequest
+from rig.analysis.batch.table import read_rows
 from rig.errors import RigError
 
 TABLE_SUFFIXES = (".csv", ".jsonl", ".parquet")
@@ -149,9 +149,9 @@ class Maps:
 
     def curve(self, rel: str, index: int) -> dict:
         """One curve of the table, fitted again as the batch fitted it."""
-        from rig.analysis.analyze import load_inputs
-        from rig.analysis.fit import fit
-        from rig.analysis.report import contact_curve
+        from rig.analysis.fitting.fit import fit
+        from rig.analysis.workflow.analyze import load_inputs
+        from rig.analysis.workflow.report import contact_curve
         from rig.models.catalogue import build_model
         from rig.records import ReadOptions
 
@@ -226,7 +226,7 @@ class Maps:
         that loading is positive and counts the travel from contact), and that same turn and shift,
         read off the approach's samples, carries the raw retract onto the axis (`shift_m` then
         moves it from the analysed travel to the indentation past the fitted contact point)."""
-        from rig.analysis.data import approach_only
+        from rig.analysis.trials.data import approach_only
 
         if rec is None:
             return {"retract_note": "the retract is drawn only for a curve read on its own"}

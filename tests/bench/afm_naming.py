@@ -27,7 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from rig.analysis.session import AnalyzeRequest, analyze
+from rig.analysis.workflow.session import AnalyzeRequest, analyze
 from rig.records import ReadOptions, read_record
 from rig.records.afm import list_curves
 

@@ -33,9 +33,9 @@ ROOT = Path(__file__).resolve().parents[2]
 if __name__ == "__main__":  # run as a script: the tests package lives at the repository root
     sys.path.insert(0, str(ROOT))
 
-from rig.analysis import explain as ex_mod  # noqa: E402
-from rig.analysis.data import load_trial  # noqa: E402
-from rig.analysis.fit import fit  # noqa: E402
+from rig.analysis.diagnosis import explain as ex_mod  # noqa: E402
+from rig.analysis.fitting.fit import fit  # noqa: E402
+from rig.analysis.trials.data import load_trial  # noqa: E402
 from rig.models import CATALOGUE, build_model  # noqa: E402
 from rig.recording.logs import read_log  # noqa: E402
 from rig.specs.config import RigConfig  # noqa: E402

@@ -12,10 +12,10 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from rig.analysis.analyze import load_inputs
-from rig.analysis.fit import fit
-from rig.analysis.session import AnalyzeRequest, analyze
-from rig.analysis.systematic import cut, interval, systematic
+from rig.analysis.fitting.fit import fit
+from rig.analysis.intervals.systematic import cut, interval, systematic
+from rig.analysis.workflow.analyze import load_inputs
+from rig.analysis.workflow.session import AnalyzeRequest, analyze
 from rig.errors import RigError
 from rig.models.catalogue import build_model
 from rig.records import ReadOptions, list_curves

@@ -18,7 +18,7 @@ those samples. rig's model is mapped exactly into them: for each of nanite's sam
 sample of rig's own record (matched by its time, or by its index when the file has no time), rig's
 travel there minus rig's fitted contact point (`material.contact_point_m`, from the approach's
 first sample) is the depth, and E g(depth) + `offset_N` + the baseline rig had subtracted (taken
-from `rig.analysis.data.prepare`, the same step `rig analyze` runs), with rig's sign, is the
+from `rig.analysis.trials.data.prepare`, the same step `rig analyze` runs), with rig's sign, is the
 force; the residual is the file's force minus that. Every step of the mapping is checked to be
 exact (to 1e-6 of the range): rig's trial is its record shifted, the two forces are one up to
 nanite's offset, and nanite's tip position is rig's travel up to sign and a constant (a footnote
@@ -41,8 +41,8 @@ import nanite
 import nanite.fit
 import numpy as np
 
-from rig.analysis.data import prepare
-from rig.analysis.session import AnalyzeRequest, analyze
+from rig.analysis.trials.data import prepare
+from rig.analysis.workflow.session import AnalyzeRequest, analyze
 from rig.errors import RigError
 from rig.models.contact import contact_force, parse_indenter
 from rig.records import ReadOptions, list_curves, read_record
@@ -105,7 +105,8 @@ class RigFit:
     json: dict
     E_Pa: float
     E_stderr: float | None  # statistical: the noise's, given the model
-    E_sys: float | None  # systematic: how far the fit's range and baseline move it (rig.analysis.systematic)
+    # systematic: how far the fit's range and baseline move it (rig.analysis.intervals.systematic)
+    E_sys: float | None
     x0_m: float  # contact point in rig's travel from the approach's first sample
     offset_N: float
 

@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from rig.analysis.session import AnalyzeRequest, analyze  # noqa: E402
+from rig.analysis.workflow.session import AnalyzeRequest, analyze  # noqa: E402
 from tests.test_viscoelastic import DT, NOISE, OFFSET, POWER, SURFACE, V, reference_force  # noqa: E402
 from tests.test_viscoelastic import R as SIM_R  # noqa: E402
 

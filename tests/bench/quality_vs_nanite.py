@@ -1,4 +1,4 @@
-"""rig's per-curve quality rating (rig.analysis.quality, the batch table's `quality` column) against
+"""rig's per-curve quality rating (rig.analysis.batch.quality, the batch table's `quality` column) against
 nanite's (`Indentation.rate_quality()`: an Extra Trees regressor trained on the zef18 set of
 zebrafish spinal-cord maps, rating 0-10), on every curve of the shared AFM files.
 
@@ -25,8 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import nanite_table as nt
 
-from rig.analysis.batch import BatchRequest
-from rig.analysis.each import run_each
+from rig.analysis.batch.each import run_each
+from rig.analysis.batch.engine import BatchRequest
 
 
 def rig_rows(root: Path) -> dict[tuple[str, int], dict]:

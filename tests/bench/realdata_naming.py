@@ -16,9 +16,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import tests.test_realdata_explain as T
-from rig.analysis.data import load_trial
-from rig.analysis.explain import auto, explain, richness
-from rig.analysis.fit import fit
+from rig.analysis.diagnosis.explain import auto, explain, richness
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import load_trial
 from rig.models import CATALOGUE, build_model
 from rig.models.core import Model
 

@@ -8,8 +8,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from rig.analysis.data import load_trial
-from rig.analysis.fit import fit
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import load_trial
 from rig.models import CATALOGUE, build_model
 from rig.models.catalogue import named_models
 

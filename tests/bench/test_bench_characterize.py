@@ -26,9 +26,9 @@ from pathlib import Path
 
 import pytest
 
-from rig.analysis.analyze import load_inputs
-from rig.analysis.explain import auto, explain
-from rig.analysis.fit import fit
+from rig.analysis.diagnosis.explain import auto, explain
+from rig.analysis.fitting.fit import fit
+from rig.analysis.workflow.analyze import load_inputs
 from rig.models.catalogue import build_model
 from rig.recording.logs import read_log
 from rig.records import ReadOptions

@@ -2,14 +2,14 @@
 `python -m pytest tests/bench/test_bench_coverage.py -s`, about five minutes on two cores).
 
 For each noise, 200 seeds: how often the truth lies within +/-1.96 reported SE, per parameter,
-for the estimator of rig.analysis.uncertainty ("now") and the one before it ("before": AR(1)
+for the estimator of rig.analysis.stats.uncertainty ("now") and the one before it ("before": AR(1)
 prewhitening with rho clipped at 0.99 and a bandwidth of twice the prewhitened residual's
 integral time scale, copied below), on two models:
 
 - linear: baseline + slope + a Hertz-like max(x - x_c, 0)^1.5 with x_c known, 3000 samples,
   numpy least squares, J and r handed to the covariance (and "noted": how often `notes` said
   the estimate is doubtful);
-- hertz: `rig.analysis.fit.fit` of the paraboloid Hertz model (modulus, contact point, zero)
+- hertz: `rig.analysis.fitting.fit.fit` of the paraboloid Hertz model (modulus, contact point, zero)
   on a synthetic 3000-sample AFM approach curve, the noise added to its force.
 
 Noises (unit variance unless said): AR(1) at rho 0.9, 0.99, 0.998; white plus a random walk
@@ -20,7 +20,7 @@ white noise, digital Butterworth (bilinear: zeros at Nyquist) and analog Butterw
 Asserted: every case holds 85-99.5 % (200 seeds know a coverage to about +/-0.015; the
 bilinear low-pass at 0.005 holds 86-89 %: its zeros at Nyquist make it an AR of infinite order,
 which an AR(8) with a bounded sum follows only roughly). The random walks are covered since the
-noise model is chosen between the AR and white plus a walk (see rig/analysis/uncertainty.py);
+noise model is chosen between the AR and white plus a walk (see rig/analysis/stats/uncertainty.py);
 the "now" column of the estimator before that read 72-78 % at x1, 24-40 % at x3, 62-84 % at x10.
 """
 
@@ -34,10 +34,10 @@ import numpy as np
 import pytest
 from scipy.signal import butter, lfilter
 
-from rig.analysis import fit as fit_module
-from rig.analysis.analyze import load_inputs
-from rig.analysis.noise import integral_scale
-from rig.analysis.uncertainty import _bartlett_meat, _undetermined, hac_covariance
+from rig.analysis.fitting import fit as fit_module
+from rig.analysis.stats.noise import integral_scale
+from rig.analysis.stats.uncertainty import _bartlett_meat, _undetermined, hac_covariance
+from rig.analysis.workflow.analyze import load_inputs
 from rig.models.catalogue import build_model
 from tests.conftest import per_seed
 from tests.test_uncertainty import N_LINEAR, ar1_noise, linear_design, walk_noise

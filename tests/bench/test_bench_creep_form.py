@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 from rig.sim import params as P
 
-from rig.analysis.data import load_trial
-from rig.analysis.explain import explain
-from rig.analysis.fit import fit
+from rig.analysis.diagnosis.explain import explain
+from rig.analysis.fitting.fit import fit
+from rig.analysis.trials.data import load_trial
 from rig.models import CATALOGUE, build_model
 from tests.conftest import per_seed, run_sim
 from tests.test_creep_form import PROTOCOL, TRUE, creep_config

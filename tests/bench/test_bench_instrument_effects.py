@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from rig.analysis import explain as explain_module
-from rig.analysis.session import AnalyzeRequest, analyze
+from rig.analysis.diagnosis import explain as explain_module
+from rig.analysis.workflow.session import AnalyzeRequest, analyze
 from rig.records import read_record
 
 sys.path.insert(0, str(Path(__file__).parent))

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.analysis.session import AnalyzeRequest, analyze
+from rig.analysis.workflow.session import AnalyzeRequest, analyze
 from tests.test_viscoelastic import DT, NOISE, OFFSET, POWER, SLS, SURFACE, V, reference_force
 
 OOCYTES = sorted((Path(__file__).resolve().parents[3] / "shared" / "realdata" / "oocyte-cell1")

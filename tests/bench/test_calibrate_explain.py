@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from rig.analysis import explain as ex_mod
+from rig.analysis.diagnosis import explain as ex_mod
 from tests.bench import calibrate_explain as cal
 
 

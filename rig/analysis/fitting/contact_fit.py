@@ -1,7 +1,7 @@
 """The commonest AFM fit, an elastic contact from a fitted contact point over the record's
 zero, F = E g(max(x - x_c, 0)) + offset, solved with sums instead of the general machinery.
 
-It is the variable projection of `rig.analysis.separable` (the same scan of the contact point's
+It is the variable projection of `rig.analysis.fitting.separable` (the same scan of the contact point's
 range, the same Brent refinement, so the same valley and the same optimum), with each point's
 two-column least squares done from six sums, and the last digits settled by Gauss-Newton steps
 on the exact Jacobian (E and the offset enter linearly; the contact point through g', by a
@@ -9,7 +9,7 @@ central difference of g alone). A map of thousands of curves pays for each fit a
 numpy operations instead of some fifteen thousand Python calls; the optimum is the one the
 general path reaches (`tests/test_contact_fit.py` holds the two together).
 
-Only a model the lean prediction (`rig.analysis.lean`) serves qualifies, on one record, with
+Only a model the lean prediction (`rig.analysis.fitting.lean`) serves qualifies, on one record, with
 parameters scaled linearly into the fit variables; anything else, or an optimum on a bound of
 E or the offset, is handed back (None) to the general path.
 """
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rig.analysis.separable import Solution, _minimise
+from rig.analysis.fitting.separable import Solution, _minimise
 
 __all__ = ["solve"]
 

@@ -1,5 +1,5 @@
 """A curve's quality rating, 0 to 10, from its analysis (the `quality` column of a batch table;
-the rule is set out in rig.analysis.table and docs/explanation/quality.md).
+the rule is set out in rig.analysis.batch.table and docs/explanation/quality.md).
 
 Four parts, each from what the analysis measured, none from a trained model:
 
@@ -44,7 +44,7 @@ def _plateau(b: float) -> float:
 
 
 def rate(out: dict, effect: str = "") -> tuple[float, dict[str, float]]:
-    """The rating and its parts, from one curve's analysis (rig.analysis.session's JSON, as a
+    """The rating and its parts, from one curve's analysis (rig.analysis.workflow.session's JSON, as a
     batch row is built from it) and the effect --explain named missing ("" for none)."""
     rec = out["records"][0]
     m = out.get("material") or {}

@@ -32,8 +32,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from rig.analysis.data import TrialData
-from rig.analysis.fit import FitResult, fit_estimates
+from rig.analysis.fitting.fit import FitResult, fit_estimates
+from rig.analysis.trials.data import TrialData
 from rig.models.core import Motion
 
 # a choice's shift counts beyond this many of its own noise's SD: at 2 about one curve in seven that

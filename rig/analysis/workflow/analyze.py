@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.analysis import criterion
-from rig.analysis.data import PHASES, SEGMENTS, TrialData, prepare
-from rig.analysis.fit import FitResult, error_table, evaluate, fit, with_record_params
-from rig.analysis.noise import Noise
+from rig.analysis.fitting.fit import FitResult, error_table, evaluate, fit, with_record_params
+from rig.analysis.stats import criterion
+from rig.analysis.stats.noise import Noise
+from rig.analysis.trials.data import PHASES, SEGMENTS, TrialData, prepare
 from rig.errors import RigError, SpecError
 from rig.models.catalogue import (
     CATALOGUE,
@@ -272,7 +272,7 @@ class Comparison:
     """Every named model fitted to the same records, ranked by one criterion with one noise."""
 
     results: list[FitResult]  # best first
-    ranking: list[dict]  # model, parameters, bic, delta_bic, effective_samples (rig.analysis.criterion)
+    ranking: list[dict]  # model, parameters, bic, delta_bic, effective_samples (rig.analysis.stats.criterion)
     noise: Noise  # the one every model is judged against
 
     def json(self) -> dict:
@@ -283,7 +283,7 @@ class Comparison:
 
 def compare(trials: list[TrialData], registry: dict[str, Effect]) -> Comparison:
     """Each named model fitted; one noise for all (the records' force at rest, else the residual of
-    the model that fits best) and one BIC count (rig.analysis.criterion)."""
+    the model that fits best) and one BIC count (rig.analysis.stats.criterion)."""
     results = [fit(build_model(name, registry=registry), trials) for name in named_models(registry)]
     noise = min(results, key=lambda r: r.overall.rmse_N).noise  # measured with its own residual
     samples = [t.n for t in trials]

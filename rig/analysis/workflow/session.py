@@ -7,7 +7,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from rig.analysis.analyze import (
+from rig.analysis.diagnosis.explain import AUTO_STEPS, auto, explain, format_auto, format_explain
+from rig.analysis.fitting.fit import FitResult, fit
+from rig.analysis.intervals.systematic import Systematic, interval, systematic
+from rig.analysis.material.creep import creep_json, format_creep
+from rig.analysis.material.modulus import format_modulus, format_pa, modulus_vs_depth, plateau_drift
+from rig.analysis.trials.data import PHASES
+from rig.analysis.workflow.analyze import (
     _finite,
     caveats,
     compare,
@@ -20,13 +26,7 @@ from rig.analysis.analyze import (
     record_placement,
     result_json,
 )
-from rig.analysis.creep import creep_json, format_creep
-from rig.analysis.data import PHASES
-from rig.analysis.explain import AUTO_STEPS, auto, explain, format_auto, format_explain
-from rig.analysis.fit import FitResult, fit
-from rig.analysis.modulus import format_modulus, format_pa, modulus_vs_depth, plateau_drift
-from rig.analysis.report import write_report
-from rig.analysis.systematic import Systematic, interval, systematic
+from rig.analysis.workflow.report import write_report
 from rig.errors import RigError, did_you_mean
 from rig.models.catalogue import CONTACT, build_model
 from rig.records import ReadOptions
@@ -61,7 +61,7 @@ class AnalyzeRequest:
     curve: int | None = None  # an AFM map's curve, as the instrument numbers it
     spring_constant_N_per_m: float | None = None
     sensitivity_m_per_V: float | None = None
-    bootstrap: int | None = None  # draws of the parametric bootstrap (rig.analysis.bootstrap)
+    bootstrap: int | None = None  # draws of the parametric bootstrap (rig.analysis.intervals.bootstrap)
     # profile-likelihood intervals: of the parameters named, or (True, or no names) of those that trade off
     profile: bool | list[str] | None = None
     progress: Any = None  # called with (draws done, draws) as the bootstrap goes
@@ -132,7 +132,7 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         out["holdout"] = held
     boot = None
     if req.bootstrap:
-        from rig.analysis.bootstrap import bootstrap
+        from rig.analysis.intervals.bootstrap import bootstrap
 
         boot = bootstrap(res, req.bootstrap, progress=req.progress)
         out["bootstrap"] = boot.as_dict()
@@ -140,7 +140,7 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     # --profile's names, or None: the parameters that trade off
     asked = req.profile if isinstance(req.profile, list) and req.profile else None
     if req.profile is not None and req.profile is not False:
-        from rig.analysis.profile import intervals
+        from rig.analysis.intervals.profile import intervals
 
         if asked:
             unknown = [n for n in asked if n not in res.values]
@@ -158,7 +158,7 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         out["effective_samples"] = ex.n_eff
     design_text = ""
     if req.design:
-        from rig.analysis.design import NOTHING_TO_SETTLE, design, format_design, write_design
+        from rig.analysis.diagnosis.design import NOTHING_TO_SETTLE, design, format_design, write_design
 
         d = design(ex, req.design_config)
         if d is None:
@@ -202,11 +202,11 @@ def analyze(req: AnalyzeRequest) -> Analysis:
     if held:
         parts.append(format_holdout(held, res.force_unit))
     if profiled is not None:
-        from rig.analysis.profile import format_intervals
+        from rig.analysis.intervals.profile import format_intervals
 
         parts.append(format_intervals(profiled, res, asked=asked is not None))
     if boot is not None:
-        from rig.analysis.bootstrap import format_bootstrap
+        from rig.analysis.intervals.bootstrap import format_bootstrap
 
         parts.append(format_bootstrap(boot, res))
     if ex is not None:
@@ -253,7 +253,7 @@ def material_json(res: FitResult, inputs, depth: bool = True, sys_err: Systemati
 
     Every error is named for what it is: `_stat` the statistical (the noise's, given the model),
     `_sys` the systematic (how far the fit's own choices move the value beyond their noise:
-    rig.analysis.systematic; 0 where none did, None where not measured), `_interval` the two
+    rig.analysis.intervals.systematic; 0 where none did, None where not measured), `_interval` the two
     together, value +/- (1.96 stat + sys)."""
     if not res.model.has(CONTACT) or inputs.indenter is None:
         return {}

@@ -3,7 +3,7 @@
 The Python API for notebooks is `analyze_curves` (a pandas DataFrame, one row per curve) and
 `on_grid` (an xarray Dataset on a map's grid); both run the same batch as the command line:
 
-    >>> from rig.analysis.each import analyze_curves, on_grid
+    >>> from rig.analysis.batch.each import analyze_curves, on_grid
     >>> df = analyze_curves(["map.jpk-force-map"], model="hertz", indenter="paraboloid:R=10um",
     ...                     segment="approach")
     >>> df[["curve", "x_m", "y_m", "E_Pa", "E_Pa_stat", "E_Pa_sys", "adequate"]]
@@ -20,8 +20,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rig.analysis.batch import BatchRequest, Curve, expand_inputs, key_of, plan, row_order, run
-from rig.analysis.table import Journal, columns, journal_of, read_rows, table_format, write_table
+from rig.analysis.batch.engine import BatchRequest, Curve, expand_inputs, key_of, plan, row_order, run
+from rig.analysis.batch.table import Journal, columns, journal_of, read_rows, table_format, write_table
 from rig.errors import RigError
 from rig.progress import Progress
 
@@ -122,7 +122,7 @@ def _same_request(table: str, req: BatchRequest, resume: bool) -> None:
 
 def parameters(rows: list[dict]) -> list[str]:
     """The fitted parameters' columns (not their errors), in table order."""
-    from rig.analysis.table import PLACE, TAIL
+    from rig.analysis.batch.table import PLACE, TAIL
 
     return [c for c in columns(rows) if c not in PLACE and c not in TAIL and not c.endswith(("_stat", "_sys"))]
 
@@ -133,7 +133,7 @@ def _n(count: int, what: str) -> str:
 
 def passes(r: dict, min_quality: float | None) -> bool:
     """Whether a row counts at `min_quality` (None: every row does): an analysed curve rated at
-    least that (rig.analysis.quality)."""
+    least that (rig.analysis.batch.quality)."""
     if min_quality is None:
         return True
     q = r.get("quality")

@@ -2,7 +2,7 @@
 
 Residuals at 100 Hz are strongly autocorrelated whenever a model misses something, so a
 BIC over all samples counts the same misfit hundreds of times and rewards any extra
-parameter. The criterion here is the one BIC every fit reports (`rig.analysis.uncertainty`),
+parameter. The criterion here is the one BIC every fit reports (`rig.analysis.stats.uncertainty`),
 on the effective number of independent residuals, both models at the base model's N_eff:
 
     N_eff = N / L,   L = 1 + 2 * sum of the base residual's autocorrelation (up to its first
@@ -26,10 +26,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rig.analysis.data import PHASES, TrialData, decimate
-from rig.analysis.fit import FEW_PER_PARAM, FitResult, evaluate, fit, negative
-from rig.analysis.residual_shape import describe, not_the_answer
-from rig.analysis.uncertainty import delta_bic
+from rig.analysis.diagnosis.residual_shape import describe, not_the_answer
+from rig.analysis.fitting.fit import FEW_PER_PARAM, FitResult, evaluate, fit, negative
+from rig.analysis.stats.uncertainty import delta_bic
+from rig.analysis.trials.data import PHASES, TrialData, decimate
 from rig.models.catalogue import CONTACT, instrument_effects
 from rig.models.core import Effect, Model
 from rig.models.instrument import BOTTOM_EFFECTS
@@ -355,7 +355,7 @@ def meaningless(res: FitResult, base: FitResult) -> str:
     Every parameter of the model counts, not only the added effect's: an effect that fits only
     by turning one of the model's own terms negative (a damping, a stiffness) is not the
     answer. Negative means significantly so: below zero by more than UNPHYSICAL_SE of its own
-    standard errors (`rig.analysis.fit.negative`); a value slightly negative within its error
+    standard errors (`rig.analysis.fitting.fit.negative`); a value slightly negative within its error
     is said (`within`) and does not reject. A parameter already negative in `base`, the fit
     without the effect, is the base model's own problem (its fit says so) and is left out."""
     return next((said for _, said, bad in _negatives(res, base) if bad), "")

@@ -6,10 +6,10 @@ far from where the valley actually rises: the interval is lopsided, or reaches a
 profile walks along the valley: the parameter is held at a value, every other one refitted,
 and the interval is where the cost has risen by the 95 % point of chi-square with one degree
 of freedom, counted on the fit's one effective sample count: the records' samples over the
-noise's correlation time (rig.analysis.criterion, the count the BIC is on), so a correlated
+noise's correlation time (rig.analysis.stats.criterion, the count the BIC is on), so a correlated
 noise widens it as it does the standard error, and a misfit does not: like the statistical
 error it is the noise's, given the model; how far the model's misses move a value is the
-systematic error's (rig.analysis.systematic). Counted on the residual's own correlation, a
+systematic error's (rig.analysis.intervals.systematic). Counted on the residual's own correlation, a
 misfitting curve's profile was 4-140x wider than its +/-1.96 SE on real AFM curves.
 """
 
@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from rig.analysis.fit import FitResult, fit
+from rig.analysis.fitting.fit import FitResult, fit
 from rig.models.core import Model, Param
 
 CHI2_95 = 3.841459  # one degree of freedom
@@ -117,7 +117,7 @@ def _crossing(rise: Callable[[float], float], inside: float, outside: float, ste
 
 def _si_bounds(res: FitResult, p: Param) -> tuple[float, float]:
     """The parameter's bounds in SI (relative ones scaled by the record's own units)."""
-    from rig.analysis.scaling import ParamScaling
+    from rig.analysis.fitting.scaling import ParamScaling
 
     ps = ParamScaling(res.model, res.scales)
     i = res.model.param_names.index(p.name)

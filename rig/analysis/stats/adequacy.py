@@ -23,9 +23,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from rig.analysis.draws import Draws
-from rig.analysis.line import off_line
-from rig.analysis.noise import (
+from rig.analysis.stats.draws import Draws
+from rig.analysis.stats.line import off_line
+from rig.analysis.stats.noise import (
     AT_REST,
     MAX_ORDER,
     Noise,

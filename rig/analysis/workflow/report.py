@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.analysis.analyze import fe_points
-from rig.analysis.data import PHASES
-from rig.analysis.fit import FitResult, predict_position
+from rig.analysis.fitting.fit import FitResult, predict_position
+from rig.analysis.trials.data import PHASES
+from rig.analysis.workflow.analyze import fe_points
 from rig.models.catalogue import CONTACT
 from rig.views.plots import figure, save, shade_spans, trial_labels
 
@@ -309,7 +309,7 @@ def write_report(res: FitResult, out_dir: str | Path, *, compare: list[FitResult
     if explain_text:
         md += ["## What is missing", "", "```", explain_text, "```", ""]
     if steps:
-        from rig.analysis.explain import format_auto
+        from rig.analysis.diagnosis.explain import format_auto
 
         labels = [("start" if s["added"] is None and not s.get("removed") else
                    (f"+{s['added']}" if s["added"] else f"-{s['removed']}"), s["fit"]) for s in steps]

@@ -2,7 +2,7 @@
 that are the fitted model plus the measured noise.
 
 Each draw is a record written anew: the fitted model's force on the record's own motion, the
-noise drawn from the measured spectrum (rig.analysis.noise) and quantised on the record's own
+noise drawn from the measured spectrum (rig.analysis.stats.noise) and quantised on the record's own
 lattice, and, for a record that sat at rest before contact, a new tare. It then goes through
 everything a record goes through: the contact found again (for a record that does not know
 its surface), the noise measured again, the model fitted again from the catalogue's starts,
@@ -23,9 +23,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rig.analysis.adequacy import quantise, simulate
-from rig.analysis.data import TrialData, prepare
-from rig.analysis.fit import FitResult, fit
+from rig.analysis.fitting.fit import FitResult, fit
+from rig.analysis.stats.adequacy import quantise, simulate
+from rig.analysis.trials.data import TrialData, prepare
 from rig.errors import RigError
 from rig.models.catalogue import CONTACT_POINT
 from rig.records.record import Record

@@ -7,15 +7,15 @@ samples per trial: the effects live on time scales of many samples), and only th
 is polished on every sample.
 
 Noise: the quiet part of the approach when the record has enough of it, else the
-residual's short-lag structure (`rig.analysis.noise`), as a level, a spectrum and a
+residual's short-lag structure (`rig.analysis.stats.noise`), as a level, a spectrum and a
 correlation time. `adequate` means the residual is consistent with that noise: overall RMSE
 within 1.2x, no phase above 1.5x, and no more correlated than the noise itself (1.5x its
 integral time scale), each widened by what a perfect model would show on this record
-(`rig.analysis.adequacy`).
+(`rig.analysis.stats.adequacy`).
 
 Standard errors and the parameters' correlations come from a sandwich that allows for the
-residual's correlation in time (`rig.analysis.uncertainty`); `bic` is the one BIC the tool
-uses, on the records' effective number of independent samples (`rig.analysis.criterion`).
+residual's correlation in time (`rig.analysis.stats.uncertainty`); `bic` is the one BIC the tool
+uses, on the records' effective number of independent samples (`rig.analysis.stats.criterion`).
 """
 
 from __future__ import annotations
@@ -29,16 +29,16 @@ from warnings import catch_warnings, simplefilter
 
 import numpy as np
 
-from rig.analysis import contact_fit, separable
-from rig.analysis.adequacy import ADEQUATE_PHASE, ADEQUATE_RMSE, ADEQUATE_WHITE, Limits, whitened_scale
-from rig.analysis.adequacy import limits as adequacy_limits
-from rig.analysis.criterion import noise_count
-from rig.analysis.data import PHASES, Scales, TrialData, decimate
-from rig.analysis.lean import predictor
-from rig.analysis.noise import Noise, integral_scale, measure
-from rig.analysis.scaling import ParamScaling
-from rig.analysis.uncertainty import bic as effective_bic
-from rig.analysis.uncertainty import correlation, hac_covariance, notable_correlations, zero_meat
+from rig.analysis.fitting import contact_fit, separable
+from rig.analysis.fitting.lean import predictor
+from rig.analysis.fitting.scaling import ParamScaling
+from rig.analysis.stats.adequacy import ADEQUATE_PHASE, ADEQUATE_RMSE, ADEQUATE_WHITE, Limits, whitened_scale
+from rig.analysis.stats.adequacy import limits as adequacy_limits
+from rig.analysis.stats.criterion import noise_count
+from rig.analysis.stats.noise import Noise, integral_scale, measure
+from rig.analysis.stats.uncertainty import bic as effective_bic
+from rig.analysis.stats.uncertainty import correlation, hac_covariance, notable_correlations, zero_meat
+from rig.analysis.trials.data import PHASES, Scales, TrialData, decimate
 from rig.models.catalogue import CONTACT_POINT, RECORD_ZERO
 from rig.models.core import Effect, Model
 from rig.models.frame import NotConverged
@@ -85,7 +85,7 @@ class FitResult:
       where); ``noise_L`` and ``white_L``: the noise's and the residual's correlation times
       (samples); ``n_eff``: the independent residuals (samples over the residual's correlation
       time), the count every comparison of models uses.
-    - ``bic`` on ``bic_samples`` effective samples (`rig.analysis.criterion`); ``adequate``
+    - ``bic`` on ``bic_samples`` effective samples (`rig.analysis.stats.criterion`); ``adequate``
       and ``limits``: whether the residual is at the noise's level, and how far a right model's
       may go.
     - ``warnings``: what the user should read before the numbers (a bound hit, parameters the
@@ -116,12 +116,12 @@ class FitResult:
     z: dict[str, float] = field(default_factory=dict)  # the fit variables (order one)
     covariance: np.ndarray | None = None  # of the parameters in SI, allowing for correlated residuals
     n_eff: float = 0.0  # independent residuals: samples over the residual's correlation time
-    noise: Noise | None = None  # as measured (rig.analysis.noise)
-    bic_samples: float = 0.0  # the effective count `bic` is on: the records' (rig.analysis.criterion)
+    noise: Noise | None = None  # as measured (rig.analysis.stats.noise)
+    bic_samples: float = 0.0  # the effective count `bic` is on: the records' (rig.analysis.stats.criterion)
     # per parameter, the share of its variance that comes from the records' tared zeros
     # (`_zero_variances`): what no residual shows, and a profile's cost cannot see
     zero_variance: dict[str, float] = field(default_factory=dict)
-    error_noise: str = ""  # the noise model the standard errors were given (rig.analysis.uncertainty)
+    error_noise: str = ""  # the noise model the standard errors were given (rig.analysis.stats.uncertainty)
 
     @property
     def correlation(self) -> np.ndarray | None:
@@ -134,7 +134,7 @@ class FitResult:
 
     @cached_property
     def limits(self) -> Limits:
-        """How far a perfect model's residual may go on these records (rig.analysis.adequacy)."""
+        """How far a perfect model's residual may go on these records (rig.analysis.stats.adequacy)."""
         if self.noise is None:
             return Limits(ADEQUATE_RMSE, dict.fromkeys(PHASES, ADEQUATE_PHASE), ADEQUATE_WHITE)
         return adequacy_limits(self.noise, self.predictions, [t.phase for t in self.trials], PHASES)
@@ -290,7 +290,7 @@ def error_table(trials: list[TrialData], residuals: list[np.ndarray]) -> tuple[E
 
 def noise_of(trials: list[TrialData], residuals: list[np.ndarray]) -> Noise:
     """The sensor noise a perfect model's residual would show on these trials, measured from
-    their force at rest and the residuals (`rig.analysis.noise.measure`)."""
+    their force at rest and the residuals (`rig.analysis.stats.noise.measure`)."""
     return measure([t.baseline_N for t in trials], residuals)
 
 
@@ -333,7 +333,7 @@ def fit(model: Model, trials: list[TrialData], *, starts: int = 3, seed: int = 0
 @dataclass
 class Estimates:
     """A fit's parameters and their standard errors (SI), without the rest of a `FitResult`: what
-    a refit asks when only its values and errors are compared (`rig.analysis.systematic`)."""
+    a refit asks when only its values and errors are compared (`rig.analysis.intervals.systematic`)."""
 
     values: dict[str, float]
     stderr: dict[str, float | None]
@@ -361,7 +361,7 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish, fi
     init, lo, hi = ps.start_and_bounds(initial)
     init = _inside(init, lo, hi)
     creep = any(t.creep for t in trials)
-    # the same forces as model.predict, checked on these records (rig.analysis.lean); creep form
+    # the same forces as model.predict, checked on these records (rig.analysis.fitting.lean); creep form
     # solves for the position, through the general model
     predict = model.predict if creep else predictor(
         model, [t.motion for t in trials], dict(zip(model.param_names, ps.to_si(init), strict=True)))
@@ -376,7 +376,7 @@ def _fit(model, trials, starts, seed, initial, tol, max_nfev, scales, polish, fi
             init = _inside(start, lo, hi)
     # creep form is no longer linear in the force's amplitudes
     form = separable.split(model) if not creep else None
-    # the commonest AFM model solved from sums (rig.analysis.contact_fit): the same optimum, the
+    # the commonest AFM model solved from sums (rig.analysis.fitting.contact_fit): the same optimum, the
     # Jacobian there exact, at a fraction of the cost a map's thousands of curves would pay
     best = contact_fit.solve(predict, resid, model.param_names, ps.to_si, init, lo, hi, trials[0].motion.x_m,
                              trials[0].force_N, 1.0 / scales.force_N) if form and len(trials) == 1 else None
@@ -484,7 +484,7 @@ def _residual_fn(model, ps: ParamScaling, trials, scales: Scales, predict=None):
 
 def _separable(model, ps: ParamScaling, trials, scales: Scales, resid, init, lo, hi,
                form, predict) -> separable.Solution | None:
-    """The global optimum of a model linear in all but its contact point (rig.analysis.separable),
+    """The global optimum of a model linear in all but its contact point (rig.analysis.fitting.separable),
     or None when the general solver must do it."""
     inv_F = 1.0 / scales.force_N
     names = model.param_names
@@ -715,7 +715,7 @@ def noise_blocks(trials: list[TrialData]) -> tuple[list[int], list[int], list[bo
     A creep-form block's noise is the position's jitter under the force loop (the slider follows
     the loop's reading, the model the smoothed force): correlated over the loop's response time
     and bounded by it, never a walk from the trial's start, so its noise model is the AR alone
-    (`rig.analysis.uncertainty.hac_covariance`): white noise plus a walk, which fitted such a
+    (`rig.analysis.stats.uncertainty.hac_covariance`): white noise plus a walk, which fitted such a
     residual better at short lags, made the paper's model's standard errors on a simulated
     creep trial about 18x the AR's (tau1: 6.9 s against 0.39 s; its spread over five seeds,
     0.26 s)."""
@@ -779,7 +779,7 @@ def _covariance(sol, to_si: np.ndarray, lengths: list[int], doubts: list[str] | 
                 quiet: list[int] | None = None, still: list[bool] | None = None,
                 zeros: list[float] | None = None, used: list[str] | None = None) -> np.ndarray | None:
     """Covariance of the parameters in SI: the correlated-residual sandwich
-    (`rig.analysis.uncertainty`) in the fit variables, with each block's zero error (`zeros`, a
+    (`rig.analysis.stats.uncertainty`) in the fit variables, with each block's zero error (`zeros`, a
     variance), carried to SI through `to_si` = d(SI)/dz; why it may be doubtful appended to
     `doubts`."""
     try:

@@ -69,7 +69,7 @@ def _lean(model: Model) -> Predict | None:
         force = np.maximum(drive_N, 0.0)
         return force + np.full_like(force, values[offset])
 
-    # what rig.analysis.contact_fit solves this model from: the parameters' names and g, the
+    # what rig.analysis.fitting.contact_fit solves this model from: the parameters' names and g, the
     # force per unit modulus at each depth
     predict.parts = (x_c, modulus, offset, lambda d: contact_fn(d, None, 1.0), contact_fn)
     return predict

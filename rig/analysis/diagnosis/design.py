@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.analysis.data import PHASES, TrialData, decimate
-from rig.analysis.explain import Explanation
-from rig.analysis.fit import FitResult, fit
+from rig.analysis.diagnosis.explain import Explanation
+from rig.analysis.fitting.fit import FitResult, fit
+from rig.analysis.trials.data import PHASES, TrialData, decimate
 from rig.errors import LimitError, RigError
 from rig.models.core import Model, Motion
 from rig.specs.config import RigConfig

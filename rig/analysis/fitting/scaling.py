@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rig.analysis.data import Scales
+from rig.analysis.trials.data import Scales
 from rig.models.core import Model
 
 _BASE = {"N": (1, 0, 0, 1.0), "m": (0, 1, 0, 1.0), "mm": (0, 1, 0, 1e-3), "um": (0, 1, 0, 1e-6),

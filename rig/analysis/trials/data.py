@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.analysis.line import fit_line, off_line
-from rig.analysis.noise import MIN_BASELINE, MIN_REST, from_baseline, quiet_length
+from rig.analysis.stats.line import fit_line, off_line
+from rig.analysis.stats.noise import MIN_BASELINE, MIN_REST, from_baseline, quiet_length
 from rig.errors import SpecError
 from rig.models.core import Motion
 from rig.records import ReadOptions, Record, read_record
@@ -57,7 +57,7 @@ class TrialData:
     ``baseline_N`` and ``baseline_noise_N``: the force at rest before contact and its noise;
     ``contact_m`` and ``contact_estimated``: where contact was placed (an estimate from the force
     alone is refined by every fit, as a parameter of the record). ``held``: samples whose force
-    a controller held, fitted in creep form (`rig.analysis.creep`), with ``held_force_N``,
+    a controller held, fitted in creep form (`rig.analysis.material.creep`), with ``held_force_N``,
     ``creep_weight_N_per_m`` and ``held_noise_ar`` for that form. ``force_unit`` and
     ``length_unit`` say how to show its numbers; ``notes`` and ``meta``: what loading it found
     and what the file says beyond its samples.
@@ -78,14 +78,14 @@ class TrialData:
     meta: dict = field(default_factory=dict)  # what the file says beyond its samples (Record.meta)
     contact_m: float | None = None  # where the analysis put contact, in the record's travel from its start
     # contact found from the force alone (an approach): only a first estimate, which every fit
-    # refines as a parameter of the record (rig.analysis.fit), and the force kept as recorded
+    # refines as a parameter of the record (rig.analysis.fitting.fit), and the force kept as recorded
     contact_estimated: bool = False
     # per sample: the force was held by a controller (the rig's ramp_force and hold_force, an AFM's
     # creep-compliance pause), so the indentation is what responds: these samples are fitted in
-    # creep form (rig.analysis.creep); None or all False: force form throughout
+    # creep form (rig.analysis.material.creep); None or all False: force form throughout
     held: np.ndarray | None = None
     # how a length residual on held samples counts against a force residual: the force noise over
-    # the length noise (N/m), measured once from the first fit's creep residual (rig.analysis.creep)
+    # the length noise (N/m), measured once from the first fit's creep residual (rig.analysis.material.creep)
     creep_weight_N_per_m: float | None = None
     # the force the tissue is taken to carry on held samples: the reading smoothed within each
     # held step (`held_force`); the measured force elsewhere
@@ -275,7 +275,7 @@ def creep_weight(x: np.ndarray, f: np.ndarray, held: np.ndarray, runs: np.ndarra
 
     Both from the record: the force noise at rest before contact (else the held force's own
     short-lag structure), the length noise the measured position's short-lag structure on the held
-    samples, step by step (`rig.analysis.noise.from_residual`: differences over a few dozen
+    samples, step by step (`rig.analysis.stats.noise.from_residual`: differences over a few dozen
     samples keep the noise and barely see the smooth creep; a step's corner would read as noise,
     so the steps too short to show it are left out). That is what a right model leaves there: on
     a simulated creep trial at two forces, the position solved with the true parameters missed
@@ -287,7 +287,7 @@ def creep_weight(x: np.ndarray, f: np.ndarray, held: np.ndarray, runs: np.ndarra
     holds cannot take it out. With a 157-sample ramp counted beside holds of 800 and 2500 samples,
     the length noise read 79 um where the holds alone read 46 and 40 um and a right model left 49
     and 31 um: every creep fit then read half the noise, and a missing effect half as strongly."""
-    from rig.analysis.noise import from_residual
+    from rig.analysis.stats.noise import from_residual
 
     idx = [np.flatnonzero((runs == r) & held) for r in np.unique(runs[held])]
     holds = [i for i in idx if str(phase[i[len(i) // 2]]).startswith("hold")]
@@ -440,9 +440,9 @@ def _find_contact(t, pos, f, where):
     level = f_rest if i_move >= 10 else f0  # before the probe moved, else its first samples
     x = pos - pos[i_c]
     # Nothing is subtracted: every fit places this record's contact point and its zero itself
-    # (rig.analysis.fit.with_record_params), and a drift or friction shows in the residual
+    # (rig.analysis.fitting.fit.with_record_params), and a drift or friction shows in the residual
     # before contact. The noise is measured on the quiet part of the approach before the first
-    # estimate (rig.analysis.noise.quiet_length): a first touch and a slow rise are left out.
+    # estimate (rig.analysis.stats.noise.quiet_length): a first touch and a slow rise are left out.
     baseline = f[:quiet_length(f[:i_c])]
     note = (f"contact first placed at {_fmt_len(pos[i_c] - pos[0])} of travel, t = {t[i_c] - t[0]:.4g} s "
             f"(the fit refines it); force at rest {_fmt_force(level)}, kept")

@@ -12,7 +12,7 @@ import itertools
 
 import numpy as np
 
-from rig.analysis.fit import FitResult
+from rig.analysis.fitting.fit import FitResult
 from rig.models.catalogue import CONTACT
 
 BINS = 6  # depth bands from a tenth of the deepest indentation down to it

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rig.analysis.data import PHASES, TrialData
+from rig.analysis.trials.data import PHASES, TrialData
 
 CONFINED_SHARE = 0.7  # a phase holding this much of the excess energy ...
 CONFINED_SAMPLES = 0.5  # ... with at most this share of the samples is where the residual sits

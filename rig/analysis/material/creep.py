@@ -3,7 +3,7 @@ held, its miss as a length, and the creep compliance J(t) where the indenter is 
 
 A record's held samples (`TrialData.held`) are fitted in creep form: the model predicts the
 position from the force (`rig.models.creep`) and the fit weighs the miss by the record's creep
-weight (force noise over length noise, `rig.analysis.data.creep_weight`). Here the miss is
+weight (force noise over length noise, `rig.analysis.trials.data.creep_weight`). Here the miss is
 given back as a length, step by step (each run of held samples: a force ramp, a force hold).
 
 Creep compliance: under a force held at F, an elastic contact's law F = E g(d) (g the
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rig.analysis.fit import FitResult, predict_position
+from rig.analysis.fitting.fit import FitResult, predict_position
 from rig.models.contact import Indenter, geometry_factor
 
 J_TIMES = (0.0, 0.25, 0.5, 1.0)  # where in each held step J(t) is given (fraction of the step)

@@ -1,7 +1,7 @@
 """Gaussian draws for the analysis's simulations, without numpy.random.
 
 numpy.random costs about 9 ms to import, as much as the rest of a one-curve fit's statistics,
-and the adequacy limits (rig.analysis.adequacy) run on every fit. The draws here are
+and the adequacy limits (rig.analysis.stats.adequacy) run on every fit. The draws here are
 SplitMix64 (Steele, Lea & Flood 2014: the seeding generator of Java's SplittableRandom and of
 xoshiro) over a counter, turned Gaussian by Box and Muller: vectorised, reproducible from a
 seed, and statistically sound for a few million draws.

@@ -10,12 +10,12 @@ table's name is always a whole table.
 Columns: where the curve is (`file`, `curve`, `x_m`, `y_m`, `grid_x`, `grid_y`), every parameter
 with its statistical error (the noise's, given the model: `E_Pa_stat`) and, for a contact fit, its
 systematic error (how far the fit's range and baseline move it beyond their noise: `E_Pa_sys`;
-rig.analysis.systematic), `contact_point_m` with the same two, the
+rig.analysis.intervals.systematic), `contact_point_m` with the same two, the
 error and the noise (`rmse_N`, `noise_N`, `rmse_over_noise`), `adequate`, with `--explain` the
 missing effect and its dBIC, the curve's `quality` and its `quality_parts`, and `error`: why a
 curve could not be analysed (empty otherwise).
 
-`quality` rates a curve from 0 (unusable) to 10 (clean), the sum of four parts (rig.analysis.quality;
+`quality` rates a curve from 0 (unusable) to 10 (clean), the sum of four parts (rig.analysis.batch.quality;
 docs/explanation/quality.md), each measured, none trained:
 
 - contact, 0-3: the contact point's uncertainty (statistical and systematic combined) over the

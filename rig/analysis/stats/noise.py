@@ -19,7 +19,7 @@ the noise shows. A force quantised on a lattice coarser than half the noise is d
 quiet approach such a record sits on a few levels and its spread says little, so the
 underlying Gaussian is fitted to the level counts (interval-censored maximum likelihood) and
 the quantisation error, q^2/12 once the force moves, is added. `samples` and `spread` say how
-well the record pins the level down: the adequacy test (rig.analysis.adequacy) allows for it.
+well the record pins the level down: the adequacy test (rig.analysis.stats.adequacy) allows for it.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from rig.analysis.line import fit_line, off_line
+from rig.analysis.stats.line import fit_line, off_line
 
 MIN_BASELINE = 200  # samples of a tare (or a rest the record sits at) to measure the noise on
 # samples of an approach's own quiet part before contact that are measured rather than the
@@ -329,7 +329,7 @@ def gauss_behind_levels(y: np.ndarray, q: float) -> tuple[float, float]:
 def from_baseline(baselines: list[np.ndarray | None]) -> Noise | None:
     """The noise of each record's force at rest (a tare, or the quiet part of its approach:
     `quiet_length`), pooled; None when no record has MIN_REST samples of it (a record keeps its
-    baseline only when it has enough: `rig.analysis.data.prepare`)."""
+    baseline only when it has enough: `rig.analysis.trials.data.prepare`)."""
     quiet = [np.asarray(b, dtype=float) for b in baselines if b is not None and len(b) >= MIN_REST]
     if not quiet:
         return None
@@ -373,7 +373,7 @@ def _measure_baseline(b: np.ndarray) -> Noise:
     phi = ar_fit(autocovariance(detr, min(MAX_ORDER, n // 4))[0], n)
     ar = tuple(float(c) for c in phi)
     spread = math.sqrt(variance_scale(ar) / (2.0 * n))
-    from rig.analysis.uncertainty import walk_at_rest  # it measures its own noise models from this one
+    from rig.analysis.stats.uncertainty import walk_at_rest  # it measures its own noise models from this one
 
     return Noise(std, integral_scale_ar(ar), AT_REST, ar, gauss, q, origin,
                  float(np.mean(b)), n, spread, walk_N2=walk_at_rest(b, ar) if not q else 0.0)

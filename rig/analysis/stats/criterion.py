@@ -3,7 +3,7 @@
     BIC = N_eff ln(RSS / N) + k ln(N_eff),  N_eff = sum over records of n_i / L
 
 L is the noise's integral time scale (samples per independent value, from its measured spectrum:
-rig.analysis.noise), so N_eff is a property of the records and their sensor, the same for every
+rig.analysis.stats.noise), so N_eff is a property of the records and their sensor, the same for every
 model fitted to them. That is what makes differences of BIC mean something: a force unit adds
 N_eff ln(c^2) to every model's BIC alike, and drops out of every difference. (A count taken
 from each model's own residual weighs that constant differently per model: the ranking then
@@ -11,13 +11,13 @@ depends on the unit the forces happen to be in, and two nearly equal misfits can
 37x apart.)
 
 `--explain` compares a model with its candidates the same way, at one count for all of them:
-the base model's residual count (rig.analysis.explain).
+the base model's residual count (rig.analysis.diagnosis.explain).
 """
 
 from __future__ import annotations
 
-from rig.analysis.noise import Noise
-from rig.analysis.uncertainty import bic
+from rig.analysis.stats.noise import Noise
+from rig.analysis.stats.uncertainty import bic
 
 DEFINITION = ("N_eff ln(RSS / N) + k ln(N_eff), N_eff = the records' samples over the noise's correlation "
               "time, one count for every model")

@@ -2,7 +2,7 @@
 
 A unit of work is one curve: a file and, for a file of many (an AFM map or QI series), the
 curve's number as the instrument numbers it. Each is analysed exactly as `rig analyze` analyses
-one record (`rig.analysis.session.analyze`, the record already read), and gives one row: where
+one record (`rig.analysis.workflow.session.analyze`, the record already read), and gives one row: where
 it was taken, every parameter with its standard error, the contact point, the error over the
 noise, the verdict and, for a curve that could not be analysed, why.
 
@@ -253,7 +253,7 @@ def _analyze(c: Curve, rec: Any, req: BatchRequest, read_s: float) -> dict:
     """The row of one curve already read. Its time reading and analysing go in the private
     columns `_read_s` and `_fit_s` (for the batch's summary; never in the table: a table does
     not depend on how fast the machine was)."""
-    from rig.analysis.session import AnalyzeRequest, analyze
+    from rig.analysis.workflow.session import AnalyzeRequest, analyze
 
     t0 = time.perf_counter()
     try:
@@ -288,7 +288,7 @@ def _analyze(c: Curve, rec: Any, req: BatchRequest, read_s: float) -> dict:
         row["effect"] = d.get("best") or ""
         row["effect_dbic"] = next((s["delta_bic"] for s in out.get("suggestions", [])
                                    if s["effect"] == d.get("best")), None)
-    from rig.analysis.quality import describe, rate
+    from rig.analysis.batch.quality import describe, rate
 
     row["quality"], parts = rate(out, row.get("effect") or "")
     row["quality_parts"] = describe(parts)
