@@ -1,0 +1,5 @@
+"""Trials for analysis: a record of any kind on a uniform time grid, with its contact, direction
+of loading, baseline, phases and the record's own scales (`data`).
+
+Imports from `rig.analysis.stats` only.
+"""
