@@ -102,3 +102,32 @@ class LoadCell(Protocol):
         """The newest reading (a polled device is asked for one), or None before the first."""
 
     def close(self) -> None: ...
+
+
+@runtime_checkable
+class Link(Protocol):
+    """How a driver reaches its device: what messages call it, and the per-transaction bound."""
+
+    timeout_s: float
+
+    def describe(self) -> str:
+        """The link in words: "Modbus RTU /dev/ttyUSB0 115200 8N1 unit 1"."""
+
+
+@runtime_checkable
+class BusSlider(Slider, Protocol):
+    """A slider on a bus (`drivers.modbus_slider`): the trial's contract, and what opening it
+    (`rig.control.devices.open_slider`), `rig probe` and `rig move` need beyond it."""
+
+    link: Link
+    last_error: str  # the last failed transaction, in words ("" if none yet)
+
+    def prepare(self) -> None:
+        """On connect: release a STOP or home level left set, and verify it (`DeviceError`)."""
+
+    def set_comm_timeout(self, timeout_s: float) -> bool:
+        """Write the drive's communication timeout and read it back; False if the drive has no
+        such register, `DeviceError` if it does not take the value."""
+
+    def home(self) -> None:
+        """Start the drive's own return-to-home operation."""

@@ -23,7 +23,7 @@ from rig.sim.server import WireSim
 
 from rig.clock import RealClock, VirtualClock
 from rig.control.devices import open_devices
-from rig.control.stopping import StopMode
+from rig.control.states import StopMode
 from rig.control.trial import Trial
 from rig.errors import LimitError
 from rig.realtime import Realtime
@@ -253,7 +253,7 @@ def test_a_lost_stop_is_resent_until_the_drive_confirms(tmp_path):
             if not done["x"] and snap.step_kind == "ramp" and snap.position_mm > 1.5:
                 done["x"] = True
                 sim.params.faults.ignore_stops = 1
-                trial_box["trial"].request_stop(StopMode.HALT, user="tester")
+                trial_box["trial"].request_stop(StopMode.HOLD, user="tester")
 
         trial_box = {}
         result = run_trial(parse_protocol(FAST, "<test>"), cfg,
@@ -279,7 +279,7 @@ def test_a_drive_that_never_confirms_the_stop_is_reported_as_such(tmp_path):
             if "fired" not in box and snap.step_kind == "ramp" and snap.position_mm > 1.5:
                 box["fired"] = True
                 sim.params.faults.ignore_stops = 1000
-                box["trial"].request_stop(StopMode.HALT, user="tester")
+                box["trial"].request_stop(StopMode.HOLD, user="tester")
 
         result = run_trial(parse_protocol(FAST, "<test>"), cfg,
                            RunOptions(speed=1.0, progress=False, log_path=tmp_path / "never.mcap",

@@ -19,7 +19,7 @@ import pytest
 
 from rig.clock import VirtualClock
 from rig.control.devices import open_devices
-from rig.control.stopping import StopMode
+from rig.control.states import StopMode
 from rig.control.trial import Trial
 from rig.errors import LimitError, SpecError
 from rig.recording.logs import read_log
@@ -141,7 +141,7 @@ def test_abort_during_a_force_hold_stops_then_returns(tmp_path):
 
 
 def test_hold_during_a_force_hold_stays_put(tmp_path):
-    result, log, seen = _stopped(tmp_path, StopMode.HALT)
+    result, log, seen = _stopped(tmp_path, StopMode.HOLD)
     assert seen["kind_at_stop"] == "hold_force" and result.outcome == "stopped"
     pos = np.asarray(log.samples["position_mm"])
     assert pos[-1] > 5.0 and np.ptp(pos[-30:]) <= 0.01  # where the force loop had it, not moving

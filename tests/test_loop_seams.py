@@ -11,7 +11,7 @@ from rig.drivers.serial_loadcell import SerialLoadCell
 
 from rig.clock import VirtualClock
 from rig.control.devices import open_devices
-from rig.control.stopping import StopMode
+from rig.control.states import StopMode
 from rig.control.trial import Trial
 from rig.recording.logs import read_log
 from rig.specs.config import RigConfig
@@ -84,7 +84,7 @@ def test_a_hold_during_an_abort_stops_the_return_where_it_is(tmp_path):
         if snap.t_s >= 1.5 and "abort" not in tickets:
             tickets["abort"] = trial.request_stop(StopMode.ABORT, user="tester")
         if snap.step_kind == "return" and snap.position_mm < 3.0 and "hold" not in tickets:
-            tickets["hold"] = trial.request_stop(StopMode.HALT, user="tester")
+            tickets["hold"] = trial.request_stop(StopMode.HOLD, user="tester")
 
     trial.on_tick = operator
     result = trial.run()

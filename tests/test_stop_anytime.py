@@ -19,7 +19,7 @@ from rig.sim.server import WireSim
 
 from rig.clock import VirtualClock
 from rig.control.devices import open_devices
-from rig.control.stopping import StopMode
+from rig.control.states import StopMode
 from rig.control.trial import Trial
 from rig.recording.logs import read_log
 from rig.recording.recorder import Recorder

@@ -7,7 +7,8 @@ from __future__ import annotations
 import pytest
 
 from rig.control.safety import Fault
-from rig.control.stopping import Ending, Phase, StopMode
+from rig.control.states import EndingState, StopMode
+from rig.control.stopping import TRANSITIONS, Ending
 
 SETTLE_S, CONFIRM_S, RESEND_S = 0.5, 1.0, 0.1
 
@@ -29,7 +30,7 @@ def test_running_to_faulted_ends_after_the_settle_time_with_the_fault():
     e = Ending()
     e.on_fault(Fault("force_limit", "force 5.2 N above the limit 5 N"), 2.0)
     stopped(e, 2.0)
-    assert e.phase is Phase.FAULTED and e.outcome == "fault"
+    assert e.state is EndingState.FAULTED and e.outcome == "fault"
     assert e.result(2.2, SETTLE_S, protocol_done=True) is None  # the protocol does not end a fault
     assert e.result(2.5, SETTLE_S, protocol_done=False) == ("fault", "force 5.2 N above the limit 5 N")
 
@@ -37,17 +38,17 @@ def test_running_to_faulted_ends_after_the_settle_time_with_the_fault():
 def test_running_to_returning_on_abort_ends_aborted_once_back():
     e = Ending()
     assert e.on_request(StopMode.ABORT, 1.0) is None
-    assert e.phase is Phase.RETURNING
+    assert e.state is EndingState.RETURNING
     assert e.result(5.0, SETTLE_S, protocol_done=False) is None
     assert e.result(5.0, SETTLE_S, protocol_done=True) == ("aborted", None)
 
 
-@pytest.mark.parametrize(("mode", "outcome"), [(StopMode.ESTOP, "estopped"), (StopMode.HALT, "stopped")])
+@pytest.mark.parametrize(("mode", "outcome"), [(StopMode.ESTOP, "estopped"), (StopMode.HOLD, "stopped")])
 def test_running_to_stopping_ends_after_the_settle_time(mode, outcome):
     e = Ending()
     assert e.on_request(mode, 1.0) is None
     stopped(e, 1.0)
-    assert e.phase is Phase.STOPPING
+    assert e.state is EndingState.STOPPING
     assert e.result(1.4, SETTLE_S, protocol_done=True) is None
     assert e.result(1.5, SETTLE_S, protocol_done=False) == (outcome, None)
 
@@ -57,18 +58,18 @@ def test_returning_to_stopping_on_estop_restarts_the_settle_time():
     e.on_request(StopMode.ABORT, 1.0)
     assert e.on_request(StopMode.ESTOP, 3.0) is None
     stopped(e, 3.0)
-    assert (e.phase, e.outcome, e.since_t) == (Phase.STOPPING, "estopped", 3.0)
+    assert (e.state, e.outcome, e.since_t) == (EndingState.STOPPING, "estopped", 3.0)
     assert e.result(3.4, SETTLE_S, protocol_done=True) is None
     assert e.result(3.5, SETTLE_S, protocol_done=True) == ("estopped", None)
 
 
-@pytest.mark.parametrize("mode", [StopMode.ABORT, StopMode.HALT])
+@pytest.mark.parametrize("mode", [StopMode.ABORT, StopMode.HOLD])
 def test_returning_or_stopping_to_faulted(mode):
     e = Ending()
     e.on_request(mode, 1.0)
     e.on_fault(Fault("travel", "position 61 mm beyond the travel 60 mm"), 2.0)
     stopped(e, 2.0)
-    assert (e.phase, e.outcome) == (Phase.FAULTED, "fault")
+    assert (e.state, e.outcome) == (EndingState.FAULTED, "fault")
     assert e.result(2.5, SETTLE_S, protocol_done=True) == ("fault", "position 61 mm beyond the travel 60 mm")
 
 
@@ -77,18 +78,18 @@ def test_faulted_refuses_every_request(mode):
     e = Ending()
     e.on_fault(Fault("loadcell_stale", "no load-cell reading for 250 ms"), 1.0)
     assert e.on_request(mode, 1.5) == "already stopped by a fault: no load-cell reading for 250 ms"
-    assert (e.phase, e.mode, e.since_t) == (Phase.FAULTED, None, 1.0)
+    assert (e.state, e.mode, e.since_t) == (EndingState.FAULTED, None, 1.0)
 
 
 @pytest.mark.parametrize(("first", "second"), [(StopMode.ABORT, StopMode.ABORT),
-                                               (StopMode.HALT, StopMode.ABORT),
-                                               (StopMode.ESTOP, StopMode.HALT)])
+                                               (StopMode.HOLD, StopMode.ABORT),
+                                               (StopMode.ESTOP, StopMode.HOLD)])
 def test_a_second_request_other_than_estop_is_refused(first, second):
     e = Ending()
     e.on_request(first, 1.0)
-    phase = e.phase
+    state = e.state
     assert e.on_request(second, 2.0) == f"already stopping ({first.value} in progress)"
-    assert (e.phase, e.mode, e.since_t) == (phase, first, 1.0)
+    assert (e.state, e.mode, e.since_t) == (state, first, 1.0)
 
 
 def test_a_hold_during_an_abort_cuts_the_return_short():
@@ -96,13 +97,13 @@ def test_a_hold_during_an_abort_cuts_the_return_short():
     was told the slider held when it went on returning."""
     e = Ending()
     e.on_request(StopMode.ABORT, 1.0)
-    assert e.on_request(StopMode.HALT, 2.0) is None
+    assert e.on_request(StopMode.HOLD, 2.0) is None
     stopped(e, 2.0)
-    assert (e.phase, e.mode, e.since_t) == (Phase.STOPPING, StopMode.HALT, 2.0)
+    assert (e.state, e.mode, e.since_t) == (EndingState.STOPPING, StopMode.HOLD, 2.0)
     assert e.result(2.5, SETTLE_S, protocol_done=False) == ("stopped", None)
 
 
-@pytest.mark.parametrize("mode", [None, StopMode.HALT, StopMode.ABORT])
+@pytest.mark.parametrize("mode", [None, StopMode.HOLD, StopMode.ABORT])
 def test_an_unconfirmed_stop_becomes_a_fault(mode):
     e = Ending()
     if mode is not None:
@@ -118,7 +119,7 @@ def test_an_unconfirmed_stop_becomes_a_fault(mode):
     assert resent == [8, 16, 24, 32, 40, 48, 56, 64]  # every 1/8 s while the drive still moves
     kind, why = actions[-1]
     assert kind == "gave_up" and why.startswith("STOP not confirmed by the drive within 1 s (8 re-sends)")
-    assert (e.phase, e.fault.kind, e.since_t) == (Phase.FAULTED, "stop_unconfirmed", 1.0 + 65 / 64)
+    assert (e.state, e.fault.kind, e.since_t) == (EndingState.FAULTED, "stop_unconfirmed", 1.0 + 65 / 64)
     assert e.result(2.6, SETTLE_S, protocol_done=True) == ("fault", why)
 
 
@@ -133,7 +134,7 @@ def test_an_unconfirmed_stop_after_a_fault_is_added_to_its_message():
 
 def test_stopping_waits_for_the_drive_to_confirm():
     e = Ending()
-    e.on_request(StopMode.HALT, 1.0)
+    e.on_request(StopMode.HOLD, 1.0)
     e.on_stop_sent(1.0)
     assert e.on_status(1.05, None, CONFIRM_S, RESEND_S) is None  # no fresh status: nothing known
     assert e.result(1.9, SETTLE_S, protocol_done=True) is None  # settle time over, STOP unconfirmed
@@ -150,4 +151,52 @@ def test_a_new_move_releases_the_stop():
     e.on_move()
     assert e.stop is None
     assert e.on_status(5.0, True, CONFIRM_S, RESEND_S) is None
-    assert e.phase is Phase.RUNNING and e.result(5.0, SETTLE_S, protocol_done=True) == ("completed", None)
+    assert e.state is EndingState.RUNNING and e.result(5.0, SETTLE_S, protocol_done=True) == ("completed", None)
+
+
+def _documented_table() -> dict:
+    """The transition table as the module's docstring shows it, read line by line."""
+    import rig.control.stopping as stopping
+
+    lines = stopping.__doc__.splitlines()
+    head = next(i for i, line in enumerate(lines) if line.split() == ["from", "request", "to"])
+    table = {}
+    for line in lines[head + 1:]:
+        if not line.strip():
+            break
+        state, rest = line.split(maxsplit=1)
+        words, to = rest.split("    ", 1)
+        to = to.strip().split("  ")[0].strip()
+        for word in words.split(","):
+            table[EndingState[state], StopMode(word.strip())] = (
+                to.removeprefix("refused: ") if to.startswith("refused") else EndingState[to])
+    return table
+
+
+def test_the_code_consults_the_table_the_docstring_shows():
+    assert _documented_table() == TRANSITIONS
+    # every state meets every request in it: nothing is left to an `if` elsewhere
+    assert set(TRANSITIONS) == {(s, m) for s in EndingState for m in StopMode}
+
+
+@pytest.mark.parametrize(("state", "mode"), sorted(TRANSITIONS, key=str))
+def test_every_transition_in_the_table_is_what_the_machine_does(state, mode):
+    e = Ending()
+    if state is EndingState.FAULTED:
+        e.on_fault(Fault("force_limit", "force above the limit"), 1.0)
+    elif state is not EndingState.RUNNING:
+        e.on_request(StopMode.ABORT if state is EndingState.RETURNING else StopMode.HOLD, 1.0)
+    assert e.state is state
+    refused = e.on_request(mode, 2.0)
+    to = TRANSITIONS[state, mode]
+    if isinstance(to, EndingState):
+        assert refused is None and e.state is to and e.mode is mode and e.since_t == 2.0
+    else:
+        assert refused.startswith(to) and e.state is state and e.since_t == 1.0
+
+
+def test_a_word_from_the_socket_is_its_member_and_names_its_outcome():
+    assert StopMode("hold") is StopMode.HOLD and StopMode.HOLD == "hold"
+    assert [m.outcome for m in StopMode] == ["estopped", "stopped", "aborted"]
+    with pytest.raises(ValueError):
+        StopMode("halt")  # one word for staying in place: "hold"

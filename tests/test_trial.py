@@ -9,7 +9,7 @@ import pytest
 
 from rig.clock import VirtualClock
 from rig.control.devices import open_devices
-from rig.control.stopping import StopMode
+from rig.control.states import StopMode
 from rig.control.trial import Trial
 from rig.recording.logs import read_log
 from rig.specs.config import RigConfig
@@ -126,7 +126,7 @@ def test_abort_stops_then_returns_to_start(tmp_path):
 
 
 def test_hold_stop_stays_put(tmp_path):
-    result, _dev = _trial_with_stop(tmp_path, StopMode.HALT, 2.5)
+    result, _dev = _trial_with_stop(tmp_path, StopMode.HOLD, 2.5)
     assert result.outcome == "stopped"
     pos = read_log(result.log_path).samples["position_mm"]
     assert pos[-1] > 3.0 and np.ptp(pos[-20:]) <= 0.01

@@ -113,24 +113,21 @@ def measure(config: RigConfig, masses_g: list[float], seconds: float,
         raise RigError("rig calibrate: loadcell.backend is none: there is no load cell to calibrate")
     if not seconds > 0:
         raise RigError(f"rig calibrate: --seconds must be positive, got {seconds:g}")
-    dev = open_devices(config, RealClock(), speed=1.0)
     points = []
-    try:
-        for m in masses_g:
-            confirm(m)
-            if _place(dev, m):
-                say(f"(simulated rig: the simulator placed {m:g} g)")
-            time.sleep(SETTLE_S)
-            mean, n, std = measure_zero(dev.loadcell, seconds)
-            if mean > config.loadcell.max_abs_N * 0.999:
-                raise RigError(f"{m:g} g reads {mean:g} N, at the cell's range: use lighter masses")
-            points.append((m, mean, std, n))
-            say(f"{m:>10g} g  {mean:+.5f} N  (std {std:.5f} N, {n} readings)")
-    finally:
+    with open_devices(config, RealClock(), speed=1.0) as dev:
         try:
-            _place(dev, 0.0)
+            for m in masses_g:
+                confirm(m)
+                if _place(dev, m):
+                    say(f"(simulated rig: the simulator placed {m:g} g)")
+                time.sleep(SETTLE_S)
+                mean, n, std = measure_zero(dev.loadcell, seconds)
+                if mean > config.loadcell.max_abs_N * 0.999:
+                    raise RigError(f"{m:g} g reads {mean:g} N, at the cell's range: use lighter masses")
+                points.append((m, mean, std, n))
+                say(f"{m:>10g} g  {mean:+.5f} N  (std {std:.5f} N, {n} readings)")
         finally:
-            dev.close()
+            _place(dev, 0.0)
     return points
 
 

@@ -22,7 +22,9 @@ from rig.specs.config import RigConfig
 class Devices:
     """The slider and load cell a trial runs on, opened from the config, with what stops the
     drive if this controller dies (``backstop``), the warnings every start repeats, and the
-    simulator or wire spy behind them if any. `close` releases all of them, best effort."""
+    simulator or wire spy behind them if any. `close` releases all of them, best effort; as a
+    context manager (``with open_devices(...) as dev:``) they are released however the block
+    ends."""
 
     slider: Slider
     loadcell: LoadCell | None  # None: no load cell (loadcell.backend: none)
@@ -34,6 +36,12 @@ class Devices:
     backstop: str = ""
     warnings: list[str] = field(default_factory=list)
     spy: object | None = None  # the WireSpy writing every frame and line (--spy)
+
+    def __enter__(self) -> Devices:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     def close(self) -> None:
         for dev in (self.slider, self.loadcell):
@@ -47,10 +55,19 @@ class Devices:
             self.spy.close()
 
 
+# The backends a config may name, and what opens each: a slider on a bus by its Modbus transport,
+# a load cell on a serial line. "sim" names the simulated rig, which provides both devices at once
+# (in-process, or on the wire at speed 1); a load cell may be "none". `specs.config` lists the same
+# names as the choices it accepts (tests/test_driver_contract.py holds them equal).
+SLIDERS = {"modbus-rtu": "rtu", "modbus-tcp": "tcp"}
+LOADCELLS = {"serial": "an ASCII load cell on a serial line"}
+SIMULATED, NO_LOADCELL = "sim", "none"
+
+
 def uses_wire(config: RigConfig, speed: float) -> bool:
     """Whether a trial at `speed` talks to its devices over real lines (a real rig; the simulated
     one on Modbus and serial lines at speed 1 unless `sim.wire` is none)."""
-    if config.slider.backend != "sim":
+    if config.slider.backend != SIMULATED:
         return True
     return speed == 1.0 and config.sim.wire != "none"
 
@@ -64,26 +81,26 @@ def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0,
     holder); `holder_note` tells a second user how to reach this one instead (a daemon's socket).
     """
     sb, lb = config.slider.backend, config.loadcell.backend
-    if (sb == "sim") != (lb == "sim") and lb != "none":
+    if (sb == SIMULATED) != (lb == SIMULATED) and lb != NO_LOADCELL:
         raise RigError(f"slider backend '{sb}' and load-cell backend '{lb}': the simulated rig "
                        "provides both devices, so use 'sim' for both or for neither")
     if spy_path and not uses_wire(config, speed):
         raise RigError("--spy needs devices on a wire: a real rig, or the simulated rig at --speed 1 "
                        "with sim.wire rtu or tcp")
-    if sb == "sim" and not uses_wire(config, speed):
+    if sb == SIMULATED and not uses_wire(config, speed):
         from rig.sim.inprocess import InProcessLoadCell, InProcessSlider
         from rig.sim.physics import SimRig
 
         sim = SimRig(config.sim)
         origin = clock.now()
-        cell = InProcessLoadCell(sim, clock, origin) if lb != "none" else None
+        cell = InProcessLoadCell(sim, clock, origin) if lb != NO_LOADCELL else None
         if cell is not None:
             cell.max_abs_N = config.loadcell.max_abs_N
         return Devices(InProcessSlider(sim, clock, origin), cell, sim,
                        description="simulated rig, in-process", backstop="in-process: none needed")
     sim_proc = None
     cfg = config
-    if sb == "sim":
+    if sb == SIMULATED:
         from rig.sim.process import SimProcess
 
         sim_proc = SimProcess(config.text())
@@ -94,7 +111,8 @@ def open_devices(config: RigConfig, clock: Clock, *, speed: float = 0.0,
             spy = open_spy(spy_path, cfg)
         slider, backstop, warnings = open_slider(cfg, clock, tap=spy, holder_note=holder_note)
         try:
-            loadcell = open_loadcell(cfg, clock, tap=spy, holder_note=holder_note) if lb != "none" else None
+            loadcell = (open_loadcell(cfg, clock, tap=spy, holder_note=holder_note) if lb != NO_LOADCELL
+                        else None)
         except BaseException:
             slider.close()
             raise
@@ -143,7 +161,7 @@ def wire_config(config: RigConfig, endpoints: dict) -> RigConfig:
     s.steps_per_mm = config.sim.slider.steps_per_mm
     s.device_id = config.sim.drive.device_id
     lc = cfg.loadcell
-    if lc.backend != "none":
+    if lc.backend != NO_LOADCELL:
         lc.backend, lc.port, lc.mode = "serial", endpoints["loadcell"], config.sim.loadcell.mode
     return cfg
 
@@ -156,12 +174,24 @@ def slider_lock_key(config: RigConfig) -> tuple[str, str]:
     return f"the slider on {s.port}", serial_key(s.port)
 
 
+def slider_link(config: RigConfig, timeout_s: float | None = None):
+    """The `ModbusLink` the config's slider backend names (`timeout_s` overrides its timeout)."""
+    from rig.drivers.modbus_slider import ModbusLink
+
+    s = config.slider
+    if s.backend not in SLIDERS:
+        raise RigError(f"slider.backend '{s.backend}' is not on a bus (known: {', '.join(SLIDERS)})")
+    return ModbusLink(SLIDERS[s.backend], port=s.port, baudrate=s.baudrate, parity=s.parity,
+                      stopbits=s.stopbits, host=s.host, tcp_port=s.tcp_port, device_id=s.device_id,
+                      timeout_s=timeout_s or s.timeout_s, retries=s.retries)
+
+
 def make_slider(config: RigConfig, clock: Clock | None = None, *, tap=None, timeout_s: float | None = None,
                 max_consecutive_errors: int | None = None, holder_note: str = ""):
     """The slider driver with its link open, nothing written yet (`DeviceError` if the port
     cannot be opened, `DeviceInUse` naming the process that owns the drive). `timeout_s`
     overrides the config's per-transaction timeout. Its close() releases the drive."""
-    from rig.drivers.modbus_slider import ModbusLink, ModbusSlider, open_client
+    from rig.drivers.modbus_slider import ModbusSlider, open_client
     from rig.drivers.registers import PROFILES
 
     s = config.slider
@@ -171,9 +201,7 @@ def make_slider(config: RigConfig, clock: Clock | None = None, *, tap=None, time
         regs = PROFILES[s.profile].with_overrides(s.registers)
     except ValueError as exc:
         raise RigError(f"slider.registers: {exc}") from None
-    link = ModbusLink("tcp" if s.backend == "modbus-tcp" else "rtu", port=s.port, baudrate=s.baudrate,
-                      parity=s.parity, stopbits=s.stopbits, host=s.host, tcp_port=s.tcp_port,
-                      device_id=s.device_id, timeout_s=timeout_s or s.timeout_s, retries=s.retries)
+    link = slider_link(config, timeout_s)
     if link.transport == "rtu" and not s.port:
         raise RigError("slider.port is empty: name the serial device of the drive")
     # The lock before the port: a second master must not put a byte on the bus or the link.

@@ -25,8 +25,7 @@ def _open(config: RigConfig) -> Devices:
 
 
 def position(config: RigConfig) -> dict:
-    dev = _open(config)
-    try:
+    with _open(config) as dev:
         pos = dev.slider.read_position_mm()
         status = dev.slider.read_status()
         cell = dev.loadcell
@@ -38,21 +37,16 @@ def position(config: RigConfig) -> dict:
         return {"position_mm": pos, "moving": status.moving, "ready": status.ready,
                 "alarm_code": status.alarm_code,
                 "force_N": reading.force_N if reading else None, "devices": dev.description}
-    finally:
-        dev.close()
 
 
 def move(config: RigConfig, to_mm: float, speed_mm_s: float, *, home: bool = False,
          out=sys.stderr) -> dict:
     """Move (or home) under the same limit check and deadline as a trial's moves."""
     _check_target(config, to_mm, speed_mm_s, home)
-    dev = _open(config)
-    try:
+    with _open(config) as dev:
         for w in dev.warnings:
             print(w, file=out, flush=True)
         return move_on(dev, config, to_mm, speed_mm_s, home=home, out=out)
-    finally:
-        dev.close()
 
 
 def _check_target(config: RigConfig, to_mm: float, speed_mm_s: float, home: bool) -> tuple[float, float]:
@@ -143,13 +137,10 @@ def _stop_after(slider, exc: BaseException) -> None:
 
 def reset_alarm(config: RigConfig) -> dict:
     """Clear the drive's alarm (its cause must be gone); the alarm code before and after."""
-    dev = _open(config)
-    try:
+    with _open(config) as dev:
         before = dev.slider.status().value.alarm_code
         dev.slider.reset_alarm()
         after = dev.slider.status().value.alarm_code
-    finally:
-        dev.close()
     if after:
         raise DeviceError(f"the drive still reports alarm 0x{after:02X} after the reset: its cause is "
                           "still there")

@@ -1,14 +1,19 @@
 """How a trial ends: the loop's stop and fault handling as one state machine.
 
-    RUNNING   --fault-->                 FAULTED
-    RUNNING   --abort-->                 RETURNING   (back to the start at a safe speed)
-    RUNNING   --estop | halt-->          STOPPING
-    RETURNING --estop | halt-->          STOPPING    (either cuts a return short: stop and stay)
-    RETURNING | STOPPING --fault-->      FAULTED
-    any       --STOP unconfirmed-->      FAULTED     (the drive's comm timeout is the backstop)
-    FAULTED   --any request-->           refused: already stopped by a fault
-    RETURNING --abort-->                 refused: already returning
-    STOPPING  --abort | halt-->          refused: already stopping
+The operator's requests move it by this table (`TRANSITIONS`, which the code consults and
+tests/test_stopping.py holds to these lines):
+
+    from        request        to
+    RUNNING     estop, hold    STOPPING
+    RUNNING     abort          RETURNING   (back to the start at a safe speed)
+    RETURNING   estop, hold    STOPPING    (either cuts a return short: stop and stay)
+    RETURNING   abort          refused: already stopping
+    STOPPING    estop          STOPPING    (an estop overrides a hold)
+    STOPPING    hold, abort    refused: already stopping
+    FAULTED     estop, hold, abort    refused: already stopped by a fault
+
+A fault takes RUNNING, RETURNING or STOPPING to FAULTED, and so does a STOP that the drive
+does not confirm (its communication timeout is then the backstop).
 
 A refused request is answered as refused, with the reason: the operator is never told that
 something was done that was not.
@@ -20,31 +25,22 @@ protocol (or the return) is done. The loop does the sending and the logging; thi
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass
 
 from rig.control.safety import Fault
+from rig.control.states import EndingState, Outcome, StopMode
 
+_R, _T, _S, _F = EndingState.RUNNING, EndingState.RETURNING, EndingState.STOPPING, EndingState.FAULTED
+ALREADY_STOPPING = "already stopping"
+BY_A_FAULT = "already stopped by a fault"
 
-class StopMode(enum.Enum):
-    """What the operator asks for; the values are the words of the socket API and the CLI."""
-
-    ESTOP = "estop"  # stop the motor now, nothing else
-    HALT = "hold"  # stop and stay where it is
-    ABORT = "abort"  # stop, then return to the start position at a safe speed
-
-
-class Phase(enum.Enum):
-    """Where a trial's ending stands: running its protocol, returning to the start (an abort),
-    stopping where it is (a hold or an estop), or stopped by a fault."""
-
-    RUNNING = "running"
-    RETURNING = "returning"
-    STOPPING = "stopping"
-    FAULTED = "faulted"
-
-
-OUTCOMES = {StopMode.ESTOP: "estopped", StopMode.HALT: "stopped", StopMode.ABORT: "aborted"}
+# (state, request) -> the next state, or the reason the request is refused
+TRANSITIONS: dict[tuple[EndingState, StopMode], EndingState | str] = {
+    (_R, StopMode.ESTOP): _S, (_R, StopMode.HOLD): _S, (_R, StopMode.ABORT): _T,
+    (_T, StopMode.ESTOP): _S, (_T, StopMode.HOLD): _S, (_T, StopMode.ABORT): ALREADY_STOPPING,
+    (_S, StopMode.ESTOP): _S, (_S, StopMode.HOLD): ALREADY_STOPPING, (_S, StopMode.ABORT): ALREADY_STOPPING,
+    **{(_F, mode): BY_A_FAULT for mode in StopMode},
+}
 
 
 @dataclass
@@ -64,7 +60,7 @@ class StopSent:
 
 @dataclass
 class Ending:
-    """How a trial ends, as a small state machine: ``phase`` (running, stopping, returning,
+    """How a trial ends, as a small state machine: ``state`` (running, stopping, returning,
     faulted), the operator's ``mode`` (hold, abort, estop) or the ``fault`` that ended it,
     ``since_t`` (when: the settle time counts from there) and the STOP standing (``stop``).
 
@@ -74,30 +70,27 @@ class Ending:
     operator is told.
     """
 
-    phase: Phase = Phase.RUNNING
+    state: EndingState = EndingState.RUNNING
     mode: StopMode | None = None
     fault: Fault | None = None
     since_t: float = 0.0  # when the request or the fault came: the settle time counts from here
     stop: StopSent | None = None  # the STOP standing, if any
 
     @property
-    def outcome(self) -> str:
-        if self.phase is Phase.FAULTED:
-            return "fault"
-        return OUTCOMES[self.mode] if self.mode is not None else "completed"
+    def outcome(self) -> Outcome:
+        if self.state is EndingState.FAULTED:
+            return Outcome.FAULT
+        return self.mode.outcome if self.mode is not None else Outcome.COMPLETED
 
     def on_fault(self, found: Fault, t: float) -> None:
-        self.phase, self.fault, self.since_t = Phase.FAULTED, found, t
+        self.state, self.fault, self.since_t = EndingState.FAULTED, found, t
 
     def on_request(self, mode: StopMode, t: float) -> str | None:
-        """Take an operator's request; the reason when it is refused."""
-        if self.phase is Phase.FAULTED:
-            return f"already stopped by a fault: {self.fault.message}"
-        cuts_return = self.phase is Phase.RETURNING and mode is StopMode.HALT
-        if self.mode is not None and mode is not StopMode.ESTOP and not cuts_return:
-            return f"already stopping ({self.mode.value} in progress)"
-        self.mode, self.since_t = mode, t
-        self.phase = Phase.RETURNING if mode is StopMode.ABORT else Phase.STOPPING
+        """Take an operator's request by `TRANSITIONS`; the reason when it is refused."""
+        to = TRANSITIONS[self.state, mode]
+        if not isinstance(to, EndingState):  # refused: say why
+            return f"{to}: {self.fault.message}" if to == BY_A_FAULT else f"{to} ({self.mode} in progress)"
+        self.mode, self.since_t, self.state = mode, t, to
         return None
 
     def on_stop_sent(self, t: float) -> None:
@@ -132,9 +125,9 @@ class Ending:
             return "resend", ""
         return None
 
-    def result(self, t: float, settle_s: float, protocol_done: bool) -> tuple[str, str | None] | None:
+    def result(self, t: float, settle_s: float, protocol_done: bool) -> tuple[Outcome, str | None] | None:
         """(outcome, fault message) once the trial is over, else None."""
-        if self.phase in (Phase.FAULTED, Phase.STOPPING):
+        if self.state in (EndingState.FAULTED, EndingState.STOPPING):
             settled = self.stop is None or self.stop.settled
             if t - self.since_t >= settle_s and settled:
                 return self.outcome, self.fault.message if self.fault else None

@@ -43,9 +43,10 @@ from rig.control.movewatch import MoveWatch
 from rig.control.safety import Fault, SpeedMeter, TickState, check, check_move
 from rig.control.sensorwatch import CellNoise, CellWatch, Contact, MotionAnswer, answer_limit_mm
 from rig.control.sequencer import Move, Sequencer, Stop, Track
-from rig.control.stopping import Ending, StopMode
+from rig.control.states import Lifecycle, Outcome, StopMode, TrialState
+from rig.control.stopping import Ending
 from rig.control.zero import Zero, known_zero
-from rig.drivers.base import LinkStats, LoadCell, Slider, SliderStatus
+from rig.drivers.base import ForceReading, LinkStats, LoadCell, Reading, Slider, SliderStatus
 from rig.errors import DeviceError, RigError
 from rig.models.online import OnlineModel
 from rig.models.saved import SavedModel
@@ -75,7 +76,7 @@ FORCE_MOVE_TICKS = 2
 class Snapshot:
     """What a watcher sees; replaced (not mutated) every tick, so reading it needs no lock."""
 
-    state: str = "idle"  # idle, running, stopping, done, fault, aborted
+    state: TrialState = TrialState.IDLE
     t_s: float = 0.0
     step: int = -1
     step_kind: str = "tare"
@@ -114,7 +115,7 @@ class TrialResult:
     period errors) and the bus's transactions and errors; ``notices``: what the operator should
     know of a trial that completed."""
 
-    outcome: str  # completed, fault, aborted, stopped, estopped
+    outcome: Outcome
     log_path: Path
     samples: int
     late_ticks: int
@@ -131,15 +132,15 @@ class TrialResult:
 class _Loop:
     """What a trial's loop carries from one tick to the next."""
 
-    t0: float
-    seq: Sequencer
+    t0_s: float
+    sequencer: Sequencer
     ending: Ending
     speedometer: SpeedMeter
     force_loop: ForceLoop
     taring: bool
     zero_N: float | None
-    next_health: float
-    return_speed: float
+    next_health_s: float
+    return_speed_mm_s: float
     status: SliderStatus = field(default_factory=lambda: SliderStatus(True, False, True, False))
     watch: MoveWatch | None = None
     slot: int = 0
@@ -177,23 +178,23 @@ class _Loop:
 
 @dataclass
 class _Tick:
-    """One tick's readings, as `_read` took them."""
+    """One tick's readings, as `_read` took them. Times are the clock's, in seconds."""
 
-    now: float
-    t: float
-    t_log: float
-    lateness: float
-    reading: object
-    pr: object
-    pos: float
-    x_rel_mm: float
-    force_model: float | None
-    moving: bool | None
-    speed: float | None
-    raw: float
-    age: float | None
-    force: float
-    checked: float
+    now_s: float  # the clock when the tick woke
+    t_s: float  # since the first tick's slot (the log's t_s)
+    t_log_s: float  # t_s as logged (to the microsecond)
+    lateness_s: float  # how late the tick woke against its slot
+    reading: ForceReading | None  # the load cell's newest reading (None: none yet, or no cell)
+    position: Reading[float]  # the slider's position read, with its freshness
+    position_mm: float  # its value
+    x_rel_mm: float  # from the trial's zero as it stood at the tick's start
+    force_model_N: float | None  # the loaded model's force, when one runs in the loop
+    moving: bool | None  # the drive's "moving", from a fresh status read this tick (None: none)
+    speed_mm_s: float | None  # from fresh positions (`SpeedMeter`)
+    raw_N: float  # the load cell's force as read (or the model's, without a cell)
+    age_s: float | None  # the reading's age
+    force_N: float  # from the tare: what is logged and sequenced
+    checked_N: float  # what the limits see: from the free-air zero, preload included
     status_read: bool = False  # status and alarm were read on this tick (fresh or not)
     new_reading: bool = False  # the load cell's reading is one not seen on an earlier tick
 
@@ -256,10 +257,10 @@ class Trial:
         self._stop_request: tuple[StopMode, str, float, StopTicket] | None = None
         self._tickets: list[StopTicket] = []
         self._lock = threading.Lock()
-        # starting -> running -> closing -> ended. While running, the loop thread owns the bus
-        # and carries out stops on its next tick; at any other time a stop goes out at once from
-        # the requesting thread, under this lock (the trial thread holds it for its own bus use).
-        self._phase = "starting"
+        # While RUNNING, the loop thread owns the bus and carries out stops on its next tick; at
+        # any other time a stop goes out at once from the requesting thread, under this lock (the
+        # trial thread holds it for its own bus use).
+        self._lifecycle = Lifecycle.STARTING
         self._bus_lock = threading.Lock()
         # Set by a signal handler (plain assignment, no lock): the loop turns it into a request.
         self.signal_stop: StopMode | None = None
@@ -298,7 +299,7 @@ class Trial:
         self.warnings += self.calibration_warnings
         cal = config.calibration if loadcell is not None else None
         self._cal_max_N = cal.range_N[1] if cal is not None and cal.range_N[1] > 0 else math.inf
-        self._seq = self._late = self._missed = 0
+        self._samples = self._late = self._missed = 0
         self._tick_times: list[float] = []
         self._t0: float | None = None
 
@@ -318,15 +319,15 @@ class Trial:
         ticket = StopTicket(mode)
         received = received_s if received_s is not None else time.monotonic()
         with self._lock:
-            phase = self._phase
-            if phase == "ended":
+            lifecycle = self._lifecycle
+            if lifecycle is Lifecycle.ENDED:
                 ticket.trial_over = True
                 ticket.settle(False, "the trial has ended")
                 return ticket
             self._tickets.append(ticket)
             if self._stop_request is None or mode == StopMode.ESTOP:
                 self._stop_request = (mode, user, received, ticket)
-        if phase != "running":
+        if lifecycle is not Lifecycle.RUNNING:
             self._stop_now(received)
         return ticket
 
@@ -336,9 +337,9 @@ class Trial:
         return self._t0
 
     @property
-    def phase(self) -> str:
-        """starting, running, closing or ended."""
-        return self._phase
+    def lifecycle(self) -> Lifecycle:
+        """Starting, running (the loop owns the bus), closing its log, or ended."""
+        return self._lifecycle
 
     def _stop_now(self, received: float, timeout_s: float = 1.0) -> None:
         """Send STOP from this thread while the loop is not running, and settle every waiting
@@ -347,18 +348,19 @@ class Trial:
         while True:
             if self._bus_lock.acquire(timeout=0.005):
                 try:  # holding the bus lock, the loop cannot be running
-                    phase = self._phase
+                    lifecycle = self._lifecycle
                     ok = self._safe_stop()
                 finally:
                     self._bus_lock.release()
                 latency_ms = round((time.monotonic() - received) * 1000.0, 3)
-                when = "before its first tick" if phase == "starting" else "while it closed its log"
+                when = ("before its first tick" if lifecycle is Lifecycle.STARTING
+                        else "while it closed its log")
                 self._settle_tickets(ok, f"STOP sent in {latency_ms:g} ms ({when}), acknowledged by the drive"
                                      if ok else f"STOP sent ({when}) but not acknowledged by the drive (the "
                                      "drive's communication timeout is the backstop)")
                 return
             with self._lock:
-                if self._phase == "running":
+                if self._lifecycle is Lifecycle.RUNNING:
                     return  # the loop took the bus: it carries the request out on its next tick
             if time.monotonic() > deadline:
                 self._settle_tickets(False, f"STOP not sent: the bus stayed busy for {timeout_s:g} s")
@@ -384,7 +386,7 @@ class Trial:
         finally:
             self.log_named.set()
             with self._lock:  # the caller may hand the devices to others now: no more bus use here
-                self._phase = "ended"
+                self._lifecycle = Lifecycle.ENDED
 
     def _run(self) -> TrialResult:
         cfg = self.config
@@ -425,16 +427,16 @@ class Trial:
         if self.loadcell is not None:
             self._prime_loadcell()
         t0 = self._t0 = self.clock.now()
-        outcome, fault_msg = "completed", None
+        outcome, fault_msg = Outcome.COMPLETED, None
         self._bus_lock.acquire()
         with self._lock:
-            self._phase = "running"
+            self._lifecycle = Lifecycle.RUNNING
         try:
             outcome, fault_msg = self._loop(rec, t0)
         except BaseException as exc:  # a bug or a lost device: stop first, then record it
             self._safe_stop()
-            outcome, fault_msg = "fault", f"{type(exc).__name__}: {exc}" if not isinstance(exc, RigError) \
-                else str(exc)
+            outcome = Outcome.FAULT
+            fault_msg = str(exc) if isinstance(exc, RigError) else f"{type(exc).__name__}: {exc}"
             self._event(rec, self.clock.now() - t0, "fault", fault_msg, {"kind": "exception"})
             if not isinstance(exc, Exception):
                 raise
@@ -443,11 +445,11 @@ class Trial:
             if rt is not None:
                 rt.leave()
             t_end = self.clock.now() - t0
-            if rec.failure and outcome != "fault":
-                outcome, fault_msg = "fault", rec.failure
+            if rec.failure and outcome is not Outcome.FAULT:
+                outcome, fault_msg = Outcome.FAULT, rec.failure
             self._event(rec, t_end, "trial_end", f"trial {outcome}",
-                        {"outcome": outcome, "samples": self._seq})
-            rec.close({"outcome": outcome, "samples": str(self._seq),
+                        {"outcome": outcome, "samples": self._samples})
+            rec.close({"outcome": outcome, "samples": str(self._samples),
                        "late_ticks": str(self._late), "missed_ticks": str(self._missed),
                        "duration_s": f"{t_end:.3f}", "fault": fault_msg or "",
                        "end_time": datetime.now(UTC).isoformat()}, timeout_s=self.close_timeout_s)
@@ -455,17 +457,17 @@ class Trial:
                 fault_msg = f"{fault_msg}; {rec.failure}"
             if rec.unfinished:
                 fault_msg = f"{fault_msg}; {rec.unfinished}" if fault_msg else rec.unfinished
-                outcome = "fault"
+                outcome = Outcome.FAULT
             if rec.error is not None:
                 fault_msg = (fault_msg or rec.failure) + (
                     f"; the log holds what was flushed before the failure ({rec.flushed_messages} "
                     "messages); `rig replay` reads it")
-                outcome = "fault"
-            self.snapshot = replace(self.snapshot, state=outcome if outcome != "completed" else "done",
+                outcome = Outcome.FAULT
+            self.snapshot = replace(self.snapshot, state=TrialState.ended(outcome),
                                      fault=fault_msg or "")
             gc.unfreeze()
         periods = np.diff(np.asarray(self._tick_times)) if len(self._tick_times) > 1 else np.zeros(0)
-        return TrialResult(outcome, self.log_path, self._seq, self._late, self._missed,
+        return TrialResult(outcome, self.log_path, self._samples, self._late, self._missed,
                            self.clock.now() - t0, fault_msg,
                            np.abs(periods - self.period) * 1000.0,
                            self.slider.stats.transactions, list(self.notices),
@@ -474,7 +476,7 @@ class Trial:
     def _leave_loop(self) -> None:
         """From now on stops go out at once; one that came after the loop's last tick goes now."""
         with self._lock:
-            self._phase = "closing"
+            self._lifecycle = Lifecycle.CLOSING
             waiting = any(not t.done.is_set() for t in self._tickets)
             req = self._stop_request
         self._bus_lock.release()
@@ -545,25 +547,25 @@ class Trial:
         (a fault stops the slider before anything else), operator (stop requests), confirm (a
         STOP stands until the drive says it stands still), command (the step's controller),
         estimate, record; then whether the trial has ended."""
-        L = self._start_loop(rec, t0)
+        loop = self._start_loop(rec, t0)
         while True:
-            k = self._read(L)
-            self._check(rec, L, k)
-            self._operator(rec, L, k)
-            self._confirm(rec, L, k)
-            self._command(rec, L, k)
-            est = self._estimate(L, k)
-            self._record(rec, L, k, est)
-            done = L.ending.result(k.t, self.post_fault_s, L.seq.done and L.watch is None)
+            tick = self._read(loop)
+            self._check(rec, loop, tick)
+            self._operator(rec, loop, tick)
+            self._confirm(rec, loop, tick)
+            self._command(rec, loop, tick)
+            est = self._estimate(loop, tick)
+            self._record(rec, loop, tick, est)
+            done = loop.ending.result(tick.t_s, self.post_fault_s, loop.sequencer.done and loop.watch is None)
             if done is not None:
-                if L.contact is not None:
-                    self.end_place = EndPlace(k.pos, L.contact.surface_mm, L.in_contact,
-                                              k.checked)
+                if loop.contact is not None:
+                    self.end_place = EndPlace(tick.position_mm, loop.contact.surface_mm, loop.in_contact,
+                                              tick.checked_N)
                 return done
 
     def _start_loop(self, rec: Recorder, t0: float) -> _Loop:
         cfg = self.config
-        self._seq = self._late = self._missed = 0
+        self._samples = self._late = self._missed = 0
         self._tick_times = []
         self._last_age: float | None = None
         seq = Sequencer(self.proto, start_mm=self._start_mm, accel_mm_s2=cfg.slider.accel_mm_s2,
@@ -574,40 +576,40 @@ class Trial:
                      "steps": len(seq.steps)})
         if self.online is not None:
             self.online.reset()
-        self.snapshot = replace(self.snapshot, state="running")
+        self.snapshot = replace(self.snapshot, state=TrialState.RUNNING)
         lim = self.limits
         span_m = max(lim.travel_mm[1] - lim.travel_mm[0], 1e-3) / 1000.0
         force_loop = ForceLoop(self.period, lim.max_speed_mm_s,
                                STIFFNESS_FLOOR_SHARE * lim.max_force_N / span_m,
                                min_lead_mm=3.0 / self.config.slider.steps_per_mm)
-        return _Loop(t0=t0, seq=seq, ending=Ending(), speedometer=SpeedMeter(2.0 * self.period),
+        return _Loop(t0_s=t0, sequencer=seq, ending=Ending(), speedometer=SpeedMeter(2.0 * self.period),
                      force_loop=force_loop,
                      taring=self.loadcell is not None,  # averaging the tare until tare_s, then judging it once
                      zero_N=self.zero.value_N if self.zero is not None else None,
-                     next_health=cfg.loop.health_every_s,
-                     return_speed=min(self.return_speed_mm_s, self.limits.max_speed_mm_s))
+                     next_health_s=cfg.loop.health_every_s,
+                     return_speed_mm_s=min(self.return_speed_mm_s, self.limits.max_speed_mm_s))
 
     # ------------------------------------------------------------- the tick's stages
-    def _read(self, L: _Loop) -> _Tick:
+    def _read(self, loop: _Loop) -> _Tick:
         """Wait for the slot, then measure: only fresh values feed the speed estimate and the
         move checks."""
         cfg, clock = self.config, self.clock
-        scheduled = L.t0 + L.slot * self.period
+        scheduled = loop.t0_s + loop.slot * self.period
         clock.sleep_until(scheduled)
         now = clock.now()
         lateness = now - scheduled
         skipped = slots_behind(lateness, self.period)
         if skipped:  # fell behind by whole periods: skip, and say so
             self._missed += skipped
-            L.slot += skipped
-            scheduled = L.t0 + L.slot * self.period
+            loop.slot += skipped
+            scheduled = loop.t0_s + loop.slot * self.period
             lateness = now - scheduled
         if lateness > cfg.loop.late_tolerance_ms / 1000.0:
             self._late += 1
-        L.slot += 1
-        t = now - L.t0
+        loop.slot += 1
+        t = now - loop.t0_s
         self._tick_times.append(now)
-        cell, seq, lim = self.loadcell, L.seq, self.limits
+        cell, seq, lim = self.loadcell, loop.sequencer, self.limits
         reading = cell.latest() if cell is not None else None
         pr = self.slider.position()
         pos = pr.value
@@ -616,127 +618,131 @@ class Trial:
         force_model = self.online.step(t_log, x_rel_mm / 1000.0) if self.online is not None else None
         status_fresh = status_read = False
         # A move's arrival needs a fresh "standing still": near its target, read it every tick.
-        watch, ending = L.watch, L.ending
+        watch, ending = loop.watch, loop.ending
         confirming = ((ending.stop is not None and not ending.stop.confirmed)
                       or (seq.done and watch is not None)
                       or (watch is not None and pr.fresh
                           and abs(pos - watch.to_mm) <= cfg.slider.position_tolerance_mm))
-        if confirming or self._status_due(L):
+        if confirming or self._status_due(loop):
             sr = self.slider.status()
-            L.status, status_fresh = sr.value, sr.fresh
+            loop.status, status_fresh = sr.value, sr.fresh
             status_read = True
             # after the first, reads fall half a status period off the ticks where timed steps start
             # (the tare's end, a hold's: whole tenths of a second): a move on a status tick is 13 ms
-            L.status_seq = self._seq - cfg.loop.status_every // 2 if self._seq == 0 else self._seq
-        moving = L.status.moving if status_fresh else None
-        speed = L.speedometer.update(pr)
+            n = self._samples
+            loop.status_seq = n - cfg.loop.status_every // 2 if n == 0 else n
+        moving = loop.status.moving if status_fresh else None
+        speed = loop.speedometer.update(pr)
         raw = reading.force_N if reading else 0.0
         age = reading.age_s if reading else None
-        new_reading = reading is not None and (L.last_reading_t is None or reading.t_s > L.last_reading_t)
+        new_reading = reading is not None and (loop.last_reading_t is None or reading.t_s > loop.last_reading_t)
         if new_reading:
-            L.last_reading_t = reading.t_s
+            loop.last_reading_t = reading.t_s
         if cell is None:  # no load cell: the model's estimate stands in, and is what is checked
             raw, age = force_model, 0.0
         self._last_age = age
-        if L.taring and reading is not None and not reading.over_range:
-            L.tare_sum += raw  # taring: zero the load cell on the mean of the first tare_s
-            L.tare_n += 1
-            L.tare_N = L.tare_sum / L.tare_n
+        if loop.taring and reading is not None and not reading.over_range:
+            loop.tare_sum += raw  # taring: zero the load cell on the mean of the first tare_s
+            loop.tare_n += 1
+            loop.tare_N = loop.tare_sum / loop.tare_n
             if new_reading:  # the cell's own noise, for the contact and frozen-cell checks
-                L.tare_values.append(raw)
-        force = raw - L.tare_N  # logged and sequenced relative to the tare, as analysis expects
+                loop.tare_values.append(raw)
+        force = raw - loop.tare_N  # logged and sequenced relative to the tare, as analysis expects
         if cell is None:
             checked = force * (1.0 + lim.model_force_margin)
-        elif L.zero_N is None:
+        elif loop.zero_N is None:
             checked = force
         else:  # the force the tissue carries, preload included (never less than the tared one)
-            checked = max(raw - L.zero_N, force)
-        if L.contact is not None:
-            L.in_contact = L.contact.update(force, pos)
-        return _Tick(now, t, t_log, lateness, reading, pr, pos, x_rel_mm, force_model, moving, speed, raw, age,
-                     force, checked, status_read, new_reading)
+            checked = max(raw - loop.zero_N, force)
+        if loop.contact is not None:
+            loop.in_contact = loop.contact.update(force, pos)
+        return _Tick(now_s=now, t_s=t, t_log_s=t_log, lateness_s=lateness, reading=reading, position=pr,
+                     position_mm=pos, x_rel_mm=x_rel_mm, force_model_N=force_model, moving=moving,
+                     speed_mm_s=speed, raw_N=raw, age_s=age, force_N=force, checked_N=checked,
+                     status_read=status_read, new_reading=new_reading)
 
-    def _status_due(self, L: _Loop) -> bool:
+    def _status_due(self, loop: _Loop) -> bool:
         """Status and alarm every `status_every` ticks; a tick on which the force loop's move is
         due reads them one tick later (never more; then the move waits a tick, `_track`), so no
         tick of a force step carries the position read, the status read and a move together: over
         RTU at 115200 baud with a 1 ms adapter that is 13 ms of a 10 ms tick."""
-        since = self._seq - L.status_seq
+        since = self._samples - loop.status_seq
         every = self.config.loop.status_every
-        move_due = L.force_step >= 0 and self._seq - L.sent_seq >= FORCE_MOVE_TICKS
+        move_due = loop.force_step >= 0 and self._samples - loop.sent_seq >= FORCE_MOVE_TICKS
         return since > every or (since == every and not move_due)
 
-    def _check(self, rec: Recorder, L: _Loop, k: _Tick) -> None:
+    def _check(self, rec: Recorder, loop: _Loop, tick: _Tick) -> None:
         """Safety first: on a fault, stop, then explain. The tare's preload is judged here,
         once, before the sequencer's first move, so a refused preload moves nothing."""
-        if L.ending.fault is not None:
+        if loop.ending.fault is not None:
             return
-        cfg, lim, seq = self.config, self.limits, L.seq
-        status = L.status
-        found = check(TickState(k.checked, k.pos, k.speed, k.age, status.alarm_code if status.alarm else 0,
-                                bool(k.reading and k.reading.over_range), k.raw,
-                                "measured" if self.loadcell is not None else "estimated", L.preload_N), lim)
-        if found is None and L.cell_watch is not None and k.new_reading:
-            why = L.cell_watch.update(k.reading.t_s, k.raw)
+        cfg, lim, seq = self.config, self.limits, loop.sequencer
+        status = loop.status
+        found = check(TickState(tick.checked_N, tick.position_mm, tick.speed_mm_s, tick.age_s,
+                                status.alarm_code if status.alarm else 0,
+                                bool(tick.reading and tick.reading.over_range), tick.raw_N,
+                                "measured" if self.loadcell is not None else "estimated", loop.preload_N), lim)
+        if found is None and loop.cell_watch is not None and tick.new_reading:
+            why = loop.cell_watch.update(tick.reading.t_s, tick.raw_N)
             if why is not None:
                 found = Fault("loadcell_frozen", why)
         if found is None and rec.failure:
             found = Fault("recording", rec.failure)
         if found is None and seq.fault:
             found = Fault("protocol", seq.fault)
-        if found is None and L.watch is not None:
-            why = L.watch.check(k.t, k.pos if k.pr.fresh else None, k.moving)
+        if found is None and loop.watch is not None:
+            why = loop.watch.check(tick.t_s, tick.position_mm if tick.position.fresh else None, tick.moving)
             if why is not None:
                 found = Fault("move", why)
-            elif k.pr.fresh and L.watch.arrived(k.pos, k.moving):
-                L.watch = None
-        tare_done = found is None and L.taring and k.t >= cfg.loop.tare_s
+            elif tick.position.fresh and loop.watch.arrived(tick.position_mm, tick.moving):
+                loop.watch = None
+        tare_done = found is None and loop.taring and tick.t_s >= cfg.loop.tare_s
         if tare_done:
-            L.taring = False
-            if L.zero_N is None:
-                self.zero = Zero(L.tare_N, assumed=True, source=f"the tare of trial "
+            loop.taring = False
+            if loop.zero_N is None:
+                self.zero = Zero(loop.tare_N, assumed=True, source=f"the tare of trial "
                                  f"'{self.proto.name}' ({self.log_path.name}), assumed out of contact")
-                L.zero_N = L.tare_N
-            L.preload_N = self.preload_N = L.tare_N - L.zero_N
-            self._cell_known(rec, L, k)
+                loop.zero_N = loop.tare_N
+            loop.preload_N = self.preload_N = loop.tare_N - loop.zero_N
+            self._cell_known(rec, loop, tick)
             max_pre = lim.max_preload_share * lim.max_force_N
-            if abs(L.preload_N) > max_pre:
+            if abs(loop.preload_N) > max_pre:
                 found = Fault("preload", (
-                    f"preload {L.preload_N:.3f} N at the start (tare {L.tare_N:.3f} N, free-air zero "
-                    f"{L.zero_N:.3f} N from {self.zero.source}) is beyond {lim.max_preload_share:g} of "
+                    f"preload {loop.preload_N:.3f} N at the start (tare {loop.tare_N:.3f} N, free-air zero "
+                    f"{loop.zero_N:.3f} N from {self.zero.source}) is beyond {lim.max_preload_share:g} of "
                     f"the force limit {lim.max_force_N:g} N (limits.max_preload_share): refused "
                     "before anything moved; retract the probe (or `rig tare` out of contact if "
                     "the zero is wrong)"))
         if found is not None:
-            self._fault(rec, L, found, k)
+            self._fault(rec, loop, found, tick)
         if tare_done:
-            self._tare_logged(rec, k.t, L.tare_N, L.tare_n, L.zero_N, L.preload_N)
+            self._tare_logged(rec, tick.t_s, loop.tare_N, loop.tare_n, loop.zero_N, loop.preload_N)
 
-    def _cell_known(self, rec: Recorder, L: _Loop, k: _Tick) -> None:
+    def _cell_known(self, rec: Recorder, loop: _Loop, tick: _Tick) -> None:
         """The tare is done: the cell's noise is measured, and with it the contact threshold and
         the frozen-cell checks (`rig.control.sensorwatch`)."""
-        noise = L.noise = CellNoise.from_readings(L.tare_values, self.config.estimator.noise_N)
-        L.tare_values = []
-        L.cell_watch = CellWatch(noise)
-        L.contact = Contact.for_noise(noise, k.pos)
-        L.motion = MotionAnswer(noise.effective_sigma_N)
+        noise = loop.noise = CellNoise.from_readings(loop.tare_values, self.config.estimator.noise_N)
+        loop.tare_values = []
+        loop.cell_watch = CellWatch(noise)
+        loop.contact = Contact.for_noise(noise, tick.position_mm)
+        loop.motion = MotionAnswer(noise.effective_sigma_N)
         # the logged estimator's settings, on the measured noise, gated by `Contact` instead of its own test
-        L.loop_rls = StiffnessRLS.from_config(
+        loop.loop_rls = StiffnessRLS.from_config(
             replace(self.config.estimator, noise_N=noise.effective_sigma_N, initial_stiffness_N_per_m=0.0,
                     contact_mm=0.0, contact_N=0.0), self.rate)
         data = {"sigma_N": noise.sigma_N, "diff_sigma_N": noise.diff_sigma_N,
                 "repeat_share": noise.repeat_share, "step_N": noise.step_N, "readings": noise.readings,
-                "contact_threshold_N": L.contact.threshold_N, "frozen_run": noise.frozen_run,
+                "contact_threshold_N": loop.contact.threshold_N, "frozen_run": noise.frozen_run,
                 "quiet": noise.quiet}
-        msg = (f"{noise.describe()}: contact above {L.contact.threshold_N:.3g} N; frozen after "
+        msg = (f"{noise.describe()}: contact above {loop.contact.threshold_N:.3g} N; frozen after "
                f"{noise.frozen_run + 1} identical readings")
         if noise.quiet:
-            msg = (f"{noise.describe()}: contact above {L.contact.threshold_N:.3g} N; too quiet to tell a "
+            msg = (f"{noise.describe()}: contact above {loop.contact.threshold_N:.3g} N; too quiet to tell a "
                    "frozen reading by its repeats: under force control only the force's answer to the "
                    "motion and the depth budget guard against a frozen cell")
-        self._event(rec, k.t, "load_cell_noise", msg, data)
+        self._event(rec, tick.t_s, "load_cell_noise", msg, data)
 
-    def _operator(self, rec: Recorder, L: _Loop, k: _Tick) -> None:
+    def _operator(self, rec: Recorder, loop: _Loop, tick: _Tick) -> None:
         """The operator's stop requests (an estop may follow an abort that is returning)."""
         sig = self.signal_stop  # Ctrl-C: the handler only set this
         if sig is not None and sig is not self.signal_handled:
@@ -746,196 +752,202 @@ class Trial:
         if req is None:
             return
         mode, user, received, ticket = req
-        t = k.t
-        refused = L.ending.on_request(mode, t)
+        t = tick.t_s
+        refused = loop.ending.on_request(mode, t)
         if refused and mode is StopMode.ESTOP:  # whatever else is going on, STOP again
-            ok = self._send_stop(L, t)
+            ok = self._send_stop(loop, t)
             ticket.settle(ok, f"{refused}; STOP sent again" + ("" if ok else ", not acknowledged"))
         elif refused:
             ticket.settle(False, f"refused: {refused}")
         else:
-            ok = self._send_stop(L, t)
+            ok = self._send_stop(loop, t)
             sent = time.monotonic()
             latency_ms = round((sent - received) * 1000.0, 3)
             ticket.settle(ok, f"STOP sent in {latency_ms:g} ms" if ok else
                           "STOP not acknowledged by the drive; still trying (the drive's "
                           "communication timeout is the backstop)")
             self._settle_tickets(ok, ticket.message)
-            L.watch = None
+            loop.watch = None
             self._event(rec, t, "stop_requested", f"{mode.value} requested by {user or '?'}",
-                        {"mode": mode.value, "user": user, "seq": self._seq,
+                        {"mode": mode.value, "user": user, "seq": self._samples,
                          "latency_ms": latency_ms, "acknowledged": ok})
             if mode == StopMode.ABORT:
-                L.seq.abort_to_start(t, L.return_speed)
+                loop.sequencer.abort_to_start(t, loop.return_speed_mm_s)
             else:
-                L.seq.done = True
+                loop.sequencer.done = True
 
-    def _confirm(self, rec: Recorder, L: _Loop, k: _Tick) -> None:
+    def _confirm(self, rec: Recorder, loop: _Loop, tick: _Tick) -> None:
         """A STOP stands until a fresh status says the drive stands still."""
-        stop = L.ending.stop
-        match L.ending.on_status(k.t, k.moving, self.limits.stop_confirm_s, self.resend_stop_s):
+        stop = loop.ending.stop
+        match loop.ending.on_status(tick.t_s, tick.moving, self.limits.stop_confirm_s, self.resend_stop_s):
             case ("confirmed", _):
-                self._event(rec, k.t, "stop_confirmed", "the drive reports standing still",
-                            {"after_s": round(k.t - stop.sent_t, 4), "resends": stop.resends})
+                self._event(rec, tick.t_s, "stop_confirmed", "the drive reports standing still",
+                            {"after_s": round(tick.t_s - stop.sent_t, 4), "resends": stop.resends})
             case ("gave_up", why):
-                self._event(rec, k.t, "fault", why, {"kind": "stop_unconfirmed", "seq": self._seq})
+                self._event(rec, tick.t_s, "fault", why, {"kind": "stop_unconfirmed", "seq": self._samples})
             case ("resend", _):
-                self._send_stop(L, k.t)
+                self._send_stop(loop, tick.t_s)
 
-    def _command(self, rec: Recorder, L: _Loop, k: _Tick) -> None:
+    def _command(self, rec: Recorder, loop: _Loop, tick: _Tick) -> None:
         """The step's controller: the sequencer's commands, each move checked against the limits
         before it is sent and watched until it arrives. Step decisions only on a fresh position,
         and a move counts as under way until its watch saw it arrive on fresh readings: a stale
         position is no arrival."""
-        L.force_error_N = None  # nothing is tracked on a tick that tracks nothing (a fault's included)
-        if L.ending.fault is not None:
+        loop.force_error_N = None  # nothing is tracked on a tick that tracks nothing (a fault's included)
+        if loop.ending.fault is not None:
             return
-        seq, lim, t = L.seq, self.limits, k.t
-        seq_moving = True if L.watch is not None else k.moving
-        was = L.force_step
+        seq, lim, t = loop.sequencer, self.limits, tick.t_s
+        seq_moving = True if loop.watch is not None else tick.moving
+        was = loop.force_step
         tracking = False
-        in_contact = L.in_contact if L.contact is not None else True
-        commands = seq.tick(t, k.pos, k.force, seq_moving, in_contact) if k.pr.fresh else ()
+        in_contact = loop.in_contact if loop.contact is not None else True
+        commands = (seq.tick(t, tick.position_mm, tick.force_N, seq_moving, in_contact) if tick.position.fresh
+                    else ())
         if was >= 0 and seq.index != was:  # reported before the next step's first command
-            self._force_step_ended(rec, L, t, was)
+            self._force_step_ended(rec, loop, t, was)
         for cmd in commands:
             if isinstance(cmd, Track):
                 tracking = True
-                if not self._track(rec, L, k, cmd):
+                if not self._track(rec, loop, tick, cmd):
                     break
             elif isinstance(cmd, Move):
                 why = check_move(cmd.to_mm, cmd.speed_mm_s, lim)
                 if why is not None:
-                    self._fault(rec, L, Fault("move_limit", f"move refused: {why}"), k)
+                    self._fault(rec, loop, Fault("move_limit", f"move refused: {why}"), tick)
                     break
                 self.slider.move_to(cmd.to_mm, cmd.speed_mm_s, cmd.accel_mm_s2)
-                L.ending.on_move()
-                L.watch = MoveWatch(k.pos, cmd.to_mm, cmd.speed_mm_s, cmd.accel_mm_s2, t, lim,
+                loop.ending.on_move()
+                loop.watch = MoveWatch(tick.position_mm, cmd.to_mm, cmd.speed_mm_s, cmd.accel_mm_s2, t, lim,
                                     self.config.slider.position_tolerance_mm)
             elif isinstance(cmd, Stop):
-                L.watch = None
-                self._send_stop(L, t)
+                loop.watch = None
+                self._send_stop(loop, t)
         if not tracking and seq.setpoint_N is None:
-            L.force_loop.release()  # a position step (or the end) took over
-        if seq.index != L.last_step and seq.index >= 0 and not seq.done:
+            loop.force_loop.release()  # a position step (or the end) took over
+        if seq.index != loop.last_step and seq.index >= 0 and not seq.done:
             step = seq.step
             self._event(rec, t, "step_start", f"step {seq.index}: {step.kind}",
                         {"step": seq.index, "kind": step.kind,
                          "zero_mm": seq.zero_mm, "target_mm": seq.target_mm - seq.zero_mm})
-        L.last_step = seq.index
+        loop.last_step = seq.index
 
-    def _track(self, rec: Recorder, L: _Loop, k: _Tick, cmd: Track) -> bool:
+    def _track(self, rec: Recorder, loop: _Loop, tick: _Tick, cmd: Track) -> bool:
         """A force step's tick: the force loop's next position, limited to the step's deepest and
         its depth budget, checked against the limits before it is sent (False: refused, and
         faulted). Out of contact the slider seeks the surface at `force.seek_speed_share` of the
         speed limit, as an approach would, and the loop waits; in contact the force must answer
         the loop's motion (`sensorwatch.MotionAnswer`); a drive that does not follow is a fault."""
-        seq, lim, fcfg = L.seq, self.limits, self.config.force
-        if L.force_step != seq.index:
-            L.force_step, L.force_recent, L.at_depth_limit, L.saturated_since = seq.index, [], False, None
-            L.sent_target, L.meter = None, None
-            if L.motion is not None:
-                L.motion.reset()
-        sigma = L.noise.effective_sigma_N if L.noise is not None else self.config.estimator.noise_N
+        seq, lim, fcfg = loop.sequencer, self.limits, self.config.force
+        if loop.force_step != seq.index:
+            loop.force_step, loop.force_recent = seq.index, []
+            loop.at_depth_limit, loop.saturated_since = False, None
+            loop.sent_target, loop.meter = None, None
+            if loop.motion is not None:
+                loop.motion.reset()
+        sigma = loop.noise.effective_sigma_N if loop.noise is not None else self.config.estimator.noise_N
         if cmd.seeking:
-            fc = L.force_loop.seek(k.pos, fcfg.seek_speed_share * lim.max_speed_mm_s)
-            if L.motion is not None:
-                L.motion.reset()
+            fc = loop.force_loop.seek(tick.position_mm, fcfg.seek_speed_share * lim.max_speed_mm_s)
+            if loop.motion is not None:
+                loop.motion.reset()
         else:
-            if L.meter is None:
-                L.meter = StepMeter(seq.index, seq.kind, k.t, sigma, L.carry_peak_N, seq.force_seek_s)
-            fc = L.force_loop.command(cmd.setpoint_N, k.force, L.stiffness_N_per_m, k.pos, cmd.rate_N_s)
-            L.meter.update(k.t, k.force, cmd.setpoint_N)
+            if loop.meter is None:
+                loop.meter = StepMeter(seq.index, seq.kind, tick.t_s, sigma, loop.carry_peak_N,
+                                       seq.force_seek_s)
+            fc = loop.force_loop.command(cmd.setpoint_N, tick.force_N, loop.stiffness_N_per_m, tick.position_mm,
+                                         cmd.rate_N_s)
+            loop.meter.update(tick.t_s, tick.force_N, cmd.setpoint_N)
             target_N = seq.step.to_N if isinstance(seq.step, RampForce) else seq.step.force_N
-            depth_mm = k.pos - L.contact.surface_mm if L.contact is not None else 0.0
-            if L.budget_mm is None and depth_mm > 0 and k.force >= BUDGET_AT_SHARE * target_N:
+            depth_mm = tick.position_mm - loop.contact.surface_mm if loop.contact is not None else 0.0
+            if loop.budget_mm is None and depth_mm > 0 and tick.force_N >= BUDGET_AT_SHARE * target_N:
                 # the stiffness from the surface to here, read once the force is well above the noise
-                L.budget_mm = L.contact.surface_mm + depth_mm * lim.max_force_N / k.force
-            if L.motion is not None:
-                why = L.motion.update(k.pos, k.force, fc.error_N,
-                                      answer_limit_mm(sigma, L.stiffness_N_per_m, fcfg.answer_mm))
+                loop.budget_mm = loop.contact.surface_mm + depth_mm * lim.max_force_N / tick.force_N
+            if loop.motion is not None:
+                why = loop.motion.update(tick.position_mm, tick.force_N, fc.error_N,
+                                      answer_limit_mm(sigma, loop.stiffness_N_per_m, fcfg.answer_mm))
                 if why is not None:
-                    self._fault(rec, L, Fault("loadcell_frozen", why), k)
+                    self._fault(rec, loop, Fault("loadcell_frozen", why), tick)
                     return False
-        deepest = cmd.limit_mm if L.budget_mm is None else min(cmd.limit_mm, L.budget_mm)
+        deepest = cmd.limit_mm if loop.budget_mm is None else min(cmd.limit_mm, loop.budget_mm)
         target = min(fc.target_mm, deepest)
-        L.force_error_N = cmd.setpoint_N - k.force
-        L.force_recent = [r for r in L.force_recent if r[0] > k.t - 0.5] + [(k.t, k.force, cmd.setpoint_N)]
+        loop.force_error_N = cmd.setpoint_N - tick.force_N
+        loop.force_recent = ([r for r in loop.force_recent if r[0] > tick.t_s - 0.5]
+                             + [(tick.t_s, tick.force_N, cmd.setpoint_N)])
         if target < fc.target_mm:
-            if cmd.seeking and k.pos >= deepest - self.config.slider.position_tolerance_mm:
+            if cmd.seeking and tick.position_mm >= deepest - self.config.slider.position_tolerance_mm:
                 what = "max_mm" if deepest == cmd.limit_mm else "depth budget"
-                self._fault(rec, L, Fault("protocol", (
+                self._fault(rec, loop, Fault("protocol", (
                     f"step {seq.index} ({seq.kind}) reached its {what} ({deepest - seq.zero_mm:.4g} mm) "
-                    f"without contact: the force stayed below {L.contact.threshold_N:.3g} N "
-                    "(four sigma of the load cell's noise)" if L.contact is not None else
-                    f"step {seq.index} ({seq.kind}) reached its {what} without contact")), k)
+                    f"without contact: the force stayed below {loop.contact.threshold_N:.3g} N "
+                    "(four sigma of the load cell's noise)" if loop.contact is not None else
+                    f"step {seq.index} ({seq.kind}) reached its {what} without contact")), tick)
                 return False
-            if deepest == cmd.limit_mm and not L.at_depth_limit:
-                L.at_depth_limit = True
+            if deepest == cmd.limit_mm and not loop.at_depth_limit:
+                loop.at_depth_limit = True
                 msg = (f"step {seq.index} ({seq.kind}): the force loop reached the step's max_mm "
-                       f"({cmd.limit_mm - seq.zero_mm:.4g} mm) at {k.force:.4g} N, short of its setpoint "
+                       f"({cmd.limit_mm - seq.zero_mm:.4g} mm) at {tick.force_N:.4g} N, short of its setpoint "
                        f"{cmd.setpoint_N:.4g} N: held there")
-                self._event(rec, k.t, "force_limit_depth", msg, {"step": seq.index, "force_N": k.force,
-                                                                "setpoint_N": cmd.setpoint_N})
+                self._event(rec, tick.t_s, "force_limit_depth", msg,
+                            {"step": seq.index, "force_N": tick.force_N, "setpoint_N": cmd.setpoint_N})
                 self.notices.append(msg)
-            elif deepest < cmd.limit_mm and not L.at_budget:
-                L.at_budget = True
+            elif deepest < cmd.limit_mm and not loop.at_budget:
+                loop.at_budget = True
                 msg = (f"step {seq.index} ({seq.kind}): the force loop reached its depth budget "
-                       f"({deepest - L.contact.surface_mm:.4g} mm below the surface, where the stiffness "
-                       f"it measured would carry the force limit {lim.max_force_N:g} N) at {k.force:.4g} N, "
+                       f"({deepest - loop.contact.surface_mm:.4g} mm below the surface, where the stiffness "
+                       f"it measured would carry the force limit {lim.max_force_N:g} N) at "
+                       f"{tick.force_N:.4g} N, "
                        f"short of its setpoint {cmd.setpoint_N:.4g} N: held there (the specimen softened, "
                        "or the load cell reads low)")
-                self._event(rec, k.t, "force_depth_budget", msg, {"step": seq.index, "force_N": k.force,
-                                                                 "setpoint_N": cmd.setpoint_N,
-                                                                 "budget_mm": deepest - L.contact.surface_mm})
+                self._event(rec, tick.t_s, "force_depth_budget", msg,
+                            {"step": seq.index, "force_N": tick.force_N, "setpoint_N": cmd.setpoint_N,
+                             "budget_mm": deepest - loop.contact.surface_mm})
                 self.notices.append(msg)
         if fc.saturated and target >= fc.target_mm:
-            if L.saturated_since is None:
-                L.saturated_since = (k.t, k.pos)
-            t0, p0 = L.saturated_since
-            span = k.t - t0
+            if loop.saturated_since is None:
+                loop.saturated_since = (tick.t_s, tick.position_mm)
+            t0, p0 = loop.saturated_since
+            span = tick.t_s - t0
             # a drive that follows moves, if more slowly than asked (it brakes towards a stream that
             # leads it by a tick or two); one that has stopped following does not move at all
-            if span >= DRIVE_FOLLOW_S and abs(k.pos - p0) < DRIVE_STUCK_MM:
-                self._fault(rec, L, Fault("move", f"the drive did not follow the force loop: "
-                                                  f"{abs(k.pos - p0):.3g} mm in {span:.2g} s at "
-                                                  f"{fc.speed_mm_s:.3g} mm/s commanded"), k)
+            if span >= DRIVE_FOLLOW_S and abs(tick.position_mm - p0) < DRIVE_STUCK_MM:
+                self._fault(rec, loop, Fault("move", f"the drive did not follow the force loop: "
+                                                  f"{abs(tick.position_mm - p0):.3g} mm in {span:.2g} s at "
+                                                  f"{fc.speed_mm_s:.3g} mm/s commanded"), tick)
                 return False
         else:
-            L.saturated_since = None
+            loop.saturated_since = None
         why = check_move(target, fc.speed_mm_s, self.limits)
         if why is not None:
-            self._fault(rec, L, Fault("move_limit", f"force loop move refused: {why}"), k)
+            self._fault(rec, loop, Fault("move_limit", f"force loop move refused: {why}"), tick)
             return False
         step_mm = 1.0 / self.config.slider.steps_per_mm
         # a tick that read status (its turn could wait no longer) leaves the move to the next
-        due = self._seq - L.sent_seq >= FORCE_MOVE_TICKS and not k.status_read
-        if due and (L.sent_target is None or abs(target - L.sent_target) >= step_mm):
+        due = self._samples - loop.sent_seq >= FORCE_MOVE_TICKS and not tick.status_read
+        if due and (loop.sent_target is None or abs(target - loop.sent_target) >= step_mm):
             self.slider.move_to(target, fc.speed_mm_s, self.config.slider.accel_mm_s2)
-            L.sent_target, L.sent_seq = target, self._seq
-            L.ending.on_move()
-        L.watch = None  # a stream of small moves: the limits are checked every tick instead
+            loop.sent_target, loop.sent_seq = target, self._samples
+            loop.ending.on_move()
+        loop.watch = None  # a stream of small moves: the limits are checked every tick instead
         seq.follow(target)
         return True
 
-    def _force_step_ended(self, rec: Recorder, L: _Loop, t: float, index: int) -> None:
+    def _force_step_ended(self, rec: Recorder, loop: _Loop, t: float, index: int) -> None:
         """A force step's figures (overshoot, settling, the hold's RMS error, a ramp's lag) as a
         `force_step` event, said to the operator when beyond `force:`'s warnings; and a force
         step that ended away from its setpoint (its last 0.5 s off by more than SETPOINT_MISS)
         is said too. A ramp that hands over to another force step is on its way, not ended."""
-        L.force_step = -1
-        handed_over = isinstance(L.seq.step, FORCE_STEPS)
+        loop.force_step = -1
+        handed_over = isinstance(loop.sequencer.step, FORCE_STEPS)
         if not handed_over:  # the force segment ends: the next one finds its own budget
-            L.budget_mm, L.at_budget = None, False
-        meter, L.meter = L.meter, None
+            loop.budget_mm, loop.at_budget = None, False
+        meter, loop.meter = loop.meter, None
         if meter is not None:
-            meter.seek_s, meter.lag_s, meter.reached = L.seq.ended_force or (0.0, 0.0, True)
-            L.carry_peak_N = meter.peak_N if handed_over else -math.inf
-            self._force_figures(rec, L, t, meter.figures())
-        if not L.force_recent or handed_over:
+            meter.seek_s, meter.lag_s, meter.reached = loop.sequencer.ended_force or (0.0, 0.0, True)
+            loop.carry_peak_N = meter.peak_N if handed_over else -math.inf
+            self._force_figures(rec, loop, t, meter.figures())
+        if not loop.force_recent or handed_over:
             return
-        force = float(np.mean([r[1] for r in L.force_recent]))
-        setpoint = L.force_recent[-1][2]
+        force = float(np.mean([r[1] for r in loop.force_recent]))
+        setpoint = loop.force_recent[-1][2]
         if abs(force - setpoint) > SETPOINT_MISS * abs(setpoint):
             msg = (f"step {index}: the force step ended at {force:.4g} N (its last 0.5 s) against its "
                    f"setpoint {setpoint:.4g} N")
@@ -943,9 +955,9 @@ class Trial:
                         {"step": index, "force_N": force, "setpoint_N": setpoint})
             self.notices.append(msg)
 
-    def _force_figures(self, rec: Recorder, L: _Loop, t: float, fig: StepFigures) -> None:
+    def _force_figures(self, rec: Recorder, loop: _Loop, t: float, fig: StepFigures) -> None:
         fcfg = self.config.force
-        L.figures.append(fig)
+        loop.figures.append(fig)
         self._event(rec, t, "force_step", fig.describe(), fig.as_dict())
         self.snapshot = replace(self.snapshot, force_steps=(*self.snapshot.force_steps[-9:], fig.as_dict()))
         said = []
@@ -963,59 +975,59 @@ class Trial:
             self._event(rec, t, "force_step_warning", msg, fig.as_dict())
             self.notices.append(msg)
 
-    def _estimate(self, L: _Loop, k: _Tick):
+    def _estimate(self, loop: _Loop, tick: _Tick):
         """The online stiffness (RLS) on the previous tick's position and this tick's force, as
         logged (from the working zero); and the force loop's gain, the same estimator on the
         position from the surface the force found (`sensorwatch.Contact`): counted from the
         trial's start, 10 mm above the surface, the stiffness read 30x low and the gain 30x high.
         The larger of that and the force over the depth from the surface: right at contact, with
         the estimator not yet settled, the gain is then the lower, not the higher."""
-        est = self.rls.update(L.x_prev_m, k.force)
-        L.x_prev_m = (k.pos - L.seq.zero_mm) / 1000.0
-        if L.contact is None:  # no load cell (or still taring): the logged estimate, as it stands
-            L.stiffness_N_per_m = est.stiffness_N_per_m
+        est = self.rls.update(loop.x_prev_m, tick.force_N)
+        loop.x_prev_m = (tick.position_mm - loop.sequencer.zero_mm) / 1000.0
+        if loop.contact is None:  # no load cell (or still taring): the logged estimate, as it stands
+            loop.stiffness_N_per_m = est.stiffness_N_per_m
             if self.loadcell is None:
-                L.in_contact = bool(est.updated)
+                loop.in_contact = bool(est.updated)
             return est
-        x_c = (k.pos - L.contact.surface_mm) / 1000.0 if L.in_contact else 0.0
-        loop = L.loop_rls.update(L.x_contact_prev_m, k.force)
-        L.x_contact_prev_m = x_c
-        chord = k.force / x_c if x_c > 0 else 0.0
-        L.stiffness_N_per_m = max(loop.stiffness_N_per_m, chord) if L.in_contact else 0.0
+        x_c = (tick.position_mm - loop.contact.surface_mm) / 1000.0 if loop.in_contact else 0.0
+        surface = loop.loop_rls.update(loop.x_contact_prev_m, tick.force_N)
+        loop.x_contact_prev_m = x_c
+        chord = tick.force_N / x_c if x_c > 0 else 0.0
+        loop.stiffness_N_per_m = max(surface.stiffness_N_per_m, chord) if loop.in_contact else 0.0
         return est
 
-    def _record(self, rec: Recorder, L: _Loop, k: _Tick, est) -> None:
+    def _record(self, rec: Recorder, loop: _Loop, tick: _Tick, est) -> None:
         """One sample queued for the recorder; health now and then; the watchers' snapshot."""
-        seq, t = L.seq, k.t
-        kind = "fault" if L.ending.fault else seq.kind
+        seq, t = loop.sequencer, tick.t_s
+        kind = "fault" if loop.ending.fault else seq.kind
         model = {}
-        if L.force_error_N is not None:
+        if loop.force_error_N is not None:
             model["force_cmd_N"] = seq.setpoint_N
-            model["force_error_N"] = L.force_error_N
-        if k.force_model is not None:
-            model["force_model_N"] = k.force_model
+            model["force_error_N"] = loop.force_error_N
+        if tick.force_model_N is not None:
+            model["force_model_N"] = tick.force_model_N
             if self.loadcell is not None:
-                model["model_error_N"] = k.force - k.force_model
+                model["model_error_N"] = tick.force_N - tick.force_model_N
         sample = SAMPLE.record(
-            seq=self._seq, t_s=k.t_log, position_mm=k.x_rel_mm, slider_mm=k.pos,
-            position_cmd_mm=round(seq.position_cmd_mm(t), 6), force_N=k.force,
+            seq=self._samples, t_s=tick.t_log_s, position_mm=tick.x_rel_mm, slider_mm=tick.position_mm,
+            position_cmd_mm=round(seq.position_cmd_mm(t), 6), force_N=tick.force_N,
             stiffness_N_per_m=est.stiffness_N_per_m, force_pred_N=est.force_pred_N,
             error_N=est.error_N, forgetting=est.forgetting, contact=est.updated,
-            step=seq.index, step_kind=kind, late_ms=round(k.lateness * 1000.0, 4), **model)
-        self._emit(rec, SAMPLE.topic, self.clock.wall_ns(k.now), sample)
-        if abs(k.force) > self._cal_max_N:
-            self._beyond_calibration(rec, t, k.force)
-        self._seq += 1
-        if t >= L.next_health:
-            self._health(rec, t, k.now, L.health_mark)
-            L.health_mark = len(self._tick_times)
-            L.next_health += self.config.loop.health_every_s
+            step=seq.index, step_kind=kind, late_ms=round(tick.lateness_s * 1000.0, 4), **model)
+        self._emit(rec, SAMPLE.topic, self.clock.wall_ns(tick.now_s), sample)
+        if abs(tick.force_N) > self._cal_max_N:
+            self._beyond_calibration(rec, t, tick.force_N)
+        self._samples += 1
+        if t >= loop.next_health_s:
+            self._health(rec, t, tick.now_s, loop.health_mark)
+            loop.health_mark = len(self._tick_times)
+            loop.next_health_s += self.config.loop.health_every_s
         self.snapshot = Snapshot(
             state=self.snapshot.state, t_s=t, step=seq.index, step_kind=kind,
-            steps_total=len(seq.steps), time_left_s=seq.time_left_s(t), force_N=k.force,
-            position_mm=k.x_rel_mm, stiffness_N_per_m=est.stiffness_N_per_m,
-            log_path=str(self.log_path), fault=self.snapshot.fault, force_model_N=k.force_model,
-            preload_N=L.preload_N, force_steps=self.snapshot.force_steps)
+            steps_total=len(seq.steps), time_left_s=seq.time_left_s(t), force_N=tick.force_N,
+            position_mm=tick.x_rel_mm, stiffness_N_per_m=est.stiffness_N_per_m,
+            log_path=str(self.log_path), fault=self.snapshot.fault, force_model_N=tick.force_model_N,
+            preload_N=loop.preload_N, force_steps=self.snapshot.force_steps)
         if self.on_tick is not None:
             self.on_tick(self.snapshot)
 
@@ -1028,19 +1040,19 @@ class Trial:
         self.notices.append(msg)
         self._cal_max_N = math.inf
 
-    def _send_stop(self, L: _Loop, t: float) -> bool:
+    def _send_stop(self, loop: _Loop, t: float) -> bool:
         ok = self._safe_stop()
-        L.ending.on_stop_sent(t)
+        loop.ending.on_stop_sent(t)
         return ok
 
-    def _fault(self, rec: Recorder, L: _Loop, found: Fault, k: _Tick) -> None:
-        self._send_stop(L, k.t)  # stop first, explain after
-        L.watch = None
-        L.ending.on_fault(found, k.t)
-        self._event(rec, k.t, "fault", found.message,
-                    {"kind": found.kind, "seq": self._seq, "force_N": k.force,
-                     "position_mm": k.pos - L.seq.zero_mm})
-        self.snapshot = replace(self.snapshot, state="stopping", fault=found.message)
+    def _fault(self, rec: Recorder, loop: _Loop, found: Fault, tick: _Tick) -> None:
+        self._send_stop(loop, tick.t_s)  # stop first, explain after
+        loop.watch = None
+        loop.ending.on_fault(found, tick.t_s)
+        self._event(rec, tick.t_s, "fault", found.message,
+                    {"kind": found.kind, "seq": self._samples, "force_N": tick.force_N,
+                     "position_mm": tick.position_mm - loop.sequencer.zero_mm})
+        self.snapshot = replace(self.snapshot, state=TrialState.STOPPING, fault=found.message)
 
     def _tare_logged(self, rec: Recorder, t: float, tare_N: float, readings: int, zero_N: float,
                      preload_N: float) -> None:
@@ -1060,7 +1072,7 @@ class Trial:
         s = self.slider.stats
         c = self.loadcell.stats if self.loadcell is not None else LinkStats()
         self._emit(rec, HEALTH.topic, self.clock.wall_ns(now), HEALTH.record(
-            t_s=round(t, 6), ticks=self._seq, late_ticks=self._late, missed_ticks=self._missed,
+            t_s=round(t, 6), ticks=self._samples, late_ticks=self._late, missed_ticks=self._missed,
             period_err_p50_ms=float(np.percentile(err, 50)),
             period_err_p99_ms=float(np.percentile(err, 99)),
             period_err_max_ms=float(err.max()),

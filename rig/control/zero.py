@@ -133,12 +133,9 @@ def tare(config: RigConfig, seconds: float = 1.0) -> dict:
         raise RigError("rig tare: loadcell.backend is none: there is no load cell to zero")
     if not seconds > 0:
         raise RigError(f"rig tare: --seconds must be positive, got {seconds:g}")
-    dev = open_devices(config, RealClock(), speed=1.0)
-    try:
+    with open_devices(config, RealClock(), speed=1.0) as dev:
         mean, n, std = measure_zero(dev.loadcell, seconds)
         before = saved_zero(config)
-    finally:
-        dev.close()
     path = save_zero(config, mean, n, std)
     return {"zero_N": mean, "readings": n, "std_N": std, "path": str(path), "cell": cell_key(config),
             "previous_N": before.value_N if before else None,

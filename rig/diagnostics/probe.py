@@ -103,12 +103,10 @@ class _Probe:
     def _open_slider(self) -> None:
         """First contact with a long timeout, so a slow drive is told from a silent one and its
         status is read right; then the configured timeout, for the timing a trial will see."""
-        from rig.drivers.modbus_slider import ModbusLink
+        from rig.control.devices import slider_link
 
         s, r = self.cfg.slider, self.r
-        link = ModbusLink("tcp" if s.backend == "modbus-tcp" else "rtu", port=s.port, baudrate=s.baudrate,
-                          parity=s.parity, stopbits=s.stopbits, host=s.host, tcp_port=s.tcp_port,
-                          device_id=s.device_id)
+        link = slider_link(self.cfg)
         r.slider.update(link=f"{link.describe()}, profile {s.profile}", device_id=s.device_id)
         try:
             slider = self._make(DIAGNOSTIC_TIMEOUT_S)

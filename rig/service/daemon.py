@@ -72,7 +72,7 @@ from rig import __version__
 from rig.clock import RealClock
 from rig.control.devices import Devices, open_devices
 from rig.control.manual import move_on
-from rig.control.stopping import StopMode
+from rig.control.states import Lifecycle, StopMode
 from rig.control.trial import EndPlace, Snapshot, Trial, TrialResult, default_log_path
 from rig.errors import RigError
 from rig.recording.names import file_part, inside
@@ -204,7 +204,7 @@ class _SetUp:
     id: int
     what: str  # as a reply names it: "the start of 'demo' (specimen pig-07, by ann)"
     gen: int  # the stop generation when it began: any later stop cancels it
-    moves: bool = False  # it moves the slider itself (`rig return`): a stop halts it where it is
+    moves: bool = False  # it moves the slider itself (`rig return`): a stop stops it where it is
 
 
 @dataclass
@@ -215,11 +215,11 @@ class _Cut:
     protocol: str
     cancelled: list[str] = field(default_factory=list)  # starts being set up: now cancelled
     campaign: bool = False  # a campaign was running: it starts no further trial
-    halted: list[str] = field(default_factory=list)  # moves of the daemon's own (a return): stopped
+    moves_stopped: list[str] = field(default_factory=list)  # the daemon's own moves (a return): stopped
 
     def notes(self, trial_running: bool) -> list[str]:
         out = [f"{what} was cancelled: nothing moved" for what in self.cancelled]
-        out += [f"{what} was stopped where it stood" for what in self.halted]
+        out += [f"{what} was stopped where it stood" for what in self.moves_stopped]
         if self.campaign:
             out.append("the campaign ends with this trial" if trial_running else
                        "the campaign ends before its next trial (the probe stays where it is)")
@@ -350,7 +350,7 @@ class Daemon:
 
     def _healthy(self) -> bool:
         t = self.trial
-        running = t is not None and t.snapshot.state in ("running", "stopping")
+        running = t is not None and t.snapshot.state.active
         return healthy(time.monotonic(), self.beat, running, self.config.daemon.stall_s)
 
     def serve_forever(self) -> None:
@@ -772,16 +772,16 @@ class Daemon:
         campaign = self._campaign_running()
         if self.campaign_stop is not None:
             self.campaign_stop.set()  # no further trial of a campaign (a rest in progress ends now)
-        t = self.trial if self.trial is not None and self.trial.phase != "ended" else None
+        t = self.trial if self.trial is not None and self.trial.lifecycle is not Lifecycle.ENDED else None
         return _Cut(t, self.trial_meta.get("protocol", "") if t is not None else "",
-                    [s.what for s in self.setting_up.values() if not s.moves], campaign,
-                    [s.what for s in self.setting_up.values() if s.moves])
+                    cancelled=[s.what for s in self.setting_up.values() if not s.moves], campaign=campaign,
+                    moves_stopped=[s.what for s in self.setting_up.values() if s.moves])
 
     def _unlatch(self) -> None:
         with self.state_lock:
             self.stops_in_progress -= 1
 
-    def _send_stop(self, mode: str, notes: list[str]) -> None:
+    def _send_stop(self, mode: StopMode, notes: list[str]) -> None:
         """STOP on the idle devices (no trial owns them), or `RequestError` saying why not; a
         trial that ended a moment ago may still be letting go of them."""
         deadline = time.monotonic() + STOP_SENT_S
@@ -799,7 +799,7 @@ class Daemon:
             raise RequestError(_joined(f"{mode}: the drive did not acknowledge STOP "
                                        f"({getattr(self.devices.slider, 'last_error', '')})", notes))
 
-    def _stop_reply(self, ticket, mode: str, notes: list[str]) -> dict:
+    def _stop_reply(self, ticket, mode: StopMode, notes: list[str]) -> dict:
         """Answer once the STOP went out (from the loop's next tick, or at once while the trial
         starts or closes): the truth about whether the drive took it, or why it was refused."""
         if not ticket.wait(STOP_SENT_S):
@@ -812,21 +812,21 @@ class Daemon:
             said += ", acknowledged by the drive"
         return {"ok": True, "mode": mode, "message": said, "acknowledged": True, "trial_running": True}
 
-    def _carry_out(self, cut: _Cut, mode: str, user: str, received: float) -> dict:
+    def _carry_out(self, cut: _Cut, mode: StopMode, user: str, received: float) -> dict:
         """Carry a latched stop or estop out: through the trial that owns the devices, else on the
         idle devices when it cut something (a start being set up, a campaign between trials)."""
         if cut.trial is not None:
-            ticket = cut.trial.request_stop(StopMode(mode), user=user, received_s=received)
+            ticket = cut.trial.request_stop(mode, user=user, received_s=received)
             if not ticket.trial_over:
                 notes = cut.notes(trial_running=True)
                 reply = self._stop_reply(ticket, mode, notes)
-                head = {"abort": f"stopping, then returning to the start position: {reply['message']}",
-                        "hold": f"stopping and staying in place: {reply['message']}",
-                        "estop": f"{reply['message']} (trial '{cut.protocol}' was running)"}[mode]
+                head = {StopMode.ABORT: f"stopping, then returning to the start position: {reply['message']}",
+                        StopMode.HOLD: f"stopping and staying in place: {reply['message']}",
+                        StopMode.ESTOP: f"{reply['message']} (trial '{cut.protocol}' was running)"}[mode]
                 reply.update(message=_joined(head, notes), cancelled=cut.cancelled, campaign_ends=cut.campaign)
                 return reply
         notes = cut.notes(trial_running=False)
-        if mode != "estop" and not (cut.cancelled or cut.campaign or cut.halted):
+        if mode is not StopMode.ESTOP and not (cut.cancelled or cut.campaign or cut.moves_stopped):
             raise RequestError("no trial is running" + (" (it has just ended)" if cut.trial else ""))
         self._send_stop(mode, notes)
         return {"ok": True, "mode": mode, "acknowledged": True, "trial_running": False,
@@ -887,10 +887,11 @@ class Daemon:
         return {"ok": True, "message": message, **moved}
 
     def cmd_stop(self, req: dict, user: str, received: float) -> dict:
-        mode = req.get("mode", "abort")
-        if not isinstance(mode, str) or mode not in ("abort", "hold"):
+        word = req.get("mode", StopMode.ABORT)
+        if not isinstance(word, str) or word not in (StopMode.ABORT, StopMode.HOLD):
             raise RequestError('stop "mode" must be "abort" (stop, then return) or "hold" (stop and stay), '
-                               f"not {_shown(mode)}")
+                               f"not {_shown(word)}")
+        mode = StopMode(word)
         with self.state_lock:
             cut = self._latch(f"a stop ({mode}) from {user} at {time.strftime('%H:%M:%S')}")
         try:
@@ -906,7 +907,7 @@ class Daemon:
             cut = self._latch(f"an estop from {user} at {time.strftime('%H:%M:%S')}")
         try:
             self.say(f"{user} requested an emergency stop")
-            reply = self._carry_out(cut, "estop", user, received)
+            reply = self._carry_out(cut, StopMode.ESTOP, user, received)
         finally:
             self._unlatch()
         self.say(f"{user}'s estop: {reply['message']}")

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from rig.clock import RealClock, VirtualClock
 from rig.control.devices import Devices, open_devices
-from rig.control.stopping import StopMode
+from rig.control.states import Lifecycle, StopMode
 from rig.control.trial import Snapshot, Trial, TrialResult, default_log_path
 from rig.errors import RigError
 from rig.recording.recorder import TrialInfo
@@ -56,7 +56,13 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None
     clock = RealClock(config.loop.spin_ms / 1000.0) if opts.speed == 1.0 else VirtualClock(opts.speed)
     if opts.speed != 1.0 and config.slider.backend != "sim":
         raise RigError("--speed other than 1 needs the simulated rig (slider.backend: sim)")
-    devices = open_devices(config, clock, speed=opts.speed, spy_path=opts.spy_path)
+    with open_devices(config, clock, speed=opts.speed, spy_path=opts.spy_path) as devices:
+        return _run_on(devices, proto, config, clock, opts, warn, model)
+
+
+def _run_on(devices: Devices, proto: Protocol, config: RigConfig, clock, opts: RunOptions, warn,
+            model) -> TrialResult:
+    """`run_trial` once its devices are open (they are closed by the caller, however this ends)."""
     for w in devices.warnings:
         (warn or _stderr)(w)
     log_path = opts.log_path or default_log_path(opts.out_dir or config.recorder.out_dir, proto,
@@ -65,11 +71,7 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None
     info = TrialInfo(specimen=opts.specimen, operator=opts.operator, notes=opts.notes,
                      clock=clock_name, extra={"devices": devices.description, "backstop": devices.backstop,
                                               "warnings": " | ".join(devices.warnings), **opts.dimensions})
-    try:
-        trial = Trial(proto, config, devices.slider, devices.loadcell, clock, log_path, info, model=model)
-    except BaseException:
-        devices.close()
-        raise
+    trial = Trial(proto, config, devices.slider, devices.loadcell, clock, log_path, info, model=model)
     bar = ProgressBar(plan(proto, config).duration_s, lambda: trial.snapshot) if opts.progress else None
     trial.on_tick = opts.on_tick
     live = None
@@ -77,11 +79,7 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None
         from rig.service.live import LiveView
 
         host = config.daemon.live.host if config.daemon.live is not None else "127.0.0.1"
-        try:
-            live = LiveView(host, opts.live_port)
-        except BaseException:
-            devices.close()
-            raise
+        live = LiveView(host, opts.live_port)
         trial.live = live
         (warn or _stderr)(f"live view: {live.url} (Foxglove: open connection, Foxglove WebSocket)")
     for w in trial.warnings:
@@ -107,7 +105,6 @@ def run_trial(proto: Protocol, config: RigConfig, opts: RunOptions, *, warn=None
             bar.close()
         if live is not None:
             live.close()
-        devices.close()
 
 
 def sigint_handler(trial: Trial) -> Callable:
@@ -149,7 +146,7 @@ class CtrlCNotices:
         self._told = mode
         self.say("\nabort: stopping, then returning to the start position (Ctrl-C again stops the "
                  "motor at once)" if mode is StopMode.ABORT else "\nemergency stop")
-        if self.trial.phase != "running":  # no tick to read the flag: stop from here
+        if self.trial.lifecycle is not Lifecycle.RUNNING:  # no tick to read the flag: stop from here
             ticket = self.trial.request_stop(mode, user="console")
             if ticket.trial_over:
                 try:

@@ -11,6 +11,7 @@ import threading
 from collections.abc import Callable
 from typing import TextIO
 
+from rig.control.states import TrialState
 from rig.control.trial import Snapshot
 
 
@@ -33,7 +34,7 @@ class ProgressBar:
     def _run(self) -> None:
         while not self._stop.wait(self.every_s):
             snap = self.snapshot()
-            if snap.state in ("running", "stopping"):
+            if TrialState(snap.state).active:
                 self.show(snap)
 
     def show(self, snap: Snapshot) -> None:
