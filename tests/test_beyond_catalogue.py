@@ -135,7 +135,7 @@ def test_effects_declare_units_bounds_and_signatures():
             assert p.name.endswith(p.unit.replace("/", "_per_").replace(" ", "_")) or p.unit == "1"
     with pytest.raises(ValueError, match="at most one 'rate'"):
         Model([CATALOGUE["speed_relaxation"], CATALOGUE["speed_relaxation"].__class__(
-            "other_rate", "rate", (), lambda m: 0.0, "", "")])
+            name="other_rate", stage="rate", params=(), fn=lambda m: 0.0, equation="", signature="")])
 
 
 # -- the simulator's physics

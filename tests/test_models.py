@@ -59,7 +59,8 @@ def test_models_compose_with_plus_and_share_parameters():
     assert m2.effect_names == ["poly_elastic", "nonlinear_damping", "relaxation", "drift"]
     with pytest.raises(ValueError, match="at most one 'lag'"):
         build_model("proposed") + CATALOGUE["relaxation"].__class__(
-            "relax_b", "lag", CATALOGUE["relaxation"].params, CATALOGUE["relaxation"].fn, "", "")
+            name="relax_b", stage="lag", params=CATALOGUE["relaxation"].params, fn=CATALOGUE["relaxation"].fn,
+            equation="", signature="")
 
 
 @pytest.mark.parametrize("tau", [0.003, 2.0, 1e7])

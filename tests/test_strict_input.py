@@ -128,8 +128,8 @@ def test_a_parameter_the_data_cannot_determine_is_reported_so_not_as_exact(paper
     from rig.models.catalogue import CATALOGUE
     from rig.models.core import Effect, Model, Param
 
-    inert = Effect("inert", "sensor", (Param("inert_N", "N", 0.5),), _inert, "no force at all", "-",
-                   source="plugin")
+    inert = Effect(name="inert", stage="sensor", params=(Param("inert_N", "N", 0.5),), fn=_inert,
+                   equation="no force at all", signature="-", source="plugin")
     res = fit(Model([CATALOGUE["linear_elastic"], inert]), [load_trial(paper_075_log.log_path)])
     assert res.stderr["inert_N"] == math.inf
     assert 0 < res.stderr["k_N_per_m"] < math.inf

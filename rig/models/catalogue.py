@@ -122,8 +122,6 @@ def _delay_guess(m: Motion, misfit_N: np.ndarray, values: dict, model_N: np.ndar
     return {"delay_s": best} if best is not None else {}
 
 
-E = Effect
-
 
 def P(name: str, unit: str, init: float, lo: float = -INF, hi: float = INF, **kw) -> Param:
     """A catalogue parameter: init and bounds in the record's own units (see rig.analysis.fitting.scaling)."""
@@ -133,68 +131,89 @@ def P(name: str, unit: str, init: float, lo: float = -INF, hi: float = INF, **kw
 # Starting values and bounds are in units of the record's force F, travel L and loading time T
 # (the first ramp's duration): k = 1 means F at depth L; tau1 = 0.5 means half the loading time.
 CATALOGUE: dict[str, Effect] = {e.name: e for e in [
-    E("linear_elastic", "drive", (P("k_N_per_m", "N/m", 1.0, warn_negative=True),),
-      _linear_elastic, "k x",
-      "residual curved in the ramp (stiffening) and a step at the ramp-hold corner"),
-    E("poly_elastic", "drive", (P("k1_N_per_m3", "N/m^3", 0.5),
-                                P("k2_N_per_m2", "N/m^2", 0.2),
-                                P("k3_N_per_m", "N/m", 0.2)),
-      _poly_elastic, "k1 x^3 + k2 x^2 + k3 x",
-      "ramp residual growing with depth: the force stiffens faster than the model"),
-    E("power_elastic", "drive", (P("k_N_per_m_n", "N/m^n", 1.0, 0.0),
-                                 P("n", "1", 1.5, 0.2, 6.0)),
-      _power_elastic, "k x^n (Hertz when n = 1.5)",
-      "ramp residual shaped like a power of depth"),
-    E("viscous", "drive", (P("eta_N_s_per_m", "N s/m", 0.1, warn_negative=True),),
-      _viscous, "eta dx/dt",
-      "residual steps at ramp start and end proportional to speed"),
-    E("hc_damping", "drive", (P("b_N_s_per_m_n1", "N s/m^(n+1)", 0.1, warn_negative=True),
-                              P("n", "1", 1.5, 0.2, 6.0)),
-      _hc_damping, "b x^n dx/dt (Hunt-Crossley)",
-      "ramp residual growing with depth and speed; drops at the ramp end"),
-    E("nonlinear_damping", "drive", (P("tau2_N_s_per_m2", "N s/m^2", 0.1, warn_negative=True),),
-      _nonlinear_damping, "tau2 x dx/dt (paper)",
-      "ramp residual proportional to depth x speed; a drop at the ramp end"),
+    Effect(name="linear_elastic", stage="drive", fn=_linear_elastic,
+           params=(P("k_N_per_m", "N/m", 1.0, warn_negative=True),),
+           equation="k x",
+           signature="residual curved in the ramp (stiffening) and a step at the ramp-hold corner"),
+    Effect(name="poly_elastic", stage="drive", fn=_poly_elastic,
+           params=(P("k1_N_per_m3", "N/m^3", 0.5),
+                   P("k2_N_per_m2", "N/m^2", 0.2),
+                   P("k3_N_per_m", "N/m", 0.2)),
+           equation="k1 x^3 + k2 x^2 + k3 x",
+           signature="ramp residual growing with depth: the force stiffens faster than the model"),
+    Effect(name="power_elastic", stage="drive", fn=_power_elastic,
+           params=(P("k_N_per_m_n", "N/m^n", 1.0, 0.0),
+                   P("n", "1", 1.5, 0.2, 6.0)),
+           equation="k x^n (Hertz when n = 1.5)",
+           signature="ramp residual shaped like a power of depth"),
+    Effect(name="viscous", stage="drive", fn=_viscous,
+           params=(P("eta_N_s_per_m", "N s/m", 0.1, warn_negative=True),),
+           equation="eta dx/dt",
+           signature="residual steps at ramp start and end proportional to speed"),
+    Effect(name="hc_damping", stage="drive", fn=_hc_damping,
+           params=(P("b_N_s_per_m_n1", "N s/m^(n+1)", 0.1, warn_negative=True),
+                   P("n", "1", 1.5, 0.2, 6.0)),
+           equation="b x^n dx/dt (Hunt-Crossley)",
+           signature="ramp residual growing with depth and speed; drops at the ramp end"),
+    Effect(name="nonlinear_damping", stage="drive", fn=_nonlinear_damping,
+           params=(P("tau2_N_s_per_m2", "N s/m^2", 0.1, warn_negative=True),),
+           equation="tau2 x dx/dt (paper)",
+           signature="ramp residual proportional to depth x speed; a drop at the ramp end"),
     # fitted as its rate 1/tau1 (rig.analysis.fitting.scaling) down to 1e-8 (a lag 1e8 loading times
     # long, an integrator over any record): a creep that never settles is followed that way
-    E("relaxation", "lag", (P("tau1_s", "s", 0.5, 1e-4, 1e8),),
-      _relaxation, "f + tau1 df/dt = drive (paper)",
-      "hold residual decaying: the force relaxes but the model holds"),
-    E("relaxation2", "branch", (P("k_m_N_per_m", "N/m", 0.5, 0.0),
-                                P("tau_m_s", "s", 3.0, 1e-3, 1e5)),
-      _relaxation2, "Maxwell branch: f2 + tau_m df2/dt = k_m tau_m dx/dt, in parallel",
-      "hold residual still decaying with a second, slower time constant"),
+    Effect(name="relaxation", stage="lag", fn=_relaxation,
+           params=(P("tau1_s", "s", 0.5, 1e-4, 1e8),),
+           equation="f + tau1 df/dt = drive (paper)",
+           signature="hold residual decaying: the force relaxes but the model holds"),
+    Effect(name="relaxation2", stage="branch", fn=_relaxation2,
+           params=(P("k_m_N_per_m", "N/m", 0.5, 0.0),
+                   P("tau_m_s", "s", 3.0, 1e-3, 1e5)),
+           equation="Maxwell branch: f2 + tau_m df2/dt = k_m tau_m dx/dt, in parallel",
+           signature="hold residual still decaying with a second, slower time constant"),
     # relaxation faster after faster loading (the paper's observation); seen only in a joint fit
     # over trials at several speeds, where one tau1 cannot serve them all
-    E("speed_relaxation", "rate", (P("relax_rate_per_speed_1_per_mm", "1/mm", 0.5, 0.0, 1e4),),
-      _speed_relaxation, "the lag's rate 1/tau1 + c v, v the trial's loading speed",
-      "hold residual decaying with opposite signs at different speeds: one tau1 cannot serve "
-      "every speed"),
-    E("fractional_relaxation", "branch", (P("k_f_N_per_m", "N/m", 0.5, 0.0),
-                                          P("tau_f_s", "s", 0.05, 1e-4, 1e4),
-                                          P("alpha_f", "1", 0.4, 0.05, 0.95)),
-      _fractional_relaxation, "fractional Maxwell branch: modulus k_f E_a(-(t/tau_f)^a), a power "
-      "law t^-a after tau_f, in parallel",
-      "hold residual decaying over many time scales at once: fast at first, then a long power-law tail"),
-    E("offset", "sensor", (P("offset_N", "N", 0.0),),
-      _offset, "constant force offset (tare error)",
-      "residual constant, also before contact and after retraction", linear=True),
-    E("drift", "sensor", (P("drift_N_per_s", "N/s", 0.0),),
-      _drift, "force drift linear in time",
-      "residual growing linearly with time, also before contact", linear=True),
-    E("contact_offset", "geometry", (P("x0_mm", "mm", 0.02, -0.3, 0.9),),
-      _contact_offset, "indentation = max(x - x0, 0)",
-      "model force too early (or too late) at the start of the ramp: contact elsewhere than assumed"),
-    E("delay", "delay", (P("delay_s", "s", 0.01, 0.0, 1.0),),
-      _delay, "force measured late by a fixed delay",
-      "residual proportional to the force's rate of change: peaks at ramp corners", guess=_delay_guess),
-    E("compliance", "geometry", (P("k_frame_N_per_m", "N/m", 10.0, 1e-2, 1e6),),
-      _compliance, "indentation = x - f / k_frame",
-      "ramp residual growing with force: the tissue sees less than the slider moved",
-      needs_force=True),
-    E("friction", "sensor", (P("friction_N", "N", 0.0),),
-      _friction, "Coulomb friction in the probe guide, sign of velocity",
-      "residual steps at ramp start and end with the sign of velocity"),
+    Effect(name="speed_relaxation", stage="rate", fn=_speed_relaxation,
+           params=(P("relax_rate_per_speed_1_per_mm", "1/mm", 0.5, 0.0, 1e4),),
+           equation="the lag's rate 1/tau1 + c v, v the trial's loading speed",
+           signature="hold residual decaying with opposite signs at different speeds: one tau1 cannot serve "
+                     "every speed"),
+    Effect(name="fractional_relaxation", stage="branch", fn=_fractional_relaxation,
+           params=(P("k_f_N_per_m", "N/m", 0.5, 0.0),
+                   P("tau_f_s", "s", 0.05, 1e-4, 1e4),
+                   P("alpha_f", "1", 0.4, 0.05, 0.95)),
+           equation="fractional Maxwell branch: modulus k_f E_a(-(t/tau_f)^a), a power "
+                    "law t^-a after tau_f, in parallel",
+           signature="hold residual decaying over many time scales at once: fast at first, then a long "
+                     "power-law tail"),
+    Effect(name="offset", stage="sensor", fn=_offset,
+           params=(P("offset_N", "N", 0.0),),
+           equation="constant force offset (tare error)",
+           signature="residual constant, also before contact and after retraction",
+           linear=True),
+    Effect(name="drift", stage="sensor", fn=_drift,
+           params=(P("drift_N_per_s", "N/s", 0.0),),
+           equation="force drift linear in time",
+           signature="residual growing linearly with time, also before contact",
+           linear=True),
+    Effect(name="contact_offset", stage="geometry", fn=_contact_offset,
+           params=(P("x0_mm", "mm", 0.02, -0.3, 0.9),),
+           equation="indentation = max(x - x0, 0)",
+           signature="model force too early (or too late) at the start of the ramp: contact elsewhere "
+                     "than assumed"),
+    Effect(name="delay", stage="delay", fn=_delay,
+           params=(P("delay_s", "s", 0.01, 0.0, 1.0),),
+           equation="force measured late by a fixed delay",
+           signature="residual proportional to the force's rate of change: peaks at ramp corners",
+           guess=_delay_guess),
+    Effect(name="compliance", stage="geometry", fn=_compliance,
+           params=(P("k_frame_N_per_m", "N/m", 10.0, 1e-2, 1e6),),
+           equation="indentation = x - f / k_frame",
+           signature="ramp residual growing with force: the tissue sees less than the slider moved",
+           needs_force=True),
+    Effect(name="friction", stage="sensor", fn=_friction,
+           params=(P("friction_N", "N", 0.0),),
+           equation="Coulomb friction in the probe guide, sign of velocity",
+           signature="residual steps at ramp start and end with the sign of velocity"),
 ]}
 
 NAMED_MODELS: dict[str, list[str]] = {
@@ -234,9 +253,10 @@ def contact_effect(indenter, poisson: float = 0.5) -> Effect:
 
     law = {"paraboloid": "Hertz", "sphere": "Sneddon's exact sphere", "cone": "Sneddon's cone",
            "pyramid": "Bilodeau's pyramid", "cylinder": "Boussinesq's flat punch"}[indenter.kind]
-    return Effect(CONTACT, "drive", (P("E_Pa", "Pa", 1.0, 0.0, warn_negative=True),), _elastic_contact,
-                  f"F = E g(d): {law}, {indenter.describe()}, Poisson {poisson:g}",
-                  "ramp residual shaped like a power of depth other than the indenter's",
+    return Effect(name=CONTACT, stage="drive", fn=_elastic_contact,
+                  params=(P("E_Pa", "Pa", 1.0, 0.0, warn_negative=True),),
+                  equation=f"F = E g(d): {law}, {indenter.describe()}, Poisson {poisson:g}",
+                  signature="ramp residual shaped like a power of depth other than the indenter's",
                   source=f"indenter {indenter.spec()}", linear=True)
 
 
@@ -245,18 +265,20 @@ def contact_effect(indenter, poisson: float = 0.5) -> Effect:
 # brings it; so does every record whose contact was only estimated from its force (an approach),
 # one value per record (rig.analysis.fitting.fit.with_record_params). Not among the candidates `--explain`
 # tries: for a record whose surface is known, contact_offset is that.
-CONTACT_POINT = E("contact_point", "geometry", (P("x_c_m", "m", 0.0, -1.0, 0.99, per_record=True),),
-                  _contact_point, "indentation = max(x - x_c, 0), x_c fitted from the first estimate",
-                  "model force rises too early or too late: the contact point is elsewhere",
-                  source="the record (its contact point)")
+CONTACT_POINT = Effect(name="contact_point", stage="geometry", fn=_contact_point,
+                       params=(P("x_c_m", "m", 0.0, -1.0, 0.99, per_record=True),),
+                       equation="indentation = max(x - x_c, 0), x_c fitted from the first estimate",
+                       signature="model force rises too early or too late: the contact point is elsewhere",
+                       source="the record (its contact point)")
 
 
 # The offset as the zero of a record that does not know it (its contact only estimated from the
 # force): one value per record (rig.analysis.fitting.fit.with_record_params).
-RECORD_ZERO = E("offset", "sensor", (P("offset_N", "N", 0.0, per_record=True),),
-                _offset, "constant force offset: the record's zero, one per record",
-                "residual constant, also before contact and after retraction", linear=True,
-                source="the record (its force at rest)")
+RECORD_ZERO = Effect(name="offset", stage="sensor", fn=_offset,
+                     params=(P("offset_N", "N", 0.0, per_record=True),),
+                     equation="constant force offset: the record's zero, one per record",
+                     signature="residual constant, also before contact and after retraction",
+                     linear=True, source="the record (its force at rest)")
 
 
 def instrument_effects(model: Model, registry: dict[str, Effect]) -> dict[str, Effect]:

@@ -29,6 +29,11 @@ import numpy as np
 from rig.models import frame
 
 STAGES = ("geometry", "drive", "rate", "lag", "branch", "sensor", "delay")
+# What each stage passes an effect's function before its parameters (by keyword, named as its
+# `Param`s): `Effect` checks a function against these when it is declared.
+STAGE_INPUTS = {"geometry": ("x", "v"), "drive": ("x", "v"), "rate": ("m",), "lag": ("drive", "dt"),
+                "branch": ("x", "v", "dt"), "sensor": ("m", "force"), "delay": ("m", "force")}
+FORCE_GEOMETRY_INPUTS = ("x", "v", "force", "dt")  # a geometry that needs the force (a frame spring)
 
 
 @dataclass(frozen=True)
@@ -95,16 +100,17 @@ class Motion:
         self.__dict__.pop("_held_x", None)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Effect:
-    """One physical effect: where it acts, its parameters, and how it computes."""
+    """One physical effect: where it acts, its parameters, and how it computes; declared by
+    keyword, and its function checked against its stage and parameters when it is."""
 
     name: str
     stage: str
     params: tuple[Param, ...]
-    fn: Callable  # signature depends on the stage; see Model.predict
+    fn: Callable  # (the stage's inputs, STAGE_INPUTS; then the parameters by name)
     equation: str
-    signature: str  # where in a trial its absence shows
+    signature: str  # where in a trial its absence shows (the residual's shape without it)
     source: str = "catalogue"
     needs_force: bool = False  # geometry that depends on the force itself (frame compliance)
     # a drive or sensor term that is its one parameter times a term free of it: the fit then
@@ -126,6 +132,36 @@ class Effect:
     def __post_init__(self) -> None:
         if self.stage not in STAGES:
             raise ValueError(f"effect '{self.name}': stage must be one of {', '.join(STAGES)}")
+        self._check_fn()
+
+    def _check_fn(self) -> None:
+        """`fn` takes the stage's inputs, then exactly the declared parameters by name (as lmfit
+        reads a model's names from its function): a misspelt or missing one fails here, at the
+        declaration, not at the first fit."""
+        import inspect
+
+        try:
+            sig = inspect.signature(self.fn)
+        except (TypeError, ValueError):  # a builtin or C callable: nothing to read
+            return
+        kinds = inspect.Parameter
+        if any(q.kind is kinds.VAR_KEYWORD for q in sig.parameters.values()):
+            return  # takes any names
+        inputs = FORCE_GEOMETRY_INPUTS if self.needs_force else STAGE_INPUTS[self.stage]
+        named = [q for q in sig.parameters.values() if q.kind is not kinds.VAR_POSITIONAL]
+        leading, rest = named[:len(inputs)], named[len(inputs):]
+        where = f"effect '{self.name}' ({self.stage} stage)"
+        if len(leading) < len(inputs) or any(q.kind is kinds.KEYWORD_ONLY for q in leading):
+            raise ValueError(f"{where}: its function must take the stage's inputs "
+                             f"({', '.join(inputs)}) first, then its parameters")
+        declared = [p.name for p in self.params]
+        taken = [q.name for q in rest]
+        missing = [n for n in declared if n not in taken]
+        extra = [q.name for q in rest if q.name not in declared and q.default is kinds.empty]
+        if missing or extra:
+            raise ValueError(f"{where}: its parameters are {', '.join(declared) or 'none'}, but its "
+                             f"function takes {', '.join(taken) or 'none'} after the inputs "
+                             f"({', '.join(inputs)})")
 
     def __add__(self, other: Effect | Model) -> Model:
         return Model([self]) + other

@@ -119,6 +119,9 @@ def bottom_effect(indenter: Indenter, poisson: float = 0.5, bonded: bool = True,
 
     how = "bonded to" if bonded else "lying on"
     c = ", ".join(f"{x:.4g}" for x in coeffs)
+    law = "F = F_contact(d) (1 + c1 chi + c2 chi^2 + c3 chi^3 + c4 chi^4), chi = sqrt(R d)/h"
+    signature = ("ramp residual growing faster than the contact law with depth: the sample reads stiffer "
+                 "the deeper the tip goes (a thin sample on a hard support); E fitted without it is too high")
     if thickness_m is not None:
         h_known = float(thickness_m)
 
@@ -126,26 +129,18 @@ def bottom_effect(indenter: Indenter, poisson: float = 0.5, bonded: bool = True,
             return _bottom(x, v, E_Pa, h_known)
 
         return Effect(
-            BOTTOM if bonded else BOTTOM_FREE, "drive",
-            (Param("E_Pa", "Pa", 1.0, 0.0, relative=True, warn_negative=True),),
-            _bottom_known,
-            f"F = F_contact(d) (1 + c1 chi + c2 chi^2 + c3 chi^3 + c4 chi^4), chi = sqrt(R d)/h: a layer of "
-            f"thickness h = {h_known * 1e3:g} mm (the specimen's, from the log) {how} a hard substrate "
-            f"({REFERENCE}; nu {poisson:g}: c = {c})",
-            "ramp residual growing faster than the contact law with depth: the sample reads stiffer the "
-            "deeper the tip goes (a thin sample on a hard support); E fitted without it is too high",
-            source=f"indenter {indenter.spec()}, thickness {h_known * 1e3:g} mm")
+            name=BOTTOM if bonded else BOTTOM_FREE, stage="drive", fn=_bottom_known,
+            params=(Param("E_Pa", "Pa", 1.0, 0.0, relative=True, warn_negative=True),),
+            equation=(f"{law}: a layer of thickness h = {h_known * 1e3:g} mm (the specimen's, from the "
+                      f"log) {how} a hard substrate ({REFERENCE}; nu {poisson:g}: c = {c})"),
+            signature=signature, source=f"indenter {indenter.spec()}, thickness {h_known * 1e3:g} mm")
     return Effect(
-        BOTTOM if bonded else BOTTOM_FREE, "drive",
-        (Param("E_Pa", "Pa", 1.0, 0.0, relative=True, warn_negative=True),
-         Param("h_m", "m", 3.0, 0.02, 1e4, relative=True, warn_negative=True,
-               doc="the sample's thickness over the hard substrate"),),
-        _bottom,
-        f"F = F_contact(d) (1 + c1 chi + c2 chi^2 + c3 chi^3 + c4 chi^4), chi = sqrt(R d)/h: a layer of "
-        f"thickness h {how} a hard substrate ({REFERENCE}; nu {poisson:g}: c = {c})",
-        "ramp residual growing faster than the contact law with depth: the sample reads stiffer the "
-        "deeper the tip goes (a thin sample on a hard support); E fitted without it is too high",
-        source=f"indenter {indenter.spec()}")
+        name=BOTTOM if bonded else BOTTOM_FREE, stage="drive", fn=_bottom,
+        params=(Param("E_Pa", "Pa", 1.0, 0.0, relative=True, warn_negative=True),
+                Param("h_m", "m", 3.0, 0.02, 1e4, relative=True, warn_negative=True,
+                      doc="the sample's thickness over the hard substrate")),
+        equation=f"{law}: a layer of thickness h {how} a hard substrate ({REFERENCE}; nu {poisson:g}: c = {c})",
+        signature=signature, source=f"indenter {indenter.spec()}")
 
 
 def _tilt(m: Motion, force, tilt_N_per_m):
@@ -157,17 +152,17 @@ def _drag(m: Motion, force, drag_N_s_per_m):
 
 
 TILT_EFFECT = Effect(
-    TILT, "sensor", (Param("tilt_N_per_m", "N/m", 0.0, relative=True),), _tilt,
-    "F += tilt x: virtual deflection, a force linear in the piezo's travel, in and out of contact",
-    "baseline sloped with the travel before contact, the same slope under the contact force; on a "
+    name=TILT, stage="sensor", fn=_tilt, params=(Param("tilt_N_per_m", "N/m", 0.0, relative=True),),
+    equation="F += tilt x: virtual deflection, a force linear in the piezo's travel, in and out of contact",
+    signature="baseline sloped with the travel before contact, the same slope under the contact force; on a "
     "curve at one constant speed it is drift (time and travel are proportional): only where the speed "
     "changes (the retract, a hold) are the two told apart", linear=True)
 
 DRAG_EFFECT = Effect(
-    DRAG, "sensor", (Param("drag_N_s_per_m", "N s/m", 0.0, relative=True),), _drag,
-    "F += b dx/dt: hydrodynamic drag on the cantilever, proportional to the piezo's speed, in and out of "
-    "contact",
-    "a step in the force where the motion turns: approach and retract read 2 b v apart, also out of "
+    name=DRAG, stage="sensor", fn=_drag, params=(Param("drag_N_s_per_m", "N s/m", 0.0, relative=True),),
+    equation="F += b dx/dt: hydrodynamic drag on the cantilever, proportional to the piezo's speed, in "
+    "and out of contact",
+    signature="a step in the force where the motion turns: approach and retract read 2 b v apart, also out of "
     "contact; on an approach alone at one speed it is a constant, an offset", linear=True)
 
 def _adhesion(m: Motion, force, pull_off_N, pull_off_m, x_c_m):
@@ -201,20 +196,19 @@ def _adhesion_guess(m: Motion, misfit_N: np.ndarray, values: dict, model_N: np.n
 
 
 ADHESION_EFFECT = Effect(
-    ADHESION, "sensor",
-    (Param("pull_off_N", "N", 0.0, 0.0, relative=True, warn_negative=True,
-           doc="the pull-off force: the most the neck pulls before the tip lets go"),
-     Param("pull_off_m", "m", 0.3, 1e-3, 10.0, relative=True, warn_negative=True,
-           doc="the tip's travel past the contact point when it lets go"),
-     # the contact point's own parameter (rig.models.catalogue.CONTACT_POINT), shared by name: the
-     # neck starts there; a model holding both takes its bounds from the geometry stage
-     Param("x_c_m", "m", 0.0, -1.0, 0.99, relative=True, per_record=True)),
-    _adhesion,
-    "F += F_off d / L on the retract for -L < d < 0 (d = x - x_c): the tip stuck to the sample, pulled "
-    "linearly to the pull-off force F_off at the pull-off distance L, then let go (DMT: F_off = 2 pi R w, "
-    "JKR: 3/2 pi R w)",
-    "retract dipping below the baseline past the contact point, then a jump back to it: the tip sticks "
-    "on the way out; a model without it pulls the contact point and the baseline towards the dip",
+    name=ADHESION, stage="sensor", fn=_adhesion,
+    params=(Param("pull_off_N", "N", 0.0, 0.0, relative=True, warn_negative=True,
+                  doc="the pull-off force: the most the neck pulls before the tip lets go"),
+            Param("pull_off_m", "m", 0.3, 1e-3, 10.0, relative=True, warn_negative=True,
+                  doc="the tip's travel past the contact point when it lets go"),
+            # the contact point's own parameter (rig.models.catalogue.CONTACT_POINT), shared by name:
+            # the neck starts there; a model holding both takes its bounds from the geometry stage
+            Param("x_c_m", "m", 0.0, -1.0, 0.99, relative=True, per_record=True)),
+    equation="F += F_off d / L on the retract for -L < d < 0 (d = x - x_c): the tip stuck to the sample, "
+    "pulled linearly to the pull-off force F_off at the pull-off distance L, then let go (DMT: F_off = "
+    "2 pi R w, JKR: 3/2 pi R w)",
+    signature="retract dipping below the baseline past the contact point, then a jump back to it: the tip "
+    "sticks on the way out; a model without it pulls the contact point and the baseline towards the dip",
     guess=_adhesion_guess)
 
 SENSOR_EFFECTS = {TILT: TILT_EFFECT, DRAG: DRAG_EFFECT, ADHESION: ADHESION_EFFECT}

@@ -32,8 +32,9 @@ def effect(*, stage: str, params: list[Param], equation: str = "", signature: st
         raise ValueError(f"stage must be one of {', '.join(STAGES)}")
 
     def wrap(fn: Callable) -> Effect:
-        e = Effect(name or fn.__name__, stage, tuple(params), fn, equation or fn.__doc__ or fn.__name__,
-                   signature or "(user effect)", source="plugin")
+        e = Effect(name=name or fn.__name__, stage=stage, params=tuple(params), fn=fn,
+                   equation=equation or fn.__doc__ or fn.__name__,
+                   signature=signature or "(user effect)", source="plugin")
         _LOADING.append(e)
         return e
 

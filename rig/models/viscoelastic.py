@@ -118,8 +118,9 @@ def viscoelastic_effect(name: str, indenter: Indenter, poisson: float = 0.5) -> 
 
         params = (_param("E0_Pa", "Pa", 1.0, 0.0, np.inf, "modulus at t0 = 1 s after a step"),
                   _param("beta", "1", 0.2, 0.0, BETA_MAX, "power-law exponent (fluidity)"))
-        return Effect(name, "branch", params, _power,
-                      f"Lee-Radok/Ting contact, E(t) = E0 (t / 1 s)^-beta: {where}", signature, source=source)
+        return Effect(name=name, stage="branch", params=params, fn=_power,
+                      equation=f"Lee-Radok/Ting contact, E(t) = E0 (t / 1 s)^-beta: {where}",
+                      signature=signature, source=source)
     terms = KINDS[kind]
 
     def _prony(x, v, dt, E_inf_Pa, **kw):
@@ -127,8 +128,9 @@ def viscoelastic_effect(name: str, indenter: Indenter, poisson: float = 0.5) -> 
         return hereditary_force(x, g_of(x), dt, *mod, exponent=indenter.exponent)
 
     series = " + ".join(f"E{i} exp(-t/tau{i})" for i in range(1, terms + 1))
-    return Effect(name, "branch", _prony_params(terms), _prony,
-                  f"Lee-Radok/Ting contact, E(t) = E_inf + {series}: {where}", signature, source=source)
+    return Effect(name=name, stage="branch", params=_prony_params(terms), fn=_prony,
+                  equation=f"Lee-Radok/Ting contact, E(t) = E_inf + {series}: {where}", signature=signature,
+                  source=source)
 
 
 def viscoelastic_effects(indenter: Indenter, poisson: float = 0.5) -> dict[str, Effect]:
