@@ -66,7 +66,7 @@ def test_a_stand_in_is_dropped_at_the_simpler_models_count(tmp_path, monkeypatch
 
     from rig.analysis.diagnosis import explain as explain_module
     from rig.analysis.fitting.fit import fit
-    from rig.analysis.stats.uncertainty import delta_bic
+    from rig.analysis.stats.criterion import delta_bic
     from rig.analysis.trials.data import load_trial
     from rig.models import CATALOGUE, build_model
     from tests.test_explain import simulate

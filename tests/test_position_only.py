@@ -14,7 +14,6 @@ import pytest
 from rig.analysis.diagnosis.explain import explain
 from rig.analysis.fitting.fit import fit
 from rig.analysis.trials.data import load_trial
-from rig.analysis.workflow.analyze import record_placement
 from rig.analysis.workflow.session import AnalyzeRequest, analyze
 from rig.cli import main
 from rig.models import CATALOGUE, build_model
@@ -69,7 +68,7 @@ def _one_seed(seed: int, tmp_path: Path) -> str:
         problems.append(base.verdict())
     if ex.suggestions:
         problems.append(ex.summary)
-    for row in record_placement(base):
+    for row in base.placements():
         off = row["contact_point_m"] - surface_mm(seed) / 1000.0
         se = row["contact_point_m_stderr"]
         if not (se and 0 < se < 1e-3 and abs(off) <= 2 * se):

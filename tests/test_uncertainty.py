@@ -14,7 +14,8 @@ from scipy.signal import lfilter
 
 from rig.analysis.diagnosis.explain import explain
 from rig.analysis.fitting.fit import fit
-from rig.analysis.stats.uncertainty import bic, delta_bic, hac_covariance, white_covariance
+from rig.analysis.stats.criterion import bic, delta_bic
+from rig.analysis.stats.uncertainty import hac_covariance, white_covariance
 from rig.analysis.trials.data import load_trial
 from rig.analysis.workflow.analyze import result_json
 from rig.models import CATALOGUE, build_model

@@ -28,7 +28,7 @@ import numpy as np
 
 from rig.analysis.diagnosis.residual_shape import describe, not_the_answer
 from rig.analysis.fitting.fit import FEW_PER_PARAM, FitResult, evaluate, fit, negative
-from rig.analysis.stats.uncertainty import delta_bic
+from rig.analysis.stats.criterion import delta_bic
 from rig.analysis.trials.data import PHASES, TrialData, decimate
 from rig.models.catalogue import CONTACT, instrument_effects
 from rig.models.core import Effect, Model
@@ -400,7 +400,7 @@ def _why(e: Effect, base: FitResult, res: FitResult) -> str:
     parts = []
     if drops:
         ph, before, after = drops[0]
-        parts.append(f"{ph} error {base.f(before)} -> {base.f(after)}")
+        parts.append(f"{ph} error {base.force_text(before)} -> {base.force_text(after)}")
     vals = ", ".join(f"{p.name} ~ {res.values[p.name]:.3g} {p.unit}" for p in e.params)
     shape = _shape(e, base, res)
     text = shape or e.signature
@@ -504,9 +504,10 @@ def _unexplained(base: FitResult, best: Suggestion | None) -> bool | str:
     if best:
         what = f"with {best.effect}" + (f", without {' and '.join(best.dropped)}," if best.dropped else "")
     text = (f"{what} the error is still {res.overall.rmse_N / max(res.noise_N, 1e-300):.2f}x the noise "
-            f"(worst in {worst[0]}: {res.f(worst[1])}; residual correlated over {res.white_L:.0f} samples, "
+            f"(worst in {worst[0]}: {res.force_text(worst[1])}; residual correlated over "
+            f"{res.white_L:.0f} samples, "
             f"noise {res.noise_L:.0f})")
-    shape = describe(res.trials, res.residuals, res.noise_N, res.f)
+    shape = describe(res.trials, res.residuals, res.noise_N, res.force_text)
     return f"{text}; the residual is {shape}" if shape else text
 
 
@@ -521,7 +522,7 @@ def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexpl
     parts = []
     if best is not None:
         parts.append(f"most likely missing: {best.label} (dBIC {best.delta_bic:.1f}, RMSE "
-                     f"{base.f(base.overall.rmse_N)} -> {base.f(best.rmse_N)}, error down "
+                     f"{base.force_text(base.overall.rmse_N)} -> {base.force_text(best.rmse_N)}, error down "
                      f"{best.rmse_drop * 100:.0f} %)")
         if best.unsupported:
             parts.append(f"with it {best.unsupported}: named on decisive evidence, its standard errors rest "
@@ -533,8 +534,8 @@ def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexpl
         parts.append("the model is adequate: its residual is at the sensor-noise level; nothing to add")
     else:
         worst = max(((ph, s.rmse_N) for ph, s in base.phases.items() if s), key=lambda x: x[1])
-        parts.append(f"the model is NOT adequate (RMSE {base.f(base.overall.rmse_N)} vs noise "
-                     f"{base.f(base.noise_N)}; worst in {worst[0]}: {base.f(worst[1])}) and "
+        parts.append(f"the model is NOT adequate (RMSE {base.force_text(base.overall.rmse_N)} vs noise "
+                     f"{base.force_text(base.noise_N)}; worst in {worst[0]}: {base.force_text(worst[1])}) and "
                      + ("the record cannot support a richer model" if beyond else
                         "no effect in the catalogue explains it"))
         if beyond is not None:
@@ -542,7 +543,8 @@ def _summary(base: FitResult, best: Suggestion | None, twins: list[dict], unexpl
                          f"{BEYOND_DESIGN}")
         if closest is not None:
             parts.append(f"closest: {closest.label} (dBIC {closest.delta_bic:.1f}, RMSE "
-                         f"{base.f(closest.rmse_N)}, error down {closest.rmse_drop * 100:.0f} %), which "
+                         f"{base.force_text(closest.rmse_N)}, error down {closest.rmse_drop * 100:.0f} %), "
+                         "which "
                          f"still leaves a structured residual: {partial}")
         if unexplained:
             parts.append(f"unexplained: {unexplained}")
@@ -663,7 +665,8 @@ def _rss(res: FitResult) -> float:
 def format_explain(ex: Explanation, top: int = 6) -> str:
     b = ex.base
     k, u = b.force_unit
-    lines = [f"diagnosis of {b.model.name}: RMSE {b.f(b.overall.rmse_N)}, noise {b.f(b.noise_N)}, "
+    lines = [f"diagnosis of {b.model.name}: RMSE {b.force_text(b.overall.rmse_N)}, "
+             f"noise {b.force_text(b.noise_N)}, "
              f"{'adequate' if b.adequate else 'NOT adequate'}; effective samples {ex.n_eff:.0f} of "
              f"{b.overall.n}",
              f"  {'effect':<18}{'RMSE ' + u:>9}{'drop':>8}{'dBIC':>10}  evidence"]
@@ -692,7 +695,8 @@ def format_auto(steps: list[dict]) -> str:
     last = steps[-1]["fit"]
     lines.append(f"final model {last.model.name}: "
                  + ("adequate (residual at the sensor noise)" if last.adequate else
-                    f"NOT adequate (RMSE {last.f(last.overall.rmse_N)} vs noise {last.f(last.noise_N)})"))
+                    f"NOT adequate (RMSE {last.force_text(last.overall.rmse_N)} vs noise "
+                    f"{last.force_text(last.noise_N)})"))
     if steps[-1].get("stopped"):
         lines.append(steps[-1]["stopped"])
     if (rich := richness(last)):

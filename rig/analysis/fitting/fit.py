@@ -32,11 +32,12 @@ import numpy as np
 from rig.analysis.fitting import contact_fit, separable
 from rig.analysis.fitting.lean import predictor
 from rig.analysis.fitting.scaling import ParamScaling
+from rig.analysis.stats import criterion
 from rig.analysis.stats.adequacy import ADEQUATE_PHASE, ADEQUATE_RMSE, ADEQUATE_WHITE, Limits, whitened_scale
 from rig.analysis.stats.adequacy import limits as adequacy_limits
+from rig.analysis.stats.criterion import bic as effective_bic
 from rig.analysis.stats.criterion import noise_count
 from rig.analysis.stats.noise import Noise, integral_scale, measure
-from rig.analysis.stats.uncertainty import bic as effective_bic
 from rig.analysis.stats.uncertainty import correlation, hac_covariance, notable_correlations, zero_meat
 from rig.analysis.trials.data import PHASES, Scales, TrialData, decimate
 from rig.models.catalogue import CONTACT_POINT, RECORD_ZERO
@@ -191,7 +192,7 @@ class FitResult:
     def force_unit(self) -> tuple[float, str]:
         return self.trials[0].force_unit
 
-    def f(self, value_N: float, signed: bool = False) -> str:
+    def force_text(self, value_N: float, signed: bool = False) -> str:
         """A force in the record's own unit (nN for a cell, N for a stomach)."""
         k, u = self.force_unit
         return f"{value_N / k:{'+' if signed else ''}.4g} {u}"
@@ -224,8 +225,10 @@ class FitResult:
         """lmfit-style text report, forces in the record's own unit."""
         lines = [f"model      {self.model.name}  ({', '.join(self.model.effect_names)})",
                  f"trials     {', '.join(t.name for t in self.trials)}",
-                 f"fit        RMSE {self.f(self.overall.rmse_N)}, mean {self.f(self.overall.mean_N, True)}, "
-                 f"std {self.f(self.overall.std_N)}; noise {self.f(self.noise_N)} ({self.noise_source}); "
+                 f"fit        RMSE {self.force_text(self.overall.rmse_N)}, "
+                 f"mean {self.force_text(self.overall.mean_N, True)}, "
+                 f"std {self.force_text(self.overall.std_N)}; "
+                 f"noise {self.force_text(self.noise_N)} ({self.noise_source}); "
                  f"residual correlation {self.white_L:.1f} samples (noise {self.noise_L:.1f}); "
                  f"{self.verdict()}",
                  f"errors     +/- below: statistical, the noise's given the model (its noise: "
@@ -247,6 +250,72 @@ class FitResult:
         for w in self.warnings:
             lines.append(f"WARNING    {w}")
         return "\n".join(lines)
+
+
+    def as_dict(self) -> dict:
+        """The result as plain data (the JSON of `rig analyze --json` less what the command adds):
+        the model, every parameter with its error and unit, the correlations, the fit's figures,
+        the scales, each record with where its contact was placed, the error by phase and per
+        record, the verdict and the warnings. Non-finite numbers are None."""
+        units = {p.name: p.unit for p in self.model.params}
+        return {
+            "model": self.model.name,
+            "effects": self.model.effect_names,
+            "parameters": {k: {"value": v, "stderr": _finite(self.stderr.get(k)), "unit": units[k],
+                               "determined": self.stderr.get(k) != math.inf}
+                           for k, v in self.values.items()},
+            "correlations": self.correlations_by_name(),
+            "fit": {"rmse_N": self.overall.rmse_N, "mean_N": self.overall.mean_N, "std_N": self.overall.std_N,
+                    "noise_N": self.noise_N, "noise_source": self.noise_source, "bic": self.bic,
+                    "effective_samples": self.bic_samples, "bic_definition": criterion.DEFINITION,
+                    "residual_effective_samples": self.n_eff,
+                    # the +/- ("stderr") are statistical: the noise's, given the model, this noise model's
+                    "stderr_noise_model": self.error_noise,
+                    "rmse_over_noise": self.overall.rmse_N / self.noise_N if self.noise_N > 0 else None,
+                    "residual_correlation_samples": self.white_L, "noise_correlation_samples": self.noise_L,
+                    "seconds": self.seconds},
+            "scales": {"length_m": self.scales.length_m, "force_N": self.scales.force_N,
+                       "time_s": self.scales.time_s},
+            "fit_variables": self.z,
+            "records": [{"trial": t.name, "source": t.source, "samples": t.n, "dt_s": t.motion.dt_s,
+                         "force_unit": t.force_unit[1], "length_unit": t.length_unit[1], "notes": t.notes,
+                         **placed}
+                        for t, placed in zip(self.trials, self.placements(), strict=True)],
+            "phases": {ph: (s.as_dict() if s else None) for ph, s in self.phases.items()},
+            "per_trial": self.per_trial,
+            "adequate": self.adequate,
+            "warnings": self.warnings,
+        }
+
+    def placements(self) -> list[dict]:
+        """Per record, where the fit put its contact (``contact_point_m``, in its travel from its
+        first sample) and, when the record's zero was fitted, its force at rest (``zero_N``), each
+        with its standard error; empty where the model has neither."""
+        out = []
+        for i, t in enumerate(self.trials):
+            row: dict = {}
+            for effect, key, to in ((CONTACT_POINT, "contact_point_m", t.contact_m or 0.0),
+                                    (RECORD_ZERO, "zero_N", 0.0)):
+                (p,) = effect.params
+                name = self.model.key(p, i)
+                if self.model.has(effect.name) and name in self.values:
+                    row[key] = to + self.values[name]
+                    row[f"{key}_stderr"] = _finite(self.stderr.get(name))
+            out.append(row)
+        return out
+
+    def correlations_by_name(self) -> dict[str, dict[str, float | None]] | None:
+        """The parameters' correlation matrix by name (None where a variance is zero)."""
+        c = self.correlation
+        if c is None:
+            return None
+        names = self.model.param_names
+        return {a: {b: (float(c[i, j]) if np.isfinite(c[i, j]) else None) for j, b in enumerate(names)}
+                for i, a in enumerate(names)}
+
+
+def _finite(x: float | None) -> float | None:
+    return x if x is not None and math.isfinite(x) else None
 
 
 def evaluate(model: Model, values: dict[str, float], trials: list[TrialData]) -> list[np.ndarray]:

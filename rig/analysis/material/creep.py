@@ -86,7 +86,8 @@ def format_creep(rows: list[dict], res: FitResult, indenter: Indenter | None = N
                      f"{row['length_noise_m'] / k:.3g} {u}"
                      + (f", {ratio:.2g}x" if ratio is not None else "") + ")")
         for s in row["steps"]:
-            text = (f"  held {s['t_start_s']:.4g}-{s['t_end_s']:.4g} s at {res.f(s['force_N'])}: crept "
+            text = (f"  held {s['t_start_s']:.4g}-{s['t_end_s']:.4g} s at {res.force_text(s['force_N'])}: "
+                    "crept "
                     f"{s['creep_m'] / k:.4g} {u} (model {s['creep_model_m'] / k:.4g} {u})")
             if "J_per_Pa" in s:
                 text += "; J(t) " + ", ".join(f"{t:.3g} s: {j:.3g} (model {jm:.3g})" for t, j, jm in

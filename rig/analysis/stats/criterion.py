@@ -16,8 +16,9 @@ the base model's residual count (rig.analysis.diagnosis.explain).
 
 from __future__ import annotations
 
+import math
+
 from rig.analysis.stats.noise import Noise
-from rig.analysis.stats.uncertainty import bic
 
 DEFINITION = ("N_eff ln(RSS / N) + k ln(N_eff), N_eff = the records' samples over the noise's correlation "
               "time, one count for every model")
@@ -45,3 +46,20 @@ def describe(noise: Noise, samples: list[int]) -> str:
     return (f"ranked by BIC = N_eff ln(RSS / N) + k ln(N_eff), one N_eff for every model: "
             f"{noise_count(samples, noise):.4g} of {sum(samples)} samples, the noise correlated over "
             f"{noise.scale_samples:.3g}")
+
+
+def bic(rss: float, n: int, k: int, n_eff: float) -> float:
+    """BIC on the effective number of independent residuals, N_eff = N / L:
+
+        BIC = N_eff ln(RSS / N) + k ln(N_eff)
+
+    A white residual keeps N_eff = N (the textbook BIC); a correlated one counts each
+    independent stretch once instead of every sample. Two models are compared at the same
+    N_eff (the simpler model's), so their difference is N_eff ln(RSS_1 / RSS_0) + dk ln(N_eff)."""
+    return float(n_eff * math.log(max(rss / max(n, 1), 1e-300)) + k * math.log(max(n_eff, 1.0)))
+
+
+def delta_bic(rss_ratio: float, dk: int, n_eff: float) -> float:
+    """`bic` of a model with `dk` more parameters and `rss_ratio` times the RSS, minus the
+    simpler model's, both at the simpler model's N_eff."""
+    return bic(rss_ratio, 1, dk, n_eff) - bic(1.0, 1, 0, n_eff)

@@ -1,4 +1,5 @@
-"""Uncertainty of fitted parameters when the residual is correlated in time, and the one BIC.
+"""Uncertainty of fitted parameters when the residual is correlated in time (the one BIC that
+compares models is `criterion.bic`).
 
 At 100 Hz neighbouring residuals are not independent: the sensor's filter correlates its
 noise, a drift wanders under it, and a model that misses something leaves a smooth misfit.
@@ -55,8 +56,7 @@ MAX_BANDWIDTH_FRACTION = 0.25  # of a trial's samples: beyond that the lags are 
 MIN_SAMPLES = 32  # a trial shorter than this is summed as white: too short to fit a noise model to
 MIN_EFFECTIVE_PER_PARAM = 5.0
 
-__all__ = ["bandwidth", "bic", "correlation", "delta_bic", "hac_covariance",
-           "notable_correlations", "white_covariance"]
+__all__ = ["bandwidth", "correlation", "hac_covariance", "notable_correlations", "white_covariance"]
 
 
 def bandwidth(e: np.ndarray) -> tuple[int, bool]:
@@ -93,6 +93,13 @@ def _bartlett_meat(g: np.ndarray, M: int) -> np.ndarray:
     return windows.T @ windows / M
 
 
+# The AR helpers here are not `noise`'s: the noise model is Yule-Walker from an autocovariance
+# (always stationary, the order by BIC on the quiet stretch), while a residual's correlation is fitted
+# by least squares on the residual itself (`_ar_fit`, with its small-sample bias corrected by
+# `_prewhitening`), whitened along the first axis of a design matrix as well as of a series
+# (`_whiten`; `noise.whiten` runs along the last), and its long-run variance taken exactly from the
+# Yule-Walker equations (`_integral_scale`: inf when not stationary; `noise.integral_scale_ar` sums
+# a truncated autocorrelation and stops at 1). The same names, different estimators.
 def _ar_order(r: np.ndarray, pmax: int) -> int:
     """AR order of `r` by BIC over 0..pmax, every order fitted by least squares on the same samples."""
     return int(np.argmin(_ar_orders_bic(r, pmax, 0)))
@@ -879,20 +886,3 @@ def notable_correlations(names: list[str], corr: np.ndarray,
              for i in range(len(names)) for j in range(i + 1, len(names))
              if np.isfinite(corr[i, j]) and abs(corr[i, j]) >= floor]
     return sorted(pairs, key=lambda x: -abs(x[2]))
-
-
-def bic(rss: float, n: int, k: int, n_eff: float) -> float:
-    """BIC on the effective number of independent residuals, N_eff = N / L:
-
-        BIC = N_eff ln(RSS / N) + k ln(N_eff)
-
-    A white residual keeps N_eff = N (the textbook BIC); a correlated one counts each
-    independent stretch once instead of every sample. Two models are compared at the same
-    N_eff (the simpler model's), so their difference is N_eff ln(RSS_1 / RSS_0) + dk ln(N_eff)."""
-    return float(n_eff * math.log(max(rss / max(n, 1), 1e-300)) + k * math.log(max(n_eff, 1.0)))
-
-
-def delta_bic(rss_ratio: float, dk: int, n_eff: float) -> float:
-    """`bic` of a model with `dk` more parameters and `rss_ratio` times the RSS, minus the
-    simpler model's, both at the simpler model's N_eff."""
-    return bic(rss_ratio, 1, dk, n_eff) - bic(1.0, 1, 0, n_eff)

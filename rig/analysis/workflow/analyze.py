@@ -18,7 +18,6 @@ from rig.models.catalogue import (
     CONTACT,
     CONTACT_POINT,
     NAMED_MODELS,
-    RECORD_ZERO,
     build_model,
     contact_effect,
     named_models,
@@ -151,53 +150,10 @@ def _finite(x: float | None) -> float | None:
 
 
 def result_json(res: FitResult, paths: list[str]) -> dict:
-    units = {p.name: p.unit for p in res.model.params}
-    return {
-        "model": res.model.name,
-        "effects": res.model.effect_names,
-        "trials": paths,
-        "parameters": {k: {"value": v, "stderr": _finite(res.stderr.get(k)), "unit": units[k],
-                           "determined": res.stderr.get(k) != math.inf}
-                       for k, v in res.values.items()},
-        "correlations": correlations_json(res),
-        "fit": {"rmse_N": res.overall.rmse_N, "mean_N": res.overall.mean_N, "std_N": res.overall.std_N,
-                "noise_N": res.noise_N, "noise_source": res.noise_source, "bic": res.bic,
-                "effective_samples": res.bic_samples, "bic_definition": criterion.DEFINITION,
-                "residual_effective_samples": res.n_eff,
-                # the +/- ("stderr") are statistical: the noise's, given the model, this noise model's
-                "stderr_noise_model": res.error_noise,
-                "rmse_over_noise": res.overall.rmse_N / res.noise_N if res.noise_N > 0 else None,
-                "residual_correlation_samples": res.white_L, "noise_correlation_samples": res.noise_L,
-                "seconds": res.seconds},
-        "scales": {"length_m": res.scales.length_m, "force_N": res.scales.force_N, "time_s": res.scales.time_s},
-        "fit_variables": res.z,
-        "records": [{"trial": t.name, "source": t.source, "samples": t.n, "dt_s": t.motion.dt_s,
-                     "force_unit": t.force_unit[1], "length_unit": t.length_unit[1], "notes": t.notes,
-                     **placed}
-                    for t, placed in zip(res.trials, record_placement(res), strict=True)],
-        "phases": {ph: (s.as_dict() if s else None) for ph, s in res.phases.items()},
-        "per_trial": res.per_trial,
-        "adequate": res.adequate,
-        "warnings": res.warnings,
-        "suggestions": [],
-    }
-
-
-def record_placement(res: FitResult) -> list[dict]:
-    """Where the fit put each record's contact (in its travel from its first sample) and, when the
-    record's zero was fitted, its force at rest; empty entries when the model has neither."""
-    out = []
-    for i, t in enumerate(res.trials):
-        row: dict = {}
-        for effect, key, to in ((CONTACT_POINT, "contact_point_m", t.contact_m or 0.0),
-                                (RECORD_ZERO, "zero_N", 0.0)):
-            (p,) = effect.params
-            name = res.model.key(p, i)
-            if res.model.has(effect.name) and name in res.values:
-                row[key] = to + res.values[name]
-                row[f"{key}_stderr"] = _finite(res.stderr.get(name))
-        out.append(row)
-    return out
+    """What `rig analyze --json` says of one fit: the result's own data (`FitResult.as_dict`),
+    the files it was fitted to, and room for the suggestions the command adds."""
+    d = res.as_dict()
+    return {"model": d.pop("model"), "effects": d.pop("effects"), "trials": paths, **d, "suggestions": []}
 
 
 def format_placement(res: FitResult) -> str:
@@ -205,7 +161,7 @@ def format_placement(res: FitResult) -> str:
     k, u = res.trials[0].length_unit
     kf, uf = res.force_unit
     lines = []
-    for t, row in zip(res.trials, record_placement(res), strict=True):
+    for t, row in zip(res.trials, res.placements(), strict=True):
         if "contact_point_m" not in row or not t.contact_estimated:
             continue
         se = row["contact_point_m_stderr"]
@@ -222,16 +178,6 @@ def format_placement(res: FitResult) -> str:
     return "\n".join(lines)
 
 
-def correlations_json(res: FitResult) -> dict[str, dict[str, float | None]] | None:
-    """The parameters' correlation matrix by name (null where a variance is zero)."""
-    c = res.correlation
-    if c is None:
-        return None
-    names = res.model.param_names
-    return {a: {b: (float(c[i, j]) if np.isfinite(c[i, j]) else None) for j, b in enumerate(names)}
-            for i, a in enumerate(names)}
-
-
 def holdout_json(res: FitResult, held: list[TrialData]) -> list[dict]:
     """The fitted model's error on records it was not fitted to. A held-out record that does not
     know its surface is placed first: its own contact point and zero fitted, the model's
@@ -242,7 +188,7 @@ def holdout_json(res: FitResult, held: list[TrialData]) -> list[dict]:
         if t.contact_estimated:
             own = fit(_frozen(with_record_params(res.model, [t]), res.values), [t])
             values, model = own.values, own.model
-            placed = record_placement(own)[0]
+            placed = own.placements()[0]
         else:
             values, model = res.values, res.model.for_records(1)
         (p,) = evaluate(model, values, [t])

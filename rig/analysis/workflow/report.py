@@ -45,8 +45,8 @@ def fit_figure(res: FitResult, k: int, title_extra: str = ""):
     handles += [Patch(color=PHASE_COLOURS[p]) for p in present]
     ax.legend(handles, labels + present, fontsize=8, ncol=len(present) + 2 if len(present) < 3 else 3,
               loc="best")
-    ax.set_title(f"{tr.name}{title_extra}\nRMSE {res.f(res.per_trial[k]['rmse_N'])} "
-                 f"(noise {res.f(res.noise_N)})", fontsize=9)
+    ax.set_title(f"{tr.name}{title_extra}\nRMSE {res.force_text(res.per_trial[k]['rmse_N'])} "
+                 f"(noise {res.force_text(res.noise_N)})", fontsize=9)
     _shade(axr, t, tr.phase)
     axr.plot(t, res.residuals[k] / kf, color="tab:blue", lw=0.6)
     axr.axhline(0, color="k", lw=0.6)
@@ -149,8 +149,8 @@ def contact_figure(res: FitResult, k: int):
             axr.axhline(s * res.noise_N / kf, color="grey", lw=0.6, ls="--")
         axr.set_ylabel(f"residual ({fu})\nmeasured - model")
         axr.set_xlabel(f"{name} ({lu})" + ("  (< 0: in contact)" if name != "indentation" else ""))
-    fig.suptitle(f"{tr.name}: RMSE {res.f(res.per_trial[k]['rmse_N'])} (noise {res.f(res.noise_N)})",
-                 fontsize=9)
+    fig.suptitle(f"{tr.name}: RMSE {res.force_text(res.per_trial[k]['rmse_N'])} "
+                 f"(noise {res.force_text(res.noise_N)})", fontsize=9)
     return fig
 
 
@@ -256,7 +256,7 @@ def residual_steps_figure(fits: list[tuple[str, FitResult]]):
             kf, u = tr.force_unit
             ax.plot(tr.motion.t_s, r.residuals[k] / kf, lw=0.5, color="tab:blue")
             ax.axhline(0, color="k", lw=0.5)
-            ax.set_title(f"{label}: RMSE {r.f(r.per_trial[k]['rmse_N'])}", fontsize=8)
+            ax.set_title(f"{label}: RMSE {r.force_text(r.per_trial[k]['rmse_N'])}", fontsize=8)
             if k == 0:
                 ax.set_ylabel(f"residual ({u})", fontsize=8)
             if i == len(fits) - 1:
@@ -304,7 +304,7 @@ def write_report(res: FitResult, out_dir: str | Path, *, compare: list[FitResult
         png = plot_residual_steps([(before.model.name, before), (res.model.name, res)],
                                   out / "before_after.png")
         md += ["## Before and after adding", "",
-               f"RMSE {before.f(before.overall.rmse_N)} -> {res.f(res.overall.rmse_N)}", "",
+               f"RMSE {before.force_text(before.overall.rmse_N)} -> {res.force_text(res.overall.rmse_N)}", "",
                f"![before and after]({png.name})", ""]
     if explain_text:
         md += ["## What is missing", "", "```", explain_text, "```", ""]

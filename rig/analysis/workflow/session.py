@@ -4,6 +4,7 @@ finds as the JSON document (SI) and as the text a person reads (the record's uni
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -23,7 +24,6 @@ from rig.analysis.workflow.analyze import (
     format_placement,
     holdout_json,
     load_inputs,
-    record_placement,
     result_json,
 )
 from rig.analysis.workflow.report import write_report
@@ -78,6 +78,37 @@ class Analysis:
     text: str
 
 
+# The order the text's sections are printed in; each is written once, with its JSON (`_Sections`).
+TEXT_ORDER = ("fit", "creep", "material", "compare", "holdout", "profile", "bootstrap", "explain", "design",
+              "auto", "report", "saved")
+
+
+class _Sections:
+    """The JSON document and the text, filled together: each part of an analysis says its data
+    and its words in one place. The words are a function, called only when text is wanted (a
+    batch's row has none, and formatting a curve's report costs as much as parts of its fit)."""
+
+    def __init__(self, out: dict, quiet: bool) -> None:
+        self.json = out
+        self.quiet = quiet
+        self.text: dict[str, str] = {}
+
+    def add(self, key: str, data: Any, text: Callable[[], str] | None = None) -> None:
+        self.json[key] = data
+        self.say(key, text)
+
+    def say(self, key: str, text: Callable[[], str] | None) -> None:
+        if text is not None and not self.quiet:
+            words = text()
+            if words:
+                self.text[key] = words
+
+    def joined(self) -> str:
+        unplaced = set(self.text) - set(TEXT_ORDER)
+        assert not unplaced, f"text without a place in TEXT_ORDER: {unplaced}"
+        return "\n\n".join(self.text[k] for k in TEXT_ORDER if k in self.text)
+
+
 def analyze(req: AnalyzeRequest) -> Analysis:
     """Run one `rig analyze`: read the records, build the model, fit it (with the systematic
     error and the modulus where the model holds an indenter's contact), and do what the request asks
@@ -88,16 +119,89 @@ def analyze(req: AnalyzeRequest) -> Analysis:
                          poisson=req.poisson, segment=req.segment, records=req.records, form=req.form,
                          approach=elastic_only(req.model, req.add))
     model = build_model(req.model, req.add, inputs.registry)
+    _refuse_early(req, model, inputs)
+    before, res = _fitted(req, model, inputs)
+    out = _Sections(result_json(res, req.inputs), quiet=req.row_only)
+    out.say("fit", lambda: (format_before_after(before, res) if before is not None
+                            else f"{res.report()}\nfitted in {res.seconds:.2f} s"))
+    creep_rows = creep_json(res, inputs.indenter, inputs.poisson) if any(t.creep for t in res.trials) else []
+    if creep_rows:
+        out.add("creep", creep_rows, lambda: format_creep(creep_rows, res, inputs.indenter))
+    sys_err = systematic(res) if res.model.has(CONTACT) and inputs.indenter is not None else None
+    if sys_err is not None:
+        out.add("systematic", sys_err.as_dict())
+        for k, p in out.json["parameters"].items():
+            p["sys"] = sys_err.error.get(k)
+    material = material_json(res, inputs, depth=not req.row_only, sys_err=sys_err)
+    if material:
+        out.add("material", material, lambda: format_material(material, res))
+    else:
+        out.say("material", lambda: format_placement(res))
+    if before is not None:
+        out.add("before_add", result_json(before, req.inputs))
+    comparison = compare(inputs.trials, inputs.registry) if req.compare else None
+    if comparison:
+        out.add("compare", [result_json(r, req.inputs) for r in comparison.results],
+                lambda: format_compare(comparison))
+        out.add("compare_ranking", comparison.json())
+    held = holdout_json(res, inputs.holdout) if inputs.holdout else None
+    if held:
+        out.add("holdout", held, lambda: format_holdout(held, res.force_unit))
+    if req.bootstrap:
+        from rig.analysis.intervals.bootstrap import bootstrap, format_bootstrap
+
+        boot = bootstrap(res, req.bootstrap, progress=req.progress)
+        out.add("bootstrap", boot.as_dict(), lambda: format_bootstrap(boot, res))
+    if req.profile is not None and req.profile is not False:
+        _profile(req, res, out)
+    ex = explain(res, inputs.registry) if req.explain else None
+    if ex is not None:
+        out.add("suggestions", [s.as_dict() for s in ex.suggestions])
+        out.say("explain", lambda: format_explain(ex))
+        out.add("indistinguishable", ex.indistinguishable)
+        out.add("diagnosis", ex.verdict())
+        out.add("effective_samples", ex.n_eff)
+    if req.design:
+        _design(req, ex, out)
+    steps = auto(res, inputs.registry, max_steps=req.auto_steps or AUTO_STEPS) if req.auto else None
+    if steps is not None:
+        out.add("auto", [_auto_step(s) for s in steps],
+                lambda: "stepwise: add the best effect while the error falls (criterion: BIC on effective "
+                        f"samples)\n{format_auto(steps)}")
+        out.add("auto_final", result_json(steps[-1]["fit"], req.inputs))
+    if req.save:
+        from rig.models.saved import from_fit, save
+
+        saved = str(save(from_fit(res, req.inputs), req.save))
+        out.add("saved", saved,
+                lambda: f"model saved: {saved} (run it in the loop: rig run PROTOCOL --model {saved})")
+    if req.report:
+        path = str(write_report(res, req.report, compare=comparison.results if comparison else None,
+                                holdout=held, text=format_compare(comparison) if comparison else "",
+                                before=before, steps=steps,
+                                explain_text=format_explain(ex) if ex else "",
+                                creep_text=format_creep(creep_rows, res, inputs.indenter),
+                                material_text=format_material(material, res) if material else ""))
+        out.add("report", path, lambda: f"report: {path}")
+    return Analysis(out.json, out.joined())
+
+
+def _refuse_early(req: AnalyzeRequest, model, inputs) -> None:
+    """What the request cannot do, said before any fit."""
     if req.save:
         from rig.models.saved import savable
 
         why = savable(model)
-        if why:  # said before the fit, not after it
+        if why:
             raise RigError(f"--save: {why}")
     if model.has("contact_point") and len(inputs.trials) + len(inputs.holdout) > 1:
         # the material report (E, its depth profile, the contact) is one curve's
         raise RigError(f"the {req.model} model fits one curve at a time (each has its own contact point): "
                        "give one record, or pick one curve of a map with --curve")
+
+
+def _fitted(req: AnalyzeRequest, model, inputs) -> tuple[FitResult | None, FitResult]:
+    """The fit, and with --add the model's fit before the addition."""
     before = fit(build_model(req.model, [], inputs.registry), inputs.trials) if req.add else None
     res = fit(model, inputs.trials)
     if before is not None:
@@ -105,123 +209,42 @@ def analyze(req: AnalyzeRequest) -> Analysis:
         # error can only fall from there, where a start from the catalogue may find a worse optimum
         warm = fit(model, inputs.trials, starts=1, initial=before.values)
         res = min(res, warm, key=lambda r: r.overall.rmse_N)
-    out = result_json(res, req.inputs)
-    creep_rows = creep_json(res, inputs.indenter, inputs.poisson) if any(t.creep for t in res.trials) else []
-    if creep_rows:
-        out["creep"] = creep_rows
-    sys_err = None
-    if res.model.has(CONTACT) and inputs.indenter is not None:
-        sys_err = systematic(res)
-    if sys_err is not None:
-        out["systematic"] = sys_err.as_dict()
-        for k, p in out["parameters"].items():
-            p["sys"] = sys_err.error.get(k)
-    material = material_json(res, inputs, depth=not req.row_only, sys_err=sys_err)
-    if material:
-        out["material"] = material
-    if before is not None:
-        out["before_add"] = result_json(before, req.inputs)
-    comparison = compare(inputs.trials, inputs.registry) if req.compare else None
-    results = comparison.results if comparison else None
-    compare_text = format_compare(comparison) if comparison else ""
-    if comparison:
-        out["compare"] = [result_json(r, req.inputs) for r in comparison.results]
-        out["compare_ranking"] = comparison.json()
-    held = holdout_json(res, inputs.holdout) if inputs.holdout else None
-    if held:
-        out["holdout"] = held
-    boot = None
-    if req.bootstrap:
-        from rig.analysis.intervals.bootstrap import bootstrap
+    return before, res
 
-        boot = bootstrap(res, req.bootstrap, progress=req.progress)
-        out["bootstrap"] = boot.as_dict()
-    profiled = None
-    # --profile's names, or None: the parameters that trade off
+
+def _profile(req: AnalyzeRequest, res: FitResult, out: _Sections) -> None:
+    """--profile: of the parameters named, or (none named) of those that trade off."""
+    from rig.analysis.intervals.profile import format_intervals, intervals
+
     asked = req.profile if isinstance(req.profile, list) and req.profile else None
-    if req.profile is not None and req.profile is not False:
-        from rig.analysis.intervals.profile import intervals
+    if asked:
+        unknown = [n for n in asked if n not in res.values]
+        if unknown:
+            raise RigError(f"--profile {unknown[0]}: not a parameter of the {res.model.name} model"
+                           f"{did_you_mean(unknown[0], list(res.values))} (its parameters: "
+                           f"{', '.join(res.values)})")
+    profiled = intervals(res, asked)
+    out.add("profile", {iv.name: iv.as_dict() for iv in profiled},
+            lambda: format_intervals(profiled, res, asked=asked is not None))
 
-        if asked:
-            unknown = [n for n in asked if n not in res.values]
-            if unknown:
-                raise RigError(f"--profile {unknown[0]}: not a parameter of the {res.model.name} model"
-                               f"{did_you_mean(unknown[0], list(res.values))} (its parameters: "
-                               f"{', '.join(res.values)})")
-        profiled = intervals(res, asked)
-        out["profile"] = {iv.name: iv.as_dict() for iv in profiled}
-    ex = explain(res, inputs.registry) if req.explain else None
-    if ex is not None:
-        out["suggestions"] = [s.as_dict() for s in ex.suggestions]
-        out["indistinguishable"] = ex.indistinguishable
-        out["diagnosis"] = ex.verdict()
-        out["effective_samples"] = ex.n_eff
-    design_text = ""
-    if req.design:
-        from rig.analysis.diagnosis.design import NOTHING_TO_SETTLE, design, format_design, write_design
 
-        d = design(ex, req.design_config)
-        if d is None:
-            out["design"] = {"file": None, "text": NOTHING_TO_SETTLE}
-            design_text = f"design: {NOTHING_TO_SETTLE}"
-        else:
-            out["design"] = {"file": str(write_design(d, req.design)), **d.as_dict()}
-            design_text = format_design(d, req.design)
-    steps = auto(res, inputs.registry, max_steps=req.auto_steps or AUTO_STEPS) if req.auto else None
-    if steps is not None:
-        out["auto"] = [{"step": s["step"], "added": s["added"], "removed": s.get("removed"),
-                        "model": s["fit"].model.name, "rmse_N": s["fit"].overall.rmse_N,
-                        "phases": {k: (v.rmse_N if v else None) for k, v in s["fit"].phases.items()},
-                        "delta_bic": s["delta_bic"], "adequate": s["fit"].adequate, "why": s.get("why", ""),
-                        "stopped": s.get("stopped", "")}
-                       for s in steps]
-        out["auto_final"] = result_json(steps[-1]["fit"], req.inputs)
-    if req.save:
-        from rig.models.saved import from_fit, save
+def _design(req: AnalyzeRequest, ex, out: _Sections) -> None:
+    from rig.analysis.diagnosis.design import NOTHING_TO_SETTLE, design, format_design, write_design
 
-        out["saved"] = str(save(from_fit(res, req.inputs), req.save))
-    if req.report:
-        out["report"] = str(write_report(res, req.report, compare=results, holdout=held, text=compare_text,
-                                         before=before, steps=steps,
-                                         explain_text=format_explain(ex) if ex else "",
-                                         creep_text=format_creep(creep_rows, res, inputs.indenter),
-                                         material_text=format_material(material, res) if material else ""))
+    d = design(ex, req.design_config)
+    if d is None:
+        out.add("design", {"file": None, "text": NOTHING_TO_SETTLE}, lambda: f"design: {NOTHING_TO_SETTLE}")
+    else:
+        out.add("design", {"file": str(write_design(d, req.design)), **d.as_dict()},
+                lambda: format_design(d, req.design))
 
-    if req.row_only:
-        return Analysis(out, "")
-    parts = [format_before_after(before, res) if before is not None
-             else f"{res.report()}\nfitted in {res.seconds:.2f} s"]
-    if creep_rows:
-        parts.append(format_creep(creep_rows, res, inputs.indenter))
-    if material:
-        parts.append(format_material(material, res))
-    elif format_placement(res):
-        parts.append(format_placement(res))
-    if compare_text:
-        parts.append(compare_text)
-    if held:
-        parts.append(format_holdout(held, res.force_unit))
-    if profiled is not None:
-        from rig.analysis.intervals.profile import format_intervals
 
-        parts.append(format_intervals(profiled, res, asked=asked is not None))
-    if boot is not None:
-        from rig.analysis.intervals.bootstrap import format_bootstrap
-
-        parts.append(format_bootstrap(boot, res))
-    if ex is not None:
-        parts.append(format_explain(ex))
-    if design_text:
-        parts.append(design_text)
-    if steps is not None:
-        parts.append("stepwise: add the best effect while the error falls (criterion: BIC on effective "
-                     f"samples)\n{format_auto(steps)}")
-    if req.report:
-        parts.append(f"report: {out['report']}")
-    if req.save:
-        parts.append(f"model saved: {out['saved']} "
-                     f"(run it in the loop: rig run PROTOCOL --model {out['saved']})")
-    return Analysis(out, "\n\n".join(parts))
+def _auto_step(s: dict) -> dict:
+    return {"step": s["step"], "added": s["added"], "removed": s.get("removed"), "model": s["fit"].model.name,
+            "rmse_N": s["fit"].overall.rmse_N,
+            "phases": {k: (v.rmse_N if v else None) for k, v in s["fit"].phases.items()},
+            "delta_bic": s["delta_bic"], "adequate": s["fit"].adequate, "why": s.get("why", ""),
+            "stopped": s.get("stopped", "")}
 
 
 def format_before_after(before: FitResult, after: FitResult) -> str:
@@ -237,7 +260,7 @@ def format_before_after(before: FitResult, after: FitResult) -> str:
     rows.append(("adequate", str(before.adequate).lower(), str(after.adequate).lower()))
     w0 = max(len(r[0]) for r in rows)
     w1 = max(len(r[1]) for r in rows)
-    lines = [f"adding {', '.join(added)}: before and after (noise {after.f(after.noise_N)})"]
+    lines = [f"adding {', '.join(added)}: before and after (noise {after.force_text(after.noise_N)})"]
     lines += [f"  {r[0]:<{w0}}  {r[1]:>{w1}}  {r[2]}" for r in rows]
     drop = 1 - after.overall.rmse_N / before.overall.rmse_N
     lines.append(f"  error {'falls' if drop > 0 else 'rises'} by {abs(drop) * 100:.1f} %")
@@ -272,7 +295,7 @@ def material_json(res: FitResult, inputs, depth: bool = True, sys_err: Systemati
     t0 = res.trials[0]
     out["segment"] = "approach" if "the approach segment only" in t0.notes else "all"
     out["caveats"] = caveats(t0)
-    placed = record_placement(res)  # hertz fits one record
+    placed = res.placements()  # hertz fits one record
     if "contact_point_m" in placed[0]:
         # the contact point in the record's own travel from its first sample
         out["contact_point_m"] = [row["contact_point_m"] for row in placed]
