@@ -19,7 +19,7 @@ import pytest
 
 from rig.analysis.fitting.fit import fit
 from rig.analysis.intervals.systematic import DEPTH_SHARES, cut, interval, systematic
-from rig.analysis.workflow.analyze import load_inputs
+from rig.analysis.workflow.inputs import load_inputs
 from rig.analysis.workflow.session import AnalyzeRequest, analyze
 from rig.models.catalogue import build_model
 

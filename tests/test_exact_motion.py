@@ -19,8 +19,9 @@ import numpy as np
 
 from rig.analysis.diagnosis.explain import explain
 from rig.analysis.fitting.fit import fit
-from rig.analysis.trials import data
-from rig.analysis.trials.data import prepare, savgol_slope
+from rig.analysis.trials import motion
+from rig.analysis.trials.data import prepare
+from rig.analysis.trials.motion import savgol_slope
 from rig.models import CATALOGUE, build_model
 from rig.records import read_record
 from tests.conftest import per_seed
@@ -81,7 +82,7 @@ def test_an_exact_position_keeps_its_corners():
     half interval of indentation at the sample where contact begins is carried by the next one."""
     _, x, _ = exact_record(0)
     dt = 1.0 / RATE
-    v = data._velocity(x, dt)
+    v = motion.velocity(x, dt)
     speed = DEPTH / RAMP
     start, end = int(REST * RATE), int((REST + RAMP) * RATE)
     assert np.allclose(v[start + 2:end], speed, rtol=1e-9)
@@ -91,7 +92,7 @@ def test_an_exact_position_keeps_its_corners():
 
 
 def _smoothed_velocity(x: np.ndarray, dt: float) -> np.ndarray:
-    """rig.analysis.trials.data._velocity as it was before exact positions were told apart."""
+    """rig.analysis.trials.motion.velocity as it was before exact positions were told apart."""
     n = len(x)
     if n < 7:
         return np.gradient(x, dt)
@@ -127,4 +128,4 @@ def test_noisy_and_quantised_positions_keep_the_smoothed_velocity():
         "noise and encoder": np.round((x + rng.normal(0.0, 2e-9, len(x))) / 1e-9) * 1e-9,
     }
     for name, pos in cases.items():
-        assert np.array_equal(data._velocity(pos, dt), _smoothed_velocity(pos, dt)), name
+        assert np.array_equal(motion.velocity(pos, dt), _smoothed_velocity(pos, dt)), name

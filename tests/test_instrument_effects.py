@@ -14,7 +14,7 @@ import pytest
 from rig.sim import afm_map
 from rig.sim.afm_map import DIMITRIADIS, MapSpec, truth_path, write_map
 
-from rig.analysis.workflow.analyze import load_inputs
+from rig.analysis.workflow.inputs import load_inputs
 from rig.analysis.workflow.session import AnalyzeRequest, analyze
 from rig.errors import RigError
 from rig.models.catalogue import (

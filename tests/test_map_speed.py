@@ -30,7 +30,7 @@ from rig.analysis.stats.noise import (
     quiet_length,
     whiten,
 )
-from rig.analysis.workflow.analyze import load_inputs
+from rig.analysis.workflow.inputs import load_inputs
 from rig.models.catalogue import build_model
 from rig.records import ReadOptions, each_record, list_curves
 from rig.records.afm import HDF5, _list_hdf5, _load, count_curves

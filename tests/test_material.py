@@ -123,7 +123,7 @@ def test_hertz_fits_one_curve_at_a_time(tmp_path):
 
 
 def test_records_that_name_different_indenters_are_refused(tmp_path, monkeypatch):
-    import rig.analysis.workflow.analyze as an
+    import rig.analysis.workflow.inputs as an
     from rig.records import read_record
 
     paths = [hertz_curve(tmp_path / "a.csv", 1), hertz_curve(tmp_path / "b.csv", 2)]
@@ -218,7 +218,7 @@ QI = REALDATA / "afm-fd" / "fmt-jpk-fd_2020.02.07-16.29.05.036.jpk-qi-data"
 def test_a_verdict_never_contradicts_its_reason(curve, capsys):
     """A QI curve whose overall error is below the noise but whose return is not: the verdict
     says which test failed, not only an RMSE that reads as passing."""
-    from rig.analysis.fitting.fit import ADEQUATE_RMSE
+    from rig.analysis.stats.adequacy import ADEQUATE_RMSE
     from rig.cli import main
 
     assert main(["analyze", str(QI), "--curve", str(curve), "--model", "hertz",

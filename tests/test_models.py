@@ -13,7 +13,8 @@ import pytest
 
 from rig.analysis.fitting.fit import fit
 from rig.analysis.trials.data import load_trial
-from rig.analysis.workflow.analyze import compare, holdout_json
+from rig.analysis.workflow.compare import compare
+from rig.analysis.workflow.results import holdout_json
 from rig.cli import main
 from rig.errors import RigError, SpecError
 from rig.models import CATALOGUE, NAMED_MODELS, Motion, build_model

@@ -13,7 +13,7 @@ import pytest
 from rig.analysis.fitting import fit as fit_module
 from rig.analysis.fitting import separable
 from rig.analysis.fitting.fit import fit
-from rig.analysis.workflow.analyze import load_inputs
+from rig.analysis.workflow.inputs import load_inputs
 from rig.models.catalogue import CATALOGUE, build_model
 from tests.test_material import E_TRUE, ROOT, hertz_curve
 

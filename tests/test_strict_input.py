@@ -124,7 +124,7 @@ def test_a_parameter_the_data_cannot_determine_is_reported_so_not_as_exact(paper
 
     from rig.analysis.fitting.fit import fit
     from rig.analysis.trials.data import load_trial
-    from rig.analysis.workflow.analyze import result_json
+    from rig.analysis.workflow.results import result_json
     from rig.models.catalogue import CATALOGUE
     from rig.models.core import Effect, Model, Param
 

@@ -17,7 +17,7 @@ from rig.analysis.fitting.fit import fit
 from rig.analysis.stats.criterion import bic, delta_bic
 from rig.analysis.stats.uncertainty import hac_covariance, white_covariance
 from rig.analysis.trials.data import load_trial
-from rig.analysis.workflow.analyze import result_json
+from rig.analysis.workflow.results import result_json
 from rig.models import CATALOGUE, build_model
 from rig.specs.config import RigConfig
 from tests.conftest import run_sim

@@ -320,7 +320,7 @@ def test_the_models_need_the_indenter_and_say_so():
 
 
 def test_the_models_take_their_parameters_in_si_units(tmp_path):
-    from rig.analysis.workflow.analyze import load_inputs
+    from rig.analysis.workflow.inputs import load_inputs
 
     path = simulated_record(tmp_path / "r.csv", "paraboloid", SLS, "rh", 0, {})
     reg = load_inputs([str(path)], [], [], indenter="paraboloid:R=5um").registry

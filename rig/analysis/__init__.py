@@ -26,7 +26,7 @@ LAYERS = ("stats", "trials", "fitting", "intervals", "diagnosis", "material", "w
 
 _PUBLIC = {
     "TrialData": "trials.data", "load_trial": "trials.data", "prepare": "trials.data",
-    "fit": "fitting.fit", "FitResult": "fitting.fit",
+    "fit": "fitting.fit", "FitResult": "fitting.result",
     "explain": "diagnosis.explain", "auto": "diagnosis.explain", "Explanation": "diagnosis.explain",
     "AnalyzeRequest": "workflow.session", "analyze": "workflow.session",
     "analyze_curves": "batch.each", "on_grid": "batch.each",
@@ -38,7 +38,8 @@ __all__ = ["AnalyzeRequest", "Explanation", "FitResult", "TrialData", "analyze",
 if TYPE_CHECKING:
     from rig.analysis.batch.each import analyze_curves, on_grid
     from rig.analysis.diagnosis.explain import Explanation, auto, explain
-    from rig.analysis.fitting.fit import FitResult, fit
+    from rig.analysis.fitting.fit import fit
+    from rig.analysis.fitting.result import FitResult
     from rig.analysis.trials.data import TrialData, load_trial, prepare
     from rig.analysis.workflow.session import AnalyzeRequest, analyze
 

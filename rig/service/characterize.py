@@ -57,7 +57,7 @@ from rig.analysis.diagnosis.design import (
 )
 from rig.analysis.diagnosis.explain import Explanation, auto, explain
 from rig.analysis.fitting.fit import FitResult, fit
-from rig.analysis.workflow.analyze import load_inputs
+from rig.analysis.workflow.inputs import load_inputs
 from rig.control.trial import TrialResult
 from rig.errors import RigError
 from rig.models.catalogue import build_model
@@ -146,6 +146,9 @@ class Turn:
 
 @dataclass
 class Campaign:
+    """A characterisation campaign as it went: the specimen, its status and why, each trial's turn, the
+    final fit, and the specimen time it took."""
+
     specimen: str
     status: str = "running"  # done, nothing better, budget, stopped
     reason: str = ""
@@ -177,6 +180,11 @@ class Campaign:
 
 @dataclass
 class Request:
+    """What a campaign is asked to do: the specimen, the rig and where its logs go, the model and
+    indenter, the first trial, its budget (trials, minutes, the error to reach), the rest between
+    trials and the margins every planned trial keeps; and the hooks of whoever runs it (the
+    daemon's runner, a stop event, a live view)."""
+
     specimen: str
     config: RigConfig
     out_dir: Path
@@ -351,6 +359,8 @@ def _plain(o):
 
 
 def characterize(req: Request) -> Campaign:
+    """Run a campaign: a first trial, then fit, diagnose and design the next trial until the model holds,
+    nothing better can be learnt, the budget is spent or it is stopped."""
     check_request(req)
     if req.first or req.first_text:
         text = req.first_text or Path(req.first).read_text()
@@ -831,6 +841,7 @@ def _as_so_far(cov: np.ndarray, white_info: np.ndarray) -> Callable[[np.ndarray]
 
 
 def format_campaign(camp: Campaign) -> str:
+    """The campaign in words: its status, each trial with its model's verdict, and the final model."""
     lines = [f"specimen   {camp.specimen}", f"status     {camp.status}: {camp.reason}",
              f"trials     {len(camp.turns)} in {camp.elapsed_s / 60:.1f} min of specimen time (rests included)"]
     for i, t in enumerate(camp.turns, 1):

@@ -1,7 +1,7 @@
 """The specimen's dimensions as a trial keeps them: its thickness (mm, over the support) and its
 contact area (mm^2), given at the start (`rig run`/`rig start --thickness-mm --area-mm2`, the
 daemon's start request) and written into the log's header (`thickness_mm`, `area_mm2` in the
-"trial" metadata). Read back by the analysis (the bottom effect's thickness, rig.analysis.workflow.analyze)
+"trial" metadata). Read back by the analysis (the bottom effect's thickness, rig.analysis.workflow.inputs)
 and by `rig replay` (stress = force / area, strain = indentation / thickness)."""
 
 from __future__ import annotations

@@ -150,7 +150,7 @@ class Maps:
     def curve(self, rel: str, index: int) -> dict:
         """One curve of the table, fitted again as the batch fitted it."""
         from rig.analysis.fitting.fit import fit
-        from rig.analysis.workflow.analyze import load_inputs
+        from rig.analysis.workflow.inputs import load_inputs
         from rig.analysis.workflow.report import contact_curve
         from rig.models.catalogue import build_model
         from rig.records import ReadOptions

@@ -18,7 +18,7 @@ import numpy as np
 
 from rig.analysis.fitting.fit import fit
 from rig.analysis.intervals.systematic import interval, systematic
-from rig.analysis.workflow.analyze import load_inputs
+from rig.analysis.workflow.inputs import load_inputs
 from rig.models.catalogue import build_model
 
 E_TRUE, R_M, NOISE_N = 12e3, 5e-6, 50e-12

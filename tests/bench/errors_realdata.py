@@ -14,7 +14,7 @@ from pathlib import Path
 
 from rig.analysis.fitting.fit import fit
 from rig.analysis.intervals.systematic import cut, interval, systematic
-from rig.analysis.workflow.analyze import load_inputs
+from rig.analysis.workflow.inputs import load_inputs
 from rig.analysis.workflow.session import AnalyzeRequest, analyze
 from rig.errors import RigError
 from rig.models.catalogue import build_model

@@ -28,7 +28,7 @@ import pytest
 
 from rig.analysis.diagnosis.explain import auto, explain
 from rig.analysis.fitting.fit import fit
-from rig.analysis.workflow.analyze import load_inputs
+from rig.analysis.workflow.inputs import load_inputs
 from rig.models.catalogue import build_model
 from rig.recording.logs import read_log
 from rig.records import ReadOptions

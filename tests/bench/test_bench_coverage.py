@@ -37,7 +37,7 @@ from scipy.signal import butter, lfilter
 from rig.analysis.fitting import fit as fit_module
 from rig.analysis.stats.noise import integral_scale
 from rig.analysis.stats.uncertainty import _bartlett_meat, _undetermined, hac_covariance
-from rig.analysis.workflow.analyze import load_inputs
+from rig.analysis.workflow.inputs import load_inputs
 from rig.models.catalogue import build_model
 from tests.conftest import per_seed
 from tests.test_uncertainty import N_LINEAR, ar1_noise, linear_design, walk_noise

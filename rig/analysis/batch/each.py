@@ -30,6 +30,10 @@ __all__ = ["EachResult", "analyze_curves", "format_summary", "on_grid", "run_eac
 
 @dataclass
 class EachResult:
+    """What a batch did: its table's rows, the curves analysed this time, the rows kept from an earlier run
+    (resumed) and from curves not given this time (others), the inputs skipped as not records, the table's
+    path and the wall time."""
+
     rows: list[dict]
     curves: int
     resumed: int = 0  # rows kept from an earlier run (--resume)

@@ -310,6 +310,8 @@ def _failed(c: Curve, exc: BaseException, internal: bool = False) -> dict:
 
 
 def row_order(curves: Iterable[Curve]) -> dict[tuple[str, str], int]:
+    """Each curve's place in the table: rows are written in the order the curves were planned, whichever
+    worker finished first."""
     return {c.key: i for i, c in enumerate(curves)}
 
 

@@ -299,7 +299,7 @@ def write_map_report(rows: list[dict], out_dir: str | Path, params: list[str], s
     caveats = Counter(c for r in ok for c in str(r.get("caveats") or "").split("; ") if c)
     if caveats:
         # what the files' readers recorded that qualifies every number here
-        # (rig.analysis.workflow.analyze.caveats)
+        # (rig.analysis.workflow.inputs.caveats)
         lines += ["| caveat | curves |", "|---|---|"]
         lines += [f"| {c} | {n} |" for c, n in caveats.most_common()]
         lines.append("")

@@ -50,6 +50,8 @@ FORMATS = {".csv": "csv", ".jsonl": "jsonl", ".json": "jsonl", ".parquet": "parq
 
 
 def table_format(path: str | Path) -> str:
+    """The table's format from its name (csv, jsonl or parquet), or RigError saying which names work and,
+    for Parquet, what to install."""
     fmt = FORMATS.get(Path(path).suffix.lower())
     if fmt is None:
         raise RigError(f"--table {path}: a .csv, .jsonl or .parquet file")
@@ -67,6 +69,8 @@ def table_format(path: str | Path) -> str:
 
 
 def journal_of(path: str | Path) -> Path:
+    """The journal beside a table (`OUT.partial.jsonl`): each finished chunk's rows, flushed as they come,
+    so a run cut short resumes from it."""
     p = Path(path)
     return p.with_name(p.name + ".partial.jsonl")
 
@@ -83,6 +87,8 @@ def columns(rows: Iterable[dict]) -> list[str]:
 
 
 def public(row: dict) -> dict:
+    """A row without its private fields (those starting with an underscore: kept for the map's pictures, not
+    written)."""
     return {k: v for k, v in row.items() if not k.startswith("_")}
 
 

@@ -75,6 +75,10 @@ class Shape:
 
 @dataclass
 class Candidate:
+    """A protocol tried for telling two look-alike effects apart: its steps, the trial simulated from it,
+    each fitted model's prediction on it, how far apart they are (RMS and at the peak), and how far the
+    wrong one stays after both are refitted with it."""
+
     name: str
     why: str
     steps: list[tuple[str, dict]]
@@ -88,6 +92,10 @@ class Candidate:
 
 @dataclass
 class Design:
+    """The protocol chosen to tell two effects apart: the two fitted alternatives, the noise the difference
+    is judged against, the best candidate, every candidate that passed the rig's limits (best first) and
+    those refused with why, and the protocol as YAML."""
+
     effects: tuple[str, str]
     alternatives: tuple[FitResult, FitResult]
     noise_N: float
@@ -203,6 +211,8 @@ def _nested(a: Model, b: Model) -> bool:
 # ------------------------------------------------------------------ what the trials did
 
 def shape_of(trials: list[TrialData]) -> Shape:
+    """Depth, loading speeds, hold and return times of the trials given: the designed protocol stays within
+    what was already run on this specimen."""
     depth = max(float(np.max(t.motion.x_m)) for t in trials)
     speeds, holds, returns = [], [], []
     for t in trials:
@@ -506,6 +516,8 @@ def trial_limit_N(peak_N: float, force_limit_N: float) -> float:
 
 
 def design_yaml(d: Design, force_limit_N: float, travel_mm: tuple[float, float] | None = None) -> str:
+    """The designed protocol as a protocol file, with a comment that says what it tells apart and by how
+    much, its force limit set from the predicted peak within the rig's."""
     b = d.best
     x, y = d.effects
     limit = trial_limit_N(b.peak_N, force_limit_N)
@@ -528,6 +540,7 @@ def _wrapped(text: str, width: int = 100) -> list[str]:
 
 
 def write_design(d: Design, path: str | Path) -> Path:
+    """Write the designed protocol to `path`; RigError if it cannot be written."""
     p = Path(path)
     try:
         p.write_text(d.yaml)
@@ -537,6 +550,8 @@ def write_design(d: Design, path: str | Path) -> Path:
 
 
 def format_design(d: Design, path: str | Path) -> str:
+    """The design in words: which protocol to run, how long, how far apart the two models are on it and
+    after refitting, and where it was written."""
     b = d.best
     lines = [f"design: to tell {d.effects[0]} from {d.effects[1]}, run '{b.name}' ({path}, about "
              f"{d.duration_s:.0f} s, peak force about {b.peak_N:.3g} N)",

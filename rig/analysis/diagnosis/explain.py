@@ -131,6 +131,9 @@ class Explanation:
 
 def candidates(model: Model, registry: dict[str, Effect],
                trials: list[TrialData] | None = None) -> list[Effect]:
+    """The effects `explain` tries on `model`: the catalogue's (and the plugins') not already in it, the
+    instrument's own for an AFM record, and a rate that follows the loading speed only where the trials ran
+    at several speeds."""
     speeds = sorted(t.motion.loading_speed_m_s for t in trials) if trials else []
     # a rate that follows the loading speed is told from a plain change of the lag only by
     # trials at different speeds: on one speed it is a second name for the same fit
@@ -663,6 +666,8 @@ def _rss(res: FitResult) -> float:
 
 
 def format_explain(ex: Explanation, top: int = 6) -> str:
+    """The diagnosis as a table: each candidate's RMSE, error drop, dBIC and evidence (best first, `top` of
+    them), then the verdict."""
     b = ex.base
     k, u = b.force_unit
     lines = [f"diagnosis of {b.model.name}: RMSE {b.force_text(b.overall.rmse_N)}, "
@@ -680,6 +685,8 @@ def format_explain(ex: Explanation, top: int = 6) -> str:
 
 
 def format_auto(steps: list[dict]) -> str:
+    """The stepwise search as a table, one row a step: what was added or dropped, the RMSE overall and by
+    phase, dBIC; then the final model's verdict."""
     k, u = steps[0]["fit"].force_unit
     # one word a step (a swap: "+drift/-viscous"), so the table splits on its spaces
     labels = ["/".join([*([f"+{s['added']}"] if s["added"] else []),

@@ -217,5 +217,6 @@ class ParamScaling:
 
 
 def values_dict(model: Model, si: np.ndarray) -> dict[str, float]:
+    """Parameter values in SI by name, in the model's order."""
     return {k: float(v) for k, v in zip(model.param_names, si, strict=True)}
 

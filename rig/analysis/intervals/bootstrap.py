@@ -36,6 +36,9 @@ Z95 = 1.959964
 
 @dataclass
 class ParamSummary:
+    """One parameter over the bootstrap's draws: the fitted value (each draw's truth), the estimates' mean
+    and scatter, the standard error the fits reported on average, and how often +/-1.96 SE held the truth."""
+
     value: float  # as fitted to the record: the draws' truth
     mean: float
     sd: float  # scatter of the estimates over the draws
@@ -53,6 +56,9 @@ class ParamSummary:
 
 @dataclass
 class Bootstrap:
+    """What the parametric bootstrap found: the draws, each parameter's summary, how often the verdict came
+    out as it did on the record, and why any draw could not be fitted."""
+
     draws: int
     params: dict[str, ParamSummary]
     verdict_kept: float  # fraction of draws judged as the record was (adequate or not)
@@ -132,6 +138,8 @@ def _origin(name: str, res: FitResult) -> float:
 
 
 def format_bootstrap(b: Bootstrap, res: FitResult) -> str:
+    """The bootstrap in words: the verdict's stability, then each parameter's bias, scatter and reported
+    error beside it."""
     fitted = b.draws - len(b.failed)
     lines = [f"bootstrap: {fitted} records redrawn from the fitted model and the measured noise, each analysed "
              "as this one (contact, noise, fit, verdict)",

@@ -31,6 +31,10 @@ MAX_STEPS = 12  # outward steps per side before the interval is called open
 
 @dataclass
 class Interval:
+    """A profile-likelihood interval: where the cost, the other parameters refitted, has risen by chi-square
+    3.84 on each side (None where it does not before the parameter's bound), beside the Wald interval, and
+    the fits it took."""
+
     name: str
     value: float
     low: float | None  # None: the cost does not rise that far before the parameter's bound
@@ -128,6 +132,8 @@ def _si_bounds(res: FitResult, p: Param) -> tuple[float, float]:
 
 def intervals(res: FitResult, names: list[str] | None = None,
               progress: Callable[[str], None] | None = None) -> list[Interval]:
+    """Profile intervals of the parameters `names` (None: those that trade off, |correlation| >= 0.9);
+    `progress` is told each name as it starts."""
     out = []
     for name in names if names is not None else trading(res):
         if progress:
@@ -137,6 +143,8 @@ def intervals(res: FitResult, names: list[str] | None = None,
 
 
 def format_intervals(found: list[Interval], res: FitResult, asked: bool = False) -> str:
+    """The profile intervals beside +/-1.96 SE, one line a parameter in its unit; says so when no parameter
+    trades off."""
     if not found:
         return ("profile: no parameters trade off (|correlation| >= 0.9); --profile NAME profiles any of them "
                 f"(here: {', '.join(p.name for p in res.model.params)})")

@@ -65,6 +65,8 @@ def plateau_drift(rows: list[dict]) -> float | None:
 
 
 def format_modulus(rows: list[dict], length_unit: tuple[float, str]) -> str:
+    """The apparent modulus at each depth, in the record's length unit, and how far it drifts from a
+    plateau."""
     if not rows:
         return ""
     k, u = length_unit
@@ -80,6 +82,7 @@ def format_modulus(rows: list[dict], length_unit: tuple[float, str]) -> str:
 
 
 def format_pa(v: float) -> str:
+    """A modulus in Pa, kPa, MPa or GPa, three figures."""
     for k, u in ((1e9, "GPa"), (1e6, "MPa"), (1e3, "kPa")):
         if abs(v) >= k:
             return f"{v / k:.3g} {u}"

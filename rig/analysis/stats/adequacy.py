@@ -53,6 +53,9 @@ SLOW_SE = 3.0
 
 @dataclass(frozen=True)
 class Limits:
+    """How far a right model's residual may go on this record, in units of the noise: its RMSE overall and
+    per phase, and its correlation time with the noise's own taken out."""
+
     rmse: float  # RMSE over the noise, at most
     phase: dict[str, float]  # a phase's RMSE over the noise, at most
     white: float  # the residual's correlation time, the noise's own taken out (samples), at most
@@ -114,6 +117,8 @@ def _white_spectrum(rng: Draws | np.random.Generator, draws: int, m: int) -> np.
 
 
 def quantise(x: np.ndarray, noise: Noise) -> np.ndarray:
+    """`x` on the sensor's grid of readings (its quantum from the noise model), as the instrument would have
+    recorded it; unchanged where there is no quantum."""
     q = noise.quantum_N
     return x if q <= 0 else noise.origin_N + q * np.round((x - noise.origin_N) / q)
 

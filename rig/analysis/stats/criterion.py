@@ -43,6 +43,7 @@ def ranking(rss: dict[str, float], params: dict[str, int], samples: list[int], n
 
 
 def describe(noise: Noise, samples: list[int]) -> str:
+    """The criterion in words, with this record's effective sample count and the noise's correlation time."""
     return (f"ranked by BIC = N_eff ln(RSS / N) + k ln(N_eff), one N_eff for every model: "
             f"{noise_count(samples, noise):.4g} of {sum(samples)} samples, the noise correlated over "
             f"{noise.scale_samples:.3g}")

@@ -18,8 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.analysis.stats.line import fit_line, off_line
-from rig.analysis.stats.noise import MIN_BASELINE, MIN_REST, from_baseline, quiet_length
+from rig.analysis.stats.noise import MIN_BASELINE, MIN_REST, from_baseline
+from rig.analysis.trials.contact import detrend, end_of_contact, end_of_pull, find_contact, force_words
+from rig.analysis.trials.motion import phases_from_motion, phases_from_steps, velocity
 from rig.errors import SpecError
 from rig.models.core import Motion
 from rig.records import ReadOptions, Record, read_record
@@ -27,9 +28,6 @@ from rig.records.units import FORCE_DISPLAY, LENGTH_DISPLAY, display_unit
 from rig.specs.frames import Frame
 
 PHASES = ("ramp", "hold_early", "hold_late", "return")
-HOLD_EARLY_FRACTION = 1.0 / 6.0  # the paper's 10 s of a 60 s hold
-LOAD_FRACTION = 0.1  # the force has clearly risen at a tenth of its peak
-MOVING_FRACTION = 0.1  # moving: faster than a tenth of the record's ramp speed
 
 
 @dataclass(frozen=True)
@@ -216,17 +214,17 @@ def prepare(rec: Record, where: str = "", segment: str = "all", form: str = "aut
         tare = rec.baseline_force_N
         baseline = tare if tare is not None and len(tare) else f[pre]
     else:
-        x, f, baseline, note, level = _find_contact(t, pos, f, where)
+        x, f, baseline, note, level = find_contact(t, pos, f, where)
         notes.append(note)
         contact_m = float(-x[0])  # x counts from contact: its first value is minus the travel to it
         estimated = level is not None
         estimated_rest = estimated
-        end = _end_of_contact(x, f - (level or 0.0))
+        end = end_of_contact(x, f - (level or 0.0))
         # a pull on the way out (the tip stuck) only where the adhesion effect can describe it
-        pull = _end_of_pull(f - (level or 0.0), end, baseline) if keep_pull else end
+        pull = end_of_pull(f - (level or 0.0), end, baseline) if keep_pull else end
         if pull > end:
             notes.append(f"the specimen pulls on the probe on the way out (down to "
-                         f"{_fmt_force(float(np.min(f[end:pull]) - (level or 0.0)))}): analysed through the "
+                         f"{force_words(float(np.min(f[end:pull]) - (level or 0.0)))}): analysed through the "
                          "pull-off, which the adhesion effect describes")
             end = pull
         if end < len(x):
@@ -238,15 +236,15 @@ def prepare(rec: Record, where: str = "", segment: str = "all", form: str = "aut
             steps = steps[:end] if steps is not None else None
             held = held[:end] if held is not None else None
             runs = runs[:end] if runs is not None else None
-    v = _velocity(x, dt)
-    phase = _phases_from_steps(t, steps) if steps is not None else _phases_from_motion(t, x, v)
+    v = velocity(x, dt)
+    phase = phases_from_steps(t, steps) if steps is not None else phases_from_motion(t, x, v)
     base = np.asarray(baseline, dtype=float)
     # a tare, or the rest before a surface the record knows, needs MIN_BASELINE; the quiet part of an
     # approach is measured from MIN_REST on: below, the noise would be read off the residual, where a
     # misfit shows too, and the errors jumped by orders of magnitude across 200 samples before contact
     enough = MIN_REST if estimated_rest else MIN_BASELINE
     quiet = from_baseline([base]) if len(base) >= enough else None
-    noise = quiet.std_N if quiet else (float(np.std(_detrend(base))) if len(base) >= 20 else None)
+    noise = quiet.std_N if quiet else (float(np.std(detrend(base))) if len(base) >= 20 else None)
     m = Motion(t, x, v, dt)
     scales = record_scales(m, f, phase)
     fu = display_unit(scales.force_N, FORCE_DISPLAY)
@@ -367,142 +365,6 @@ def record_scales(m: Motion, f: np.ndarray, phase: np.ndarray) -> Scales:
     return Scales(L, F, max(T, 2 * m.dt_s))
 
 
-def _find_contact(t, pos, f, where):
-    """Loading direction, the force at rest, and the contact point (or a preload).
-
-    Force and position are turned so that loading is positive (compression read as
-    negative force, tension, heights that fall as the tip goes in). The force at rest is the
-    level before it rises; contact is first placed where the force last left that level before
-    rising to a tenth of its peak, a threshold that a soft or stiffening specimen crosses late,
-    so each fit refines it. When the force rises with the first motion the specimen was
-    preloaded: the position's zero is the start and the model describes the force above the
-    preload. Returns the position from contact, the force, the force at rest before contact,
-    a note, and the level at rest (None for a preload, which is subtracted).
-    """
-    n = len(f)
-    head = max(5, n // 100)
-    f0 = float(np.median(f[:head]))
-    # the deepest point of the travel decides the directions (adhesion on the way out can pull
-    # harder than the specimen pushed, so the force's own extreme does not)
-    excursion = np.abs(pos - pos[0])
-    if float(np.max(excursion)) <= 0:
-        raise SpecError("no contact: the position never moves", path=where)
-    k_deep = int(np.argmax(excursion >= 0.99 * np.max(excursion)))
-    near = slice(max(k_deep - head, 0), k_deep + head + 1)
-    if float(np.median(f[near])) < f0:
-        f = -f
-        f0 = -f0
-    if pos[k_deep] < pos[0]:
-        pos = -pos
-    travel = float(np.max(pos) - pos[0])
-    k_peak = int(np.argmax(f[: k_deep + head + 1]))
-    rise = float(f[k_peak] - f0)
-    if rise <= 0:
-        raise SpecError("no contact: the force never rises from its starting level", path=where)
-    loaded = np.flatnonzero(f - f0 > LOAD_FRACTION * rise)
-    i_load = int(loaded[0])
-    i_move = _rest_stretch(pos, head)
-    f_rest = float(np.median(f[:i_move]))
-    rest = f[:i_move] - f_rest
-    sigma_rest = 1.4826 * float(np.median(np.abs(rest))) if i_move >= 10 else 0.0
-    # the last time before loading that the force sat at its resting level
-    level = max(3.0 * sigma_rest, 0.005 * rise)
-    still = np.flatnonzero(f[i_move:i_load + 1] - f_rest <= level)
-    i_leave = i_move + (int(still[-1]) + 1 if len(still) else 0)
-    if pos[i_leave] - pos[i_move] < 0.02 * travel:
-        # the force rises with the first motion: the probe starts in contact
-        x = pos - pos[i_move - 1]  # from where it stood
-        note = (f"starts in contact: the force at rest, {_fmt_force(f_rest)} (a preload, or the sensor's "
-                "zero), is subtracted; the model describes the force above it")
-        return x, f - f_rest, rest if i_move >= MIN_BASELINE else np.array([]), note, None
-    # the resting level (with its slow drift) from the first two thirds of the approach: the
-    # last third may already carry the first touch
-    i_fit = max(2 * i_load // 3, 1)
-    pre = f[:i_fit]
-    slope, at_start = fit_line(t[:i_fit] - t[0], pre) if i_fit >= 20 else (0.0, float(np.median(pre)))
-    trend = slope * (t - t[0]) + at_start
-    resid = pre - trend[:i_fit]
-    sigma = 1.4826 * float(np.median(np.abs(resid - np.median(resid)))) if i_fit >= 10 else 0.0
-    lifted = (f - trend)[:k_peak + 1]
-    # the last time before loading that the force sat at its resting level
-    quiet = np.flatnonzero(lifted[:i_load + 1] <= 2.0 * sigma)
-    i_quiet = int(quiet[-1]) if len(quiet) else 0
-    # a slow creep off the baseline (drag, long-range forces) can leave that level long before
-    # the touch: extend the first clear rise (5 % to 15 % of the peak) back to zero force
-    i5 = i_quiet + int(np.argmax(lifted[i_quiet:] > 0.5 * LOAD_FRACTION * rise))
-    i15 = i5 + int(np.argmax(lifted[i5:] > 1.5 * LOAD_FRACTION * rise))
-    i_c = i_quiet
-    if i15 > i5 and pos[i15] > pos[i5]:
-        slope = (lifted[i15] - lifted[i5]) / (pos[i15] - pos[i5])
-        x_touch = pos[i5] - lifted[i5] / slope if slope > 0 else pos[i_quiet]
-        if x_touch > pos[i_quiet]:
-            i_c = i_quiet + int(np.argmax(pos[i_quiet:i5 + 1] >= x_touch))
-    level = f_rest if i_move >= 10 else f0  # before the probe moved, else its first samples
-    x = pos - pos[i_c]
-    # Nothing is subtracted: every fit places this record's contact point and its zero itself
-    # (rig.analysis.fitting.fit.with_record_params), and a drift or friction shows in the residual
-    # before contact. The noise is measured on the quiet part of the approach before the first
-    # estimate (rig.analysis.stats.noise.quiet_length): a first touch and a slow rise are left out.
-    baseline = f[:quiet_length(f[:i_c])]
-    note = (f"contact first placed at {_fmt_len(pos[i_c] - pos[0])} of travel, t = {t[i_c] - t[0]:.4g} s "
-            f"(the fit refines it); force at rest {_fmt_force(level)}, kept")
-    return x, f, baseline, note, level
-
-
-def _end_of_contact(x: np.ndarray, f: np.ndarray) -> int:
-    """The first sample where, after the deepest point, the probe is back at the contact point
-    or the force back at its baseline (whichever comes first): that sample reads no push, and
-    keeping it would pin a fit to where the model's force reaches the no-pull clamp."""
-    k_deep = len(x) - 1 - int(np.argmax(x[::-1] >= 0.99 * np.max(x)))  # the last time at depth
-    out = np.flatnonzero((x[k_deep:] <= 0.0) | (f[k_deep:] <= 0.0))
-    return k_deep + int(out[0]) if len(out) else len(x)
-
-
-PULL_SIGMA = 5.0  # a dip below the baseline this many noise deviations deep is a pull, not noise
-PULL_RUN = 5  # held for at least this many samples below 3 deviations
-
-
-def _end_of_pull(f: np.ndarray, end: int, baseline) -> int:
-    """Where a pull on the way out ends (`f` from its baseline; `end` where the push ends): if
-    the force dips clearly below its baseline after `end` (the tip stuck to the specimen), the
-    sample after it is back, plus as much free travel again as the pull lasted (the baseline
-    the pull-off is measured from); else `end`."""
-    base = np.asarray(baseline, dtype=float)
-    if end >= len(f) or len(base) < MIN_BASELINE:
-        return end
-    detr = _detrend(base)
-    sigma = 1.4826 * float(np.median(np.abs(detr - np.median(detr))))
-    tail = f[end:]
-    if sigma <= 0 or float(np.min(tail)) > -PULL_SIGMA * sigma or np.sum(tail < -3.0 * sigma) < PULL_RUN:
-        return end
-    k_min = int(np.argmin(tail))
-    back = np.flatnonzero(tail[k_min:] > -3.0 * sigma)
-    if not len(back):
-        return end  # never back at the baseline: not a pull that lets go (drag, a tilted baseline)
-    let_go = end + k_min + int(back[0])
-    return min(let_go + (let_go - end), len(f))
-
-
-def _rest_stretch(pos: np.ndarray, head: int) -> int:
-    span = float(np.ptp(pos)) or 1.0
-    moving = np.flatnonzero(np.abs(pos - pos[0]) > 1e-3 * span)
-    return max(int(moving[0]) if len(moving) else head, 1)
-
-
-def _fmt_force(v: float) -> str:
-    k, u = display_unit(abs(v), FORCE_DISPLAY)
-    return f"{v / k:.4g} {u}"
-
-
-def _fmt_len(v: float) -> str:
-    k, u = display_unit(abs(v), LENGTH_DISPLAY)
-    return f"{v / k:.4g} {u}"
-
-
-def _detrend(y: np.ndarray) -> np.ndarray:
-    return off_line(np.linspace(-1.0, 1.0, len(y)), y)
-
-
 def _uniform(t, x, f, kinds):
     """Resample to a uniform grid (the median interval) when the sampling is not uniform to 1 %
     (instruments change rate between segments)."""
@@ -525,144 +387,3 @@ def _uniform_mask(t_rec: np.ndarray, t: np.ndarray, mask: np.ndarray) -> np.ndar
     return mask[idx]
 
 
-EXACT_FRACTION = 1e-3  # a second difference below this share of a moving sample's travel is rounding
-EXACT_CORNERS = 200  # at most one corner per this many samples (and 8 in any record): "a few"
-
-
-def _velocity(x: np.ndarray, dt: float) -> np.ndarray:
-    """dx/dt, smoothed over as few samples as the position's own noise allows; a position that is
-    exact (piecewise linear: `_exact_rate`) is not smoothed.
-
-    The window w is the shortest that keeps the derivative's noise (sigma_x * sqrt(12) /
-    (dt w^1.5) for a quadratic Savitzky-Golay fit) below 2 % of the speed of the moving samples;
-    sigma_x comes from the position's second differences, so encoder steps and sensor
-    noise set it, not a number of seconds.
-    """
-    n = len(x)
-    if n < 7:
-        return np.gradient(x, dt)
-    speed = _moving_speed(x, dt)
-    exact = _exact_rate(x, dt, speed * dt)
-    if exact is not None:
-        return exact
-    d2 = np.diff(x, 2)
-    sigma_x = 1.4826 * float(np.median(np.abs(d2 - np.median(d2)))) / np.sqrt(6.0)
-    if sigma_x == 0.0:  # quantised steps: most second differences are zero; use their spread
-        sigma_x = float(np.std(d2)) / np.sqrt(6.0)
-    w = (sigma_x * np.sqrt(12.0) / (0.02 * speed * dt)) ** (2.0 / 3.0) if sigma_x > 0 else 5.0
-    w = int(np.clip(np.ceil(w), 5, max(5, n // 20))) | 1
-    if n <= w:
-        return np.gradient(x, dt)
-    return savgol_slope(x, w, dt)
-
-
-def _moving_speed(x: np.ndarray, dt: float) -> float:
-    """The speed of the samples that move: a 1 s ramp in a 32 s record is 3 % of it, and a
-    percentile of the whole record would read the hold."""
-    lag = max(1, len(x) // 400)  # differences over a few hundredths of the record see through the noise
-    coarse = np.abs(x[lag:] - x[:-lag]) / (lag * dt)
-    top = float(np.max(coarse))
-    moving = coarse[coarse > 0.2 * top]
-    return float(np.median(moving)) if len(moving) else (top or 1.0)
-
-
-def _exact_rate(x: np.ndarray, dt: float, step: float) -> np.ndarray | None:
-    """The rate of a position that is exact, or None when it is not.
-
-    Exact: its second differences vanish (below EXACT_FRACTION of a moving sample's travel
-    `step`: the rounding of the digits written) everywhere but at a few corners, each one sample
-    (a corner at a sample) or two bent the same way (a corner between two samples). Sensor noise
-    bends every sample; an encoder step bends two neighbours opposite ways (up one count, then
-    level). There a smoothing window would only round the corners the protocol put there.
-
-    The models read v as linear between samples (`rig.models.core.lag_coefficients`), from rest,
-    and count it only in contact (x > 0). The true rate is constant over each interval and jumps
-    at a corner, which no such v describes exactly; the central difference v_i = (x_{i+1} -
-    x_{i-1}) / (2 dt), the mean of the two intervals' rates, is the one whose integral between
-    samples gives back x at every sample but the corners themselves (x_i - d2_i / 4 there), and
-    that, at a jump, gives the fastest parts of the tissue (which follow the rate itself) the
-    mean of its two sides. The one-sided (per-interval) rates are worse: the backward difference
-    is the ramp's displacement half a sample late for every slower part, the forward half a
-    sample early.
-    At the sample where x enters contact the models drop the rate (x is 0 there, not > 0): the
-    half interval of indentation it carries would be lost, a displacement missing for the rest of
-    the record, so it moves to the first sample in contact.
-    On an exact fractional Maxwell record (k 0.03 N/m, tau 13 samples, alpha 0.3; 10 um in 1 s
-    from rest at the surface, 256 Hz) the model at the truth then misses by 0.26x its 0.07 nN
-    noise over the ramp (3.1x at the two corner samples alone) and 0.01x over the hold; without
-    the move at contact 2.7x and 1.6x; with either one-sided rate 2.7x over the ramp; with the
-    smoothing window 3.8x."""
-    d2 = np.diff(x, 2)
-    bent = np.flatnonzero(np.abs(d2) > EXACT_FRACTION * step)
-    if len(bent) > max(8, len(x) // EXACT_CORNERS):
-        return None
-    for corner in np.split(bent, np.flatnonzero(np.diff(bent) > 1) + 1):
-        if len(corner) > 2 or (len(corner) == 2 and np.sign(d2[corner[0]]) != np.sign(d2[corner[1]])):
-            return None
-    v = np.gradient(x, dt)
-    indent = np.maximum(x, 0.0)
-    enter = np.flatnonzero((x[1:-1] <= 0.0) & (x[2:] > 0.0)) + 1
-    v[enter + 1] += (indent[enter + 1] - indent[enter - 1]) / (2.0 * dt)
-    return v
-
-
-def savgol_slope(x: np.ndarray, w: int, dt: float) -> np.ndarray:
-    """The slope of a quadratic least-squares fit over `w` samples (odd): Savitzky-Golay's
-    first derivative, with the edges from the fit to the first and last window, as
-    `scipy.signal.savgol_filter(x, w, 2, deriv=1, mode="interp")` gives it. At a window's
-    centre a quadratic's slope is the straight line's, so the interior is one convolution;
-    written here because importing scipy.signal costs `rig analyze` 0.7 s."""
-    h = w // 2
-    j = np.arange(-h, h + 1, dtype=float)
-    out = np.empty(len(x))
-    out[h:len(x) - h] = np.convolve(x, j[::-1] / (float(j @ j) * dt), mode="valid")
-    k = np.arange(w, dtype=float)
-    for edge, first, at in ((x[:w], 0, k[:h]), (x[-w:], len(x) - h, k[w - h:])):
-        c2, c1, _ = np.polyfit(k, edge, 2)
-        out[first:first + h] = (2.0 * c2 * at + c1) / dt
-    return out
-
-
-def _drop_short_runs(mask: np.ndarray, k: int, value: bool) -> np.ndarray:
-    """`mask` with every run of `value` shorter than `k` samples flipped (not at the ends)."""
-    out = mask.copy()
-    edges = np.flatnonzero(np.diff(np.concatenate([[False], mask == value, [False]]).astype(np.int8)))
-    for a, b in zip(edges[::2], edges[1::2], strict=True):
-        if b - a < k and a > 0 and b < len(mask):
-            out[a:b] = not value
-    return out
-
-
-def _split_holds(t: np.ndarray, hold: np.ndarray, phase: np.ndarray) -> None:
-    idx = np.flatnonzero(hold)
-    if len(idx) == 0:
-        return
-    breaks = np.flatnonzero(np.diff(idx) > 1)
-    for seg in np.split(idx, breaks + 1):
-        span = t[seg[-1]] - t[seg[0]]
-        early = t[seg] - t[seg[0]] < HOLD_EARLY_FRACTION * span
-        phase[seg[early]] = "hold_early"
-        phase[seg[~early]] = "hold_late"
-
-
-def _phases_from_steps(t: np.ndarray, kinds: np.ndarray) -> np.ndarray:
-    phase = np.full(len(t), "", dtype=object)
-    # a force-controlled ramp loads as a ramp does, a force hold relaxes (creeps) as a hold
-    phase[(kinds == "ramp") | (kinds == "ramp_force")] = "ramp"
-    phase[kinds == "return"] = "return"
-    _split_holds(t, (kinds == "hold") | (kinds == "hold_force"), phase)
-    return phase
-
-
-def _phases_from_motion(t: np.ndarray, x: np.ndarray, v: np.ndarray) -> np.ndarray:
-    contact = x > 0
-    vmax = float(np.percentile(np.abs(v[contact]), 99)) if np.any(contact) else float(np.max(np.abs(v)))
-    moving = np.abs(v) > MOVING_FRACTION * vmax
-    # a blip shorter than a hundredth of the record is noise, not a step: open, then close
-    k = max(3, len(t) // 100)
-    moving = _drop_short_runs(_drop_short_runs(moving, k, True), k, False)
-    phase = np.full(len(t), "", dtype=object)
-    phase[moving & (v > 0) & contact] = "ramp"
-    phase[moving & (v < 0) & contact] = "return"
-    _split_holds(t, ~moving & (x > 0.02 * np.max(x)), phase)
-    return phase

@@ -9,7 +9,7 @@ import numpy as np
 
 from rig.analysis.fitting.fit import FitResult, predict_position
 from rig.analysis.trials.data import PHASES
-from rig.analysis.workflow.analyze import fe_points
+from rig.analysis.workflow.results import fe_points
 from rig.models.catalogue import CONTACT
 from rig.views.plots import figure, save, shade_spans, trial_labels
 
@@ -58,6 +58,7 @@ def fit_figure(res: FitResult, k: int, title_extra: str = ""):
 
 
 def plot_trial_fit(res: FitResult, k: int, out: Path, title_extra: str = "") -> Path:
+    """Trial `k`'s measured and model force with its phases and residual, saved to `out`."""
     return save(fit_figure(res, k, title_extra), out)
 
 
@@ -155,6 +156,8 @@ def contact_figure(res: FitResult, k: int):
 
 
 def plot_contact(res: FitResult, k: int, out: Path) -> Path | None:
+    """Trial `k`'s force against indentation near its contact, saved to `out`; None where the model has no
+    contact point."""
     fig = contact_figure(res, k)
     return None if fig is None else save(fig, out)
 
@@ -187,6 +190,7 @@ def plot_creep(res: FitResult, k: int, out: Path) -> Path | None:
 
 
 def plot_phase_errors(results: list[FitResult], out: Path) -> Path:
+    """Each model's RMSE by phase as grouped bars, saved to `out`."""
     fig = figure(figsize=(9, 4.5))
     ax = fig.subplots()
     width = 0.8 / max(len(results), 1)
@@ -238,6 +242,8 @@ def fe_figure(res: FitResult):
 
 
 def plot_fe(res: FitResult, out: Path) -> Path | None:
+    """The paper's force-against-error ellipses of several trials, saved to `out`; None for fewer
+    than two trials with a hold."""
     fig = fe_figure(res)
     return None if fig is None else save(fig, out)
 
@@ -265,6 +271,7 @@ def residual_steps_figure(fits: list[tuple[str, FitResult]]):
 
 
 def plot_residual_steps(fits: list[tuple[str, FitResult]], out: Path) -> Path:
+    """The residual of each step of a stepwise search, one panel a step, saved to `out`."""
     return save(residual_steps_figure(fits), out, dpi=100)
 
 
@@ -272,6 +279,9 @@ def write_report(res: FitResult, out_dir: str | Path, *, compare: list[FitResult
                  holdout: list[dict] | None = None, text: str = "", before: FitResult | None = None,
                  steps: list[dict] | None = None, explain_text: str = "", creep_text: str = "",
                  material_text: str = "") -> Path:
+    """The figures of a fit (and of what the request did beyond it: a comparison, held-out trials, a before
+    and after, the stepwise search) and report.md tying them together with the text, in `out_dir`;
+    report.md's path."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     figs = [plot_trial_fit(res, k, out / f"fit_{k + 1}.png") for k in range(len(res.trials))]

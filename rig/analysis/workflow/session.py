@@ -14,19 +14,10 @@ from rig.analysis.intervals.systematic import Systematic, interval, systematic
 from rig.analysis.material.creep import creep_json, format_creep
 from rig.analysis.material.modulus import format_modulus, format_pa, modulus_vs_depth, plateau_drift
 from rig.analysis.trials.data import PHASES
-from rig.analysis.workflow.analyze import (
-    _finite,
-    caveats,
-    compare,
-    elastic_only,
-    format_compare,
-    format_holdout,
-    format_placement,
-    holdout_json,
-    load_inputs,
-    result_json,
-)
+from rig.analysis.workflow.compare import compare, format_compare
+from rig.analysis.workflow.inputs import caveats, elastic_only, load_inputs
 from rig.analysis.workflow.report import write_report
+from rig.analysis.workflow.results import _finite, format_holdout, format_placement, holdout_json, result_json
 from rig.errors import RigError, did_you_mean
 from rig.models.catalogue import CONTACT, build_model
 from rig.records import ReadOptions
@@ -248,6 +239,8 @@ def _auto_step(s: dict) -> dict:
 
 
 def format_before_after(before: FitResult, after: FitResult) -> str:
+    """The fit before and after an addition side by side (the errors overall and by phase, and
+    whether each is adequate), how far the error falls, then the new fit's report."""
     k, u = after.force_unit
     added = [e for e in after.model.effect_names if e not in before.model.effect_names]
     rows = [("", before.model.name, after.model.name),
@@ -322,6 +315,8 @@ def _law_differs(theirs: str | None, spec: str) -> str:
 
 
 def format_material(m: dict, res: FitResult) -> str:
+    """The modulus in words: E with its statistical and systematic errors and interval, the indenter
+    and where it came from, the refits behind the systematic error, and the contact point."""
     err, sys = m["E_Pa_stat"], m.get("E_Pa_sys")
     e = f" +/- {format_pa(err)} (stat)" if err is not None else ""  # finite or None (material_json)
     if sys is not None:
