@@ -24,6 +24,9 @@ _MCL_CURRENT, _MCL_FUTURE, _MCL_ONFAULT = 1, 2, 4
 
 @dataclass
 class RealtimeState:
+    """The scheduling the loop thread got: its policy, whether memory is locked, and why not when something
+    was refused."""
+
     policy: str  # "SCHED_FIFO 50", or "normal"
     memory_locked: bool
     detail: str  # why not, when it was not granted

@@ -160,6 +160,7 @@ def calibration(config: RigConfig, points: list[tuple],
 
 
 def calibration_yaml(cal: CalibrationConfig) -> str:
+    """The calibration as the config's `calibration:` block, numbers to eight figures."""
     d = asdict(cal)
 
     def num(v: float) -> str:
@@ -203,6 +204,7 @@ def save_calibration(path: str | Path, cal: CalibrationConfig) -> Path:
 
 
 def age_days(cal: CalibrationConfig, now: datetime | None = None) -> float | None:
+    """Days since the calibration (None if its date does not parse)."""
     try:
         when = datetime.fromisoformat(cal.date)
     except ValueError:
@@ -245,6 +247,8 @@ def header(cal: CalibrationConfig) -> dict[str, str]:
 
 
 def format_calibration(cal: CalibrationConfig, fit: dict, saved: Path | None) -> str:
+    """The calibration in words: each mass's force and reading with its deviation from the line, the
+    sensitivity and offset with their errors, and where it was saved."""
     lines = [f"load cell {cal.cell}: calibrated with {len(cal.masses_g)} masses",
              f"  {'mass g':>9}  {'force N':>10}  {'reading N':>10}  {'deviation N':>11}"]
     for m, F, r, d in zip(cal.masses_g, fit["forces_N"], cal.readings_N, fit["deviations_N"], strict=True):

@@ -39,6 +39,9 @@ STIFFNESS_FLOOR_SHARE = 1e-3  # of (force limit / travel span), in N/m
 
 @dataclass
 class ForceCommand:
+    """What the force loop asks of the drive this tick: the target position and speed, the force error it
+    acts on, and whether the speed limit capped it."""
+
     target_mm: float
     speed_mm_s: float
     error_N: float

@@ -29,6 +29,10 @@ SETTLE_BAND_SHARE = 0.05  # settled: the smoothed force within 5 % of the setpoi
 
 @dataclass(frozen=True)
 class StepFigures:
+    """How a force step went, as a technician reads a controller's step response: its setpoint and
+    duration, the overshoot, the settling time, the error over the hold (and over the noise), the
+    force at its end, and for a ramp how late it ran and whether it reached its target."""
+
     index: int
     kind: str
     setpoint_N: float

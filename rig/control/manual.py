@@ -25,6 +25,8 @@ def _open(config: RigConfig) -> Devices:
 
 
 def position(config: RigConfig) -> dict:
+    """`rig position`: the slider's position, status and alarm, and the force, read from the devices
+    (nothing moves)."""
     with _open(config) as dev:
         pos = dev.slider.read_position_mm()
         status = dev.slider.read_status()

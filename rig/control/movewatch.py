@@ -18,6 +18,9 @@ from rig.specs.motion import move_time
 
 @dataclass
 class MoveWatch:
+    """One commanded move (from, to, speed, acceleration, when it was sent) and the limits that set
+    its deadline: it must start, arrive by the deadline and not overshoot its target."""
+
     from_mm: float
     to_mm: float
     speed_mm_s: float

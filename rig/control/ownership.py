@@ -38,6 +38,9 @@ class DeviceInUse(DeviceError):
 
 @dataclass(frozen=True)
 class Holder:
+    """Who holds a device's lock: the process, its user and command line, and a note on how to reach it
+    instead (a daemon's socket)."""
+
     pid: int | None
     user: str
     command: str
@@ -64,6 +67,7 @@ def serial_key(port: str) -> str:
 
 
 def tcp_key(host: str, port: int) -> str:
+    """The lock key of a drive on TCP: host (resolved, so localhost and 127.0.0.1 are one drive) and port."""
     with contextlib.suppress(OSError, UnicodeError):
         host = socket.gethostbyname(host)  # localhost and 127.0.0.1 are one drive
     return f"{host}:{port}"
@@ -102,6 +106,7 @@ def _open_lock_file(path: Path) -> int:
 
 
 def read_holder(path: Path) -> Holder:
+    """The holder named in a lock file; an empty Holder while it is being written."""
     try:
         data = json.loads(path.read_text(errors="replace"))
         return Holder(int(data["pid"]), str(data.get("user", "")), str(data.get("command", "")),

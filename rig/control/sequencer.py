@@ -19,6 +19,8 @@ from rig.specs.protocol import FORCE_STEPS, Approach, Hold, HoldForce, Protocol,
 
 @dataclass(frozen=True)
 class Move:
+    """A move the sequencer asks for: to an absolute position, at a speed and acceleration."""
+
     to_mm: float  # absolute
     speed_mm_s: float
     accel_mm_s2: float
@@ -26,6 +28,8 @@ class Move:
 
 @dataclass(frozen=True)
 class Stop:
+    """The sequencer asks the trial to stop, and says why."""
+
     reason: str
 
 

@@ -1100,6 +1100,8 @@ def _warm_up() -> None:
 
 
 def default_log_path(out_dir: str | Path, proto: Protocol, specimen: str) -> Path:
+    """A new log's path in `out_dir`: the time, the protocol's and the specimen's names made safe for a file
+    name."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")

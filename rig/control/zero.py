@@ -46,11 +46,13 @@ class Zero:
 
 
 def cell_key(config: RigConfig) -> str:
+    """Which load cell a saved zero belongs to: its backend and port."""
     lc = config.loadcell
     return f"{lc.backend}:{lc.port}" if lc.port else lc.backend
 
 
 def zero_path(config: RigConfig) -> Path:
+    """Where the free-air zeros are saved: beside the logs."""
     return Path(config.recorder.out_dir) / ZERO_FILE
 
 

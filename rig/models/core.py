@@ -239,8 +239,9 @@ class Model:
     def has(self, name: str) -> bool:
         return name in self.effect_names
 
-    def predict(self, values: dict[str, float] | np.ndarray, m: Motion) -> np.ndarray:
-        """Predicted load-cell force (N) for the motion `m`."""
+    def _chain(self, values: dict[str, float] | np.ndarray, m: Motion):
+        """The effects by stage, and a function giving an effect its parameters' values for the
+        record `m` belongs to (by name, as its function takes them)."""
         if not isinstance(values, dict):
             values = dict(zip(self.param_names, values, strict=True))
         by_stage = {s: [e for e in self.effects if e.stage == s] for s in STAGES}
@@ -248,6 +249,11 @@ class Model:
         def args(e: Effect) -> dict[str, float]:
             return {p.name: values[self.key(p, m.record)] for p in e.params}
 
+        return by_stage, args
+
+    def predict(self, values: dict[str, float] | np.ndarray, m: Motion) -> np.ndarray:
+        """Predicted load-cell force (N) for the motion `m`."""
+        by_stage, args = self._chain(values, m)
         compliance = [e for e in by_stage["geometry"] if e.needs_force]
         plain_geometry = [e for e in by_stage["geometry"] if not e.needs_force]
         x, v = m.x_m, m.v_m_s
@@ -298,10 +304,7 @@ class Model:
 
         if not isinstance(values, dict):
             values = dict(zip(self.param_names, values, strict=True))
-        by_stage = {s: [e for e in self.effects if e.stage == s] for s in STAGES}
-
-        def args(e: Effect) -> dict[str, float]:
-            return {p.name: values[self.key(p, m.record)] for p in e.params}
+        by_stage, args = self._chain(values, m)
 
         # the force the tissue carried: the reading moved back by the delay (the delay run on the
         # record reversed in time moves it forward), less what the sensor adds

@@ -37,6 +37,9 @@ HELD_MAX_ITER = 40
 
 @dataclass
 class HeldSolution:
+    """The positions on held samples that make the model carry the measured force, and how well the force
+    equation holds there (its largest error)."""
+
     x_m: np.ndarray  # the position on held samples
     residual_N: float  # how well the force equation holds there (largest error)
 

@@ -44,6 +44,9 @@ class NotConverged(RuntimeWarning):
 
 @dataclass
 class Solution:
+    """The force through a compliant frame, and the Newton step it ended on (None where no iteration was
+    needed)."""
+
     force_N: np.ndarray
     newton: _Step | None
 

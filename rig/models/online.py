@@ -28,6 +28,7 @@ VELOCITY_TAU_S = 0.05
 
 
 def check_online(model: Model) -> None:
+    """RigError unless every effect of `model` has a one-step form the loop can run."""
     bad = [e.name for e in model.effects if e.name not in ONLINE_EFFECTS]
     if bad:
         raise RigError(f"model '{model.name}': {', '.join(bad)} cannot run in the loop (no one-step form); "
@@ -35,6 +36,10 @@ def check_online(model: Model) -> None:
 
 
 class OnlineModel:
+    """A saved model run in the loop: one step per tick from the position, with a causal velocity, giving
+    the force the model expects now (the loop's model force; the force itself where there is no load
+    cell)."""
+
     def __init__(self, model: Model, values: dict[str, float], dt_s: float,
                  velocity_tau_s: float = VELOCITY_TAU_S) -> None:
         check_online(model)

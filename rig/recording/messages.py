@@ -14,6 +14,9 @@ from typing import Any
 
 @dataclass(frozen=True)
 class Field:
+    """One field of a log message: its name, JSON-schema type, description, whether it is required, and its
+    bounds."""
+
     name: str
     type: str  # a JSON schema type: number, integer, boolean, string, object
     description: str = ""
@@ -36,6 +39,9 @@ class Field:
 
 @dataclass(frozen=True)
 class MessageType:
+    """One kind of log message: its topic, title, description and fields; its JSON schema is written into
+    every log."""
+
     topic: str
     title: str
     description: str

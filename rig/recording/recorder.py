@@ -39,6 +39,9 @@ _STOP = object()
 
 @dataclass
 class TrialInfo:
+    """What the log's header records about a trial beyond its protocol and config: the specimen, the
+    operator, the clock, free notes and any further key-value pairs."""
+
     specimen: str = ""
     operator: str = ""
     clock: str = "real"

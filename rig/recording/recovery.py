@@ -41,6 +41,8 @@ from rig.recording.recorder import is_being_written
 
 @dataclass
 class TrialEntry:
+    """A log as `rig logs` lists it: its path, start time, specimen, protocol, duration and how it ended."""
+
     path: Path
     start_time: str
     specimen: str

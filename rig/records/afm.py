@@ -70,6 +70,9 @@ class CurveInfo:
 
 @dataclass(frozen=True)
 class AfmFormat:
+    """One AFM file format: the record's source name, the instrument, how messages name such a file, and its
+    suffixes."""
+
     source: str  # Record.source
     instrument: str  # Record.meta["instrument"]
     what: str  # how messages name such a file

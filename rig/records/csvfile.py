@@ -79,6 +79,8 @@ class CsvColumns:
 
 
 def read_csv_record(path: str | Path) -> Record:
+    """A CSV file as a Record: the rig's own samples (`rig replay --csv`), their zero the surface and their
+    steps the phases; or any table with time, position and force columns in named units."""
     c = read_csv_columns(path)
     if c.kinds is not None:
         # the rig's own samples (`rig replay --csv`): its zero is the surface and its steps are the phases
@@ -99,6 +101,8 @@ def read_csv_trial(path: str | Path) -> dict[str, np.ndarray]:
 
 
 def read_csv_columns(path: str | Path) -> CsvColumns:
+    """The time, position and force columns of a CSV file (and the step of each row for the rig's own), by
+    their names and units; SpecError naming the file, line and column for anything it cannot read."""
     where = str(path)
     try:
         fh = open(path, newline="", encoding="utf-8-sig")  # noqa: SIM115
@@ -178,6 +182,7 @@ def _fast_rows(fh, idx: list[int], i_kind: int | None):
 
 
 def check_time(t: np.ndarray, column: str, where: str, first_line: int) -> None:
+    """SpecError, naming the row, if the time column is not strictly increasing."""
     d = np.diff(t)
     if np.any(d <= 0):
         k = int(np.argmax(d <= 0))

@@ -15,12 +15,16 @@ from rig.records.units import quantity, to_si
 
 
 def looks_like_instron(head: str) -> bool:
+    """Whether a file's head is an Instron (Bluehill) export: a `name : value` header and a row of units in
+    parentheses."""
     lines = [ln for ln in head.splitlines() if ln.strip()]
     units_row = any(ln.strip().startswith("(") and ln.strip().endswith(")") for ln in lines[:40])
     return units_row and any(" : " in ln for ln in lines[:20])
 
 
 def read_instron(path: Path) -> Record:
+    """An Instron (Bluehill) CSV export as a Record, its columns found by name and read in the units its
+    units row gives."""
     where = str(path)
     try:
         with open(path, newline="", encoding="utf-8-sig", errors="replace") as fh:

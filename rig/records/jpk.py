@@ -22,6 +22,7 @@ from rig.records.units import FORCE, LENGTH, TIME
 
 
 def looks_like_jpk_text(head: str) -> bool:
+    """Whether a file's head is a JPK text export (its `# segment:`, `# columns:` or `# TEXT EXPORT` lines)."""
     return "# segment:" in head or head.lstrip().startswith("# TEXT EXPORT") or "# columns:" in head
 
 

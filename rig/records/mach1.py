@@ -15,6 +15,7 @@ from rig.records.units import split_header, to_si
 
 
 def looks_like_mach1(head: str) -> bool:
+    """Whether a file's head is a Mach-1 export (its `<Mach-1 File>`, `<INFO>` and `<DATA>` blocks)."""
     return "<Mach-1 File>" in head[:200] or ("<DATA>" in head and "<INFO>" in head)
 
 

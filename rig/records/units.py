@@ -45,6 +45,7 @@ def split_header(text: str) -> tuple[str, str | None]:
 
 
 def quantity(name: str) -> str | None:
+    """What a column's name measures: "time", "strain", "force" or "length", or None."""
     n = name.strip().lower().replace("_", " ")
     if n in TIME_WORDS or n.endswith(" time"):
         return "time"

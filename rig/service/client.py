@@ -65,6 +65,7 @@ def _send(sock: socket.socket, obj: dict) -> None:
 
 
 def request(path: Path, obj: dict, timeout_s: float = 10.0) -> dict:
+    """Send one request to the daemon's socket and return its reply (RigError if there is none)."""
     with _connect(path, timeout_s) as sock:
         _send(sock, obj)
         for reply in _lines(sock):
@@ -73,6 +74,7 @@ def request(path: Path, obj: dict, timeout_s: float = 10.0) -> dict:
 
 
 def stream(path: Path, obj: dict, timeout_s: float = 10.0) -> Iterator[dict]:
+    """Send one request to the daemon's socket and yield each reply line as it comes (`rig watch`)."""
     with _connect(path, timeout_s) as sock:
         _send(sock, obj)
         yield from _lines(sock)

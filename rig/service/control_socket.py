@@ -60,6 +60,9 @@ def private_dir(path: Path) -> Path:
 
 
 class ControlSocket:
+    """The daemon's Unix socket: each connection's requests, one JSON object a line, handed to `handle` with
+    who sent them (peer credentials), in the daemon's group, with a size limit a request cannot pass."""
+
     def __init__(self, path: Path, handle: Handler, *, group_gid: int | None, max_request_bytes: int,
                  say: Callable[[str], None]) -> None:
         self.path = path

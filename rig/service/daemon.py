@@ -91,6 +91,8 @@ MAX_NAME_CHARS = 200  # a specimen or operator name; the log's file name keeps f
 
 
 def default_socket_path(config: RigConfig | None = None) -> Path:
+    """The daemon's socket: the config's daemon.socket, $RIG_SOCKET, /run/rig/rigd.sock as root,
+    $XDG_RUNTIME_DIR/rig/rigd.sock, else a private folder of the user's in the temporary directory."""
     if config is not None and config.daemon.socket:
         return Path(config.daemon.socket)
     if env := os.environ.get("RIG_SOCKET"):
@@ -951,6 +953,8 @@ class Daemon:
 
 
 def run_daemon(config: RigConfig, socket_path: Path | None = None, spy_path: str | None = None) -> int:
+    """`rig daemon`: start the service, stop it cleanly on SIGTERM or SIGINT, serve until then; the exit
+    status."""
     d = Daemon(config, socket_path, spy_path=spy_path)
     d.start()
     for sig in (signal.SIGTERM, signal.SIGINT):

@@ -37,6 +37,7 @@ def peer_allowed(uid: int, gid: int, groups: set[int], owner_uid: int, group_gid
 
 
 def user_name(uid: int) -> str:
+    """The user name of `uid` ("uid N" where it has none)."""
     try:
         return pwd.getpwuid(uid).pw_name
     except KeyError:

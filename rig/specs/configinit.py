@@ -17,6 +17,8 @@ def _yaml_str(text: str) -> str:
 
 def config_text(*, slider_port: str, loadcell_port: str, baudrate: int = 115200, parity: str = "E",
                 device_id: int = 1, loadcell_baudrate: int = 115200, loadcell_mode: str = "stream") -> str:
+    """A commented config for a real rig with only what differs from the defaults: its ports, serial
+    settings, drive unit and the load cell's mode."""
     sd, ld = SliderConfig(), LoadCellConfig()
     out = ["# A real rig: only what differs from the built-in defaults (config/sim-rig.yaml spells",
            "# every field out). Check it with `rig probe --config THIS_FILE`.",

@@ -18,6 +18,7 @@ def _profile(d: float, speed: float, accel: float) -> tuple[float, float, float]
 
 
 def move_time(x0: float, x1: float, speed: float, accel: float) -> float:
+    """How long a trapezoidal move from `x0` to `x1` takes at `speed` and `accel` (0 for no move)."""
     d = abs(x1 - x0)
     if d == 0 or speed <= 0:
         return 0.0

@@ -34,7 +34,7 @@ class ProgressBar:
     def _run(self) -> None:
         while not self._stop.wait(self.every_s):
             snap = self.snapshot()
-            if TrialState(snap.state).active:
+            if snap.state in (TrialState.RUNNING, TrialState.STOPPING):
                 self.show(snap)
 
     def show(self, snap: Snapshot) -> None:

@@ -11,8 +11,10 @@ own: on one approach at one speed a friction or a drag is a constant (the curve'
 a delay of the reading is a shift of the contact point. On one approach at one speed a drift and a
 tilt of the baseline (a force growing with the piezo's travel) are one function of time, so either
 name is the answer; a curve whose force is the same as another's (the AFM Workshop map repeats one
-curve 16 times) counts once. About an hour on two cores (a long JPK curve's `--auto` runs take ten
-minutes): `python tests/bench/afm_naming.py` (`--controls`: the clean curves alone)."""
+curve 16 times) counts once. All 19 distinct curves take hours on two cores (a long curve's
+`--auto` runs take ten to twenty-five minutes): `python tests/bench/afm_naming.py`; `--list` names
+the curves, `--only TEXT` (repeatable) keeps those whose file name contains TEXT, `--max N` the first
+N per file, `--controls` the clean curves alone."""
 
 from __future__ import annotations
 
@@ -83,14 +85,27 @@ def one(job: tuple[Path, int, bool]) -> dict:
     return out
 
 
-def main(controls_only: bool = False) -> None:
-    jobs, seen = [], set()
+def curves(only: list[str] | None = None, most: int | None = None) -> list[tuple[Path, int]]:
+    """The distinct curves of the shared files (a repeated curve counts once), those whose file name
+    contains one of `only`, at most `most` per file."""
+    out, seen = [], set()
     for p in sorted(AFM.iterdir()):
+        if only and not any(o in p.name for o in only):
+            continue
+        kept = 0
         for c in list_curves(p, options(p)):
             key = hashlib.sha1(read_record(p, options(p, c.enum)).force_N.tobytes()).hexdigest()
-            if key not in seen:
+            if key not in seen and (most is None or kept < most):
                 seen.add(key)
-                jobs.append((p, c.enum, controls_only))
+                kept += 1
+                out.append((p, c.enum))
+    return out
+
+
+def main(controls_only: bool = False, only: list[str] | None = None, most: int | None = None) -> None:
+    jobs = [(p, c, controls_only) for p, c in curves(only, most)]
+    if not jobs:
+        sys.exit(f"no curve of {AFM} matches --only {' '.join(only or [])}")
     named = cases = added = quiet = beyond = 0
     with ProcessPoolExecutor(2) as pool:
         for r in pool.map(one, jobs):
@@ -113,4 +128,17 @@ def main(controls_only: bool = False) -> None:
 
 
 if __name__ == "__main__":
-    main(controls_only="--controls" in sys.argv[1:])
+    import argparse
+
+    ap = argparse.ArgumentParser(description="A drift hidden in the shared AFM curves: named first, added by "
+                                             "--auto, and the clean curves left quiet.")
+    ap.add_argument("--controls", action="store_true", help="the clean curves alone")
+    ap.add_argument("--only", action="append", metavar="TEXT", help="curves of files whose name contains TEXT")
+    ap.add_argument("--max", type=int, metavar="N", help="at most N curves per file")
+    ap.add_argument("--list", action="store_true", help="name the curves and stop")
+    args = ap.parse_args()
+    if args.list:
+        for p, c in curves(args.only, args.max):
+            print(f"{p.name} #{c}")
+    else:
+        main(args.controls, args.only, args.max)
