@@ -397,20 +397,20 @@ class Trial:
         if self._start_mm is None:
             self._start_mm = start.value
         check_limits(self.proto, cfg, start_mm=self._start_mm)
-        rec = Recorder(self.log_path, flush_s=cfg.recorder.flush_s,
+        recorder = Recorder(self.log_path, flush_s=cfg.recorder.flush_s,
                        compression=cfg.recorder.compression, max_queue=cfg.recorder.max_queue)
-        self.recorder = rec
-        self.log_path = rec.path  # the name the recorder could take (another run may have had ours)
+        self.recorder = recorder
+        self.log_path = recorder.path  # the name the recorder could take (another run may have had ours)
         self.log_named.set()
         # After the recorder's thread exists, so only the loop thread runs at real-time priority.
         rt = Realtime(cfg.loop.realtime, cfg.loop.realtime_priority) if isinstance(self.clock, RealClock) \
             else None
         try:
-            helpers = [getattr(rec, "thread", None), getattr(self.loadcell, "thread", None),
+            helpers = [getattr(recorder, "thread", None), getattr(self.loadcell, "thread", None),
                        getattr(self.live, "thread", None)]
             self.realtime = rt.enter(helpers) if rt else RealtimeState("virtual clock", False, "")
         except RigError:
-            rec.close()
+            recorder.close()
             self.log_path.unlink(missing_ok=True)
             raise
         _warm_up()
@@ -419,9 +419,9 @@ class Trial:
         gc.collect()
         gc.freeze()
         self._t0 = self.clock.now()
-        self._write_header(rec, self._t0)
+        self._write_header(recorder, self._t0)
         # Let the writer put the header on disk before the first tick is due.
-        rec.wait_idle(timeout_s=2.0)
+        recorder.wait_idle(timeout_s=2.0)
         # Last, right before the first tick: a polled cell's reading ages from its reply, and
         # the header's fsync above can take longer than the stale limit on a busy disk.
         if self.loadcell is not None:
@@ -432,12 +432,12 @@ class Trial:
         with self._lock:
             self._lifecycle = Lifecycle.RUNNING
         try:
-            outcome, fault_msg = self._loop(rec, t0)
+            outcome, fault_msg = self._loop(recorder, t0)
         except BaseException as exc:  # a bug or a lost device: stop first, then record it
             self._safe_stop()
             outcome = Outcome.FAULT
             fault_msg = str(exc) if isinstance(exc, RigError) else f"{type(exc).__name__}: {exc}"
-            self._event(rec, self.clock.now() - t0, "fault", fault_msg, {"kind": "exception"})
+            self._event(recorder, self.clock.now() - t0, "fault", fault_msg, {"kind": "exception"})
             if not isinstance(exc, Exception):
                 raise
         finally:
@@ -445,22 +445,22 @@ class Trial:
             if rt is not None:
                 rt.leave()
             t_end = self.clock.now() - t0
-            if rec.failure and outcome is not Outcome.FAULT:
-                outcome, fault_msg = Outcome.FAULT, rec.failure
-            self._event(rec, t_end, "trial_end", f"trial {outcome}",
+            if recorder.failure and outcome is not Outcome.FAULT:
+                outcome, fault_msg = Outcome.FAULT, recorder.failure
+            self._event(recorder, t_end, "trial_end", f"trial {outcome}",
                         {"outcome": outcome, "samples": self._samples})
-            rec.close({"outcome": outcome, "samples": str(self._samples),
+            recorder.close({"outcome": outcome, "samples": str(self._samples),
                        "late_ticks": str(self._late), "missed_ticks": str(self._missed),
                        "duration_s": f"{t_end:.3f}", "fault": fault_msg or "",
                        "end_time": datetime.now(UTC).isoformat()}, timeout_s=self.close_timeout_s)
-            if rec.failure and fault_msg and "recording" not in fault_msg:
-                fault_msg = f"{fault_msg}; {rec.failure}"
-            if rec.unfinished:
-                fault_msg = f"{fault_msg}; {rec.unfinished}" if fault_msg else rec.unfinished
+            if recorder.failure and fault_msg and "recording" not in fault_msg:
+                fault_msg = f"{fault_msg}; {recorder.failure}"
+            if recorder.unfinished:
+                fault_msg = f"{fault_msg}; {recorder.unfinished}" if fault_msg else recorder.unfinished
                 outcome = Outcome.FAULT
-            if rec.error is not None:
-                fault_msg = (fault_msg or rec.failure) + (
-                    f"; the log holds what was flushed before the failure ({rec.flushed_messages} "
+            if recorder.error is not None:
+                fault_msg = (fault_msg or recorder.failure) + (
+                    f"; the log holds what was flushed before the failure ({recorder.flushed_messages} "
                     "messages); `rig replay` reads it")
                 outcome = Outcome.FAULT
             self.snapshot = replace(self.snapshot, state=TrialState.ended(outcome),
@@ -494,10 +494,10 @@ class Trial:
                 return
             time.sleep(0.002)
 
-    def _write_header(self, rec: Recorder, t0: float) -> None:
+    def _write_header(self, recorder: Recorder, t0: float) -> None:
         info = self.info
         now_ns = self.clock.wall_ns(t0)
-        rec.write_metadata("trial", {
+        recorder.write_metadata("trial", {
             "specimen": info.specimen, "operator": info.operator,
             "protocol_name": self.proto.name, "protocol_path": self.proto.source_path,
             "config_name": self.config.name, "config_path": self.config.source_path,
@@ -516,23 +516,23 @@ class Trial:
         if self.loadcell is not None and self.config.calibration is not None:
             from rig.control.calibration import header
 
-            rec.write_metadata("calibration", {**header(self.config.calibration),
+            recorder.write_metadata("calibration", {**header(self.config.calibration),
                                                "warnings": " | ".join(self.calibration_warnings)})
         for w in self.calibration_warnings:
-            self._event(rec, 0.0, "calibration_warning", w)
-        rec.attach("protocol.yaml", "application/yaml", self.proto.source_text.encode(), now_ns)
-        rec.attach("config.yaml", "application/yaml", self.config.text().encode(), now_ns)
+            self._event(recorder, 0.0, "calibration_warning", w)
+        recorder.attach("protocol.yaml", "application/yaml", self.proto.source_text.encode(), now_ns)
+        recorder.attach("config.yaml", "application/yaml", self.config.text().encode(), now_ns)
         if self.model is not None:
-            rec.attach("model.json", "application/json", self.model.text().encode(), now_ns)
+            recorder.attach("model.json", "application/json", self.model.text().encode(), now_ns)
 
-    def _emit(self, rec: Recorder, topic: str, log_time_ns: int, message: dict) -> None:
+    def _emit(self, recorder: Recorder, topic: str, log_time_ns: int, message: dict) -> None:
         """To the log, and to the live view if there is one (both only queue it)."""
-        rec.put(topic, log_time_ns, message)
+        recorder.put(topic, log_time_ns, message)
         if self.live is not None:
             self.live.put(topic, log_time_ns, message)
 
-    def _event(self, rec: Recorder, t: float, kind: str, message: str, data: dict | None = None) -> None:
-        self._emit(rec, EVENT.topic, self.clock.wall_ns(self._t0 + t),
+    def _event(self, recorder: Recorder, t: float, kind: str, message: str, data: dict | None = None) -> None:
+        self._emit(recorder, EVENT.topic, self.clock.wall_ns(self._t0 + t),
                    EVENT.record(t_s=round(t, 6), kind=kind, message=message, data=data or {}))
 
     def _safe_stop(self) -> bool:
@@ -542,20 +542,20 @@ class Trial:
         except Exception:  # noqa: BLE001 - a dead link; the backstop takes over
             return False
 
-    def _loop(self, rec: Recorder, t0: float) -> tuple[str, str | None]:
+    def _loop(self, recorder: Recorder, t0: float) -> tuple[str, str | None]:
         """One tick per slot, in this order (safety's place in it visible here): read, check
         (a fault stops the slider before anything else), operator (stop requests), confirm (a
         STOP stands until the drive says it stands still), command (the step's controller),
         estimate, record; then whether the trial has ended."""
-        loop = self._start_loop(rec, t0)
+        loop = self._start_loop(recorder, t0)
         while True:
             tick = self._read(loop)
-            self._check(rec, loop, tick)
-            self._operator(rec, loop, tick)
-            self._confirm(rec, loop, tick)
-            self._command(rec, loop, tick)
+            self._check(recorder, loop, tick)
+            self._operator(recorder, loop, tick)
+            self._confirm(recorder, loop, tick)
+            self._command(recorder, loop, tick)
             est = self._estimate(loop, tick)
-            self._record(rec, loop, tick, est)
+            self._record(recorder, loop, tick, est)
             done = loop.ending.result(tick.t_s, self.post_fault_s, loop.sequencer.done and loop.watch is None)
             if done is not None:
                 if loop.contact is not None:
@@ -563,7 +563,7 @@ class Trial:
                                               tick.checked_N)
                 return done
 
-    def _start_loop(self, rec: Recorder, t0: float) -> _Loop:
+    def _start_loop(self, recorder: Recorder, t0: float) -> _Loop:
         cfg = self.config
         self._samples = self._late = self._missed = 0
         self._tick_times = []
@@ -571,7 +571,7 @@ class Trial:
         seq = Sequencer(self.proto, start_mm=self._start_mm, accel_mm_s2=cfg.slider.accel_mm_s2,
                         tare_s=cfg.loop.tare_s, tolerance_mm=cfg.slider.position_tolerance_mm,
                         rate_Hz=self.rate)
-        self._event(rec, 0.0, "trial_start", f"protocol '{self.proto.name}'",
+        self._event(recorder, 0.0, "trial_start", f"protocol '{self.proto.name}'",
                     {"specimen": self.info.specimen, "start_mm": self._start_mm,
                      "steps": len(seq.steps)})
         if self.online is not None:
@@ -671,7 +671,7 @@ class Trial:
         move_due = loop.force_step >= 0 and self._samples - loop.sent_seq >= FORCE_MOVE_TICKS
         return since > every or (since == every and not move_due)
 
-    def _check(self, rec: Recorder, loop: _Loop, tick: _Tick) -> None:
+    def _check(self, recorder: Recorder, loop: _Loop, tick: _Tick) -> None:
         """Safety first: on a fault, stop, then explain. The tare's preload is judged here,
         once, before the sequencer's first move, so a refused preload moves nothing."""
         if loop.ending.fault is not None:
@@ -686,8 +686,8 @@ class Trial:
             why = loop.cell_watch.update(tick.reading.t_s, tick.raw_N)
             if why is not None:
                 found = Fault("loadcell_frozen", why)
-        if found is None and rec.failure:
-            found = Fault("recording", rec.failure)
+        if found is None and recorder.failure:
+            found = Fault("recording", recorder.failure)
         if found is None and seq.fault:
             found = Fault("protocol", seq.fault)
         if found is None and loop.watch is not None:
@@ -704,7 +704,7 @@ class Trial:
                                  f"'{self.proto.name}' ({self.log_path.name}), assumed out of contact")
                 loop.zero_N = loop.tare_N
             loop.preload_N = self.preload_N = loop.tare_N - loop.zero_N
-            self._cell_known(rec, loop, tick)
+            self._cell_known(recorder, loop, tick)
             max_pre = lim.max_preload_share * lim.max_force_N
             if abs(loop.preload_N) > max_pre:
                 found = Fault("preload", (
@@ -714,11 +714,11 @@ class Trial:
                     "before anything moved; retract the probe (or `rig tare` out of contact if "
                     "the zero is wrong)"))
         if found is not None:
-            self._fault(rec, loop, found, tick)
+            self._fault(recorder, loop, found, tick)
         if tare_done:
-            self._tare_logged(rec, tick.t_s, loop.tare_N, loop.tare_n, loop.zero_N, loop.preload_N)
+            self._tare_logged(recorder, tick.t_s, loop.tare_N, loop.tare_n, loop.zero_N, loop.preload_N)
 
-    def _cell_known(self, rec: Recorder, loop: _Loop, tick: _Tick) -> None:
+    def _cell_known(self, recorder: Recorder, loop: _Loop, tick: _Tick) -> None:
         """The tare is done: the cell's noise is measured, and with it the contact threshold and
         the frozen-cell checks (`rig.control.sensorwatch`)."""
         noise = loop.noise = CellNoise.from_readings(loop.tare_values, self.config.estimator.noise_N)
@@ -740,9 +740,9 @@ class Trial:
             msg = (f"{noise.describe()}: contact above {loop.contact.threshold_N:.3g} N; too quiet to tell a "
                    "frozen reading by its repeats: under force control only the force's answer to the "
                    "motion and the depth budget guard against a frozen cell")
-        self._event(rec, tick.t_s, "load_cell_noise", msg, data)
+        self._event(recorder, tick.t_s, "load_cell_noise", msg, data)
 
-    def _operator(self, rec: Recorder, loop: _Loop, tick: _Tick) -> None:
+    def _operator(self, recorder: Recorder, loop: _Loop, tick: _Tick) -> None:
         """The operator's stop requests (an estop may follow an abort that is returning)."""
         sig = self.signal_stop  # Ctrl-C: the handler only set this
         if sig is not None and sig is not self.signal_handled:
@@ -768,7 +768,7 @@ class Trial:
                           "communication timeout is the backstop)")
             self._settle_tickets(ok, ticket.message)
             loop.watch = None
-            self._event(rec, t, "stop_requested", f"{mode.value} requested by {user or '?'}",
+            self._event(recorder, t, "stop_requested", f"{mode.value} requested by {user or '?'}",
                         {"mode": mode.value, "user": user, "seq": self._samples,
                          "latency_ms": latency_ms, "acknowledged": ok})
             if mode == StopMode.ABORT:
@@ -776,19 +776,20 @@ class Trial:
             else:
                 loop.sequencer.done = True
 
-    def _confirm(self, rec: Recorder, loop: _Loop, tick: _Tick) -> None:
+    def _confirm(self, recorder: Recorder, loop: _Loop, tick: _Tick) -> None:
         """A STOP stands until a fresh status says the drive stands still."""
         stop = loop.ending.stop
         match loop.ending.on_status(tick.t_s, tick.moving, self.limits.stop_confirm_s, self.resend_stop_s):
             case ("confirmed", _):
-                self._event(rec, tick.t_s, "stop_confirmed", "the drive reports standing still",
+                self._event(recorder, tick.t_s, "stop_confirmed", "the drive reports standing still",
                             {"after_s": round(tick.t_s - stop.sent_t, 4), "resends": stop.resends})
             case ("gave_up", why):
-                self._event(rec, tick.t_s, "fault", why, {"kind": "stop_unconfirmed", "seq": self._samples})
+                self._event(recorder, tick.t_s, "fault", why,
+                            {"kind": "stop_unconfirmed", "seq": self._samples})
             case ("resend", _):
                 self._send_stop(loop, tick.t_s)
 
-    def _command(self, rec: Recorder, loop: _Loop, tick: _Tick) -> None:
+    def _command(self, recorder: Recorder, loop: _Loop, tick: _Tick) -> None:
         """The step's controller: the sequencer's commands, each move checked against the limits
         before it is sent and watched until it arrives. Step decisions only on a fresh position,
         and a move counts as under way until its watch saw it arrive on fresh readings: a stale
@@ -804,16 +805,16 @@ class Trial:
         commands = (seq.tick(t, tick.position_mm, tick.force_N, seq_moving, in_contact) if tick.position.fresh
                     else ())
         if was >= 0 and seq.index != was:  # reported before the next step's first command
-            self._force_step_ended(rec, loop, t, was)
+            self._force_step_ended(recorder, loop, t, was)
         for cmd in commands:
             if isinstance(cmd, Track):
                 tracking = True
-                if not self._track(rec, loop, tick, cmd):
+                if not self._track(recorder, loop, tick, cmd):
                     break
             elif isinstance(cmd, Move):
                 why = check_move(cmd.to_mm, cmd.speed_mm_s, lim)
                 if why is not None:
-                    self._fault(rec, loop, Fault("move_limit", f"move refused: {why}"), tick)
+                    self._fault(recorder, loop, Fault("move_limit", f"move refused: {why}"), tick)
                     break
                 self.slider.move_to(cmd.to_mm, cmd.speed_mm_s, cmd.accel_mm_s2)
                 loop.ending.on_move()
@@ -826,12 +827,12 @@ class Trial:
             loop.force_loop.release()  # a position step (or the end) took over
         if seq.index != loop.last_step and seq.index >= 0 and not seq.done:
             step = seq.step
-            self._event(rec, t, "step_start", f"step {seq.index}: {step.kind}",
+            self._event(recorder, t, "step_start", f"step {seq.index}: {step.kind}",
                         {"step": seq.index, "kind": step.kind,
                          "zero_mm": seq.zero_mm, "target_mm": seq.target_mm - seq.zero_mm})
         loop.last_step = seq.index
 
-    def _track(self, rec: Recorder, loop: _Loop, tick: _Tick, cmd: Track) -> bool:
+    def _track(self, recorder: Recorder, loop: _Loop, tick: _Tick, cmd: Track) -> bool:
         """A force step's tick: the force loop's next position, limited to the step's deepest and
         its depth budget, checked against the limits before it is sent (False: refused, and
         faulted). Out of contact the slider seeks the surface at `force.seek_speed_share` of the
@@ -865,7 +866,7 @@ class Trial:
                 why = loop.motion.update(tick.position_mm, tick.force_N, fc.error_N,
                                       answer_limit_mm(sigma, loop.stiffness_N_per_m, fcfg.answer_mm))
                 if why is not None:
-                    self._fault(rec, loop, Fault("loadcell_frozen", why), tick)
+                    self._fault(recorder, loop, Fault("loadcell_frozen", why), tick)
                     return False
         deepest = cmd.limit_mm if loop.budget_mm is None else min(cmd.limit_mm, loop.budget_mm)
         target = min(fc.target_mm, deepest)
@@ -875,7 +876,7 @@ class Trial:
         if target < fc.target_mm:
             if cmd.seeking and tick.position_mm >= deepest - self.config.slider.position_tolerance_mm:
                 what = "max_mm" if deepest == cmd.limit_mm else "depth budget"
-                self._fault(rec, loop, Fault("protocol", (
+                self._fault(recorder, loop, Fault("protocol", (
                     f"step {seq.index} ({seq.kind}) reached its {what} ({deepest - seq.zero_mm:.4g} mm) "
                     f"without contact: the force stayed below {loop.contact.threshold_N:.3g} N "
                     "(four sigma of the load cell's noise)" if loop.contact is not None else
@@ -886,7 +887,7 @@ class Trial:
                 msg = (f"step {seq.index} ({seq.kind}): the force loop reached the step's max_mm "
                        f"({cmd.limit_mm - seq.zero_mm:.4g} mm) at {tick.force_N:.4g} N, short of its setpoint "
                        f"{cmd.setpoint_N:.4g} N: held there")
-                self._event(rec, tick.t_s, "force_limit_depth", msg,
+                self._event(recorder, tick.t_s, "force_limit_depth", msg,
                             {"step": seq.index, "force_N": tick.force_N, "setpoint_N": cmd.setpoint_N})
                 self.notices.append(msg)
             elif deepest < cmd.limit_mm and not loop.at_budget:
@@ -897,7 +898,7 @@ class Trial:
                        f"{tick.force_N:.4g} N, "
                        f"short of its setpoint {cmd.setpoint_N:.4g} N: held there (the specimen softened, "
                        "or the load cell reads low)")
-                self._event(rec, tick.t_s, "force_depth_budget", msg,
+                self._event(recorder, tick.t_s, "force_depth_budget", msg,
                             {"step": seq.index, "force_N": tick.force_N, "setpoint_N": cmd.setpoint_N,
                              "budget_mm": deepest - loop.contact.surface_mm})
                 self.notices.append(msg)
@@ -909,7 +910,7 @@ class Trial:
             # a drive that follows moves, if more slowly than asked (it brakes towards a stream that
             # leads it by a tick or two); one that has stopped following does not move at all
             if span >= DRIVE_FOLLOW_S and abs(tick.position_mm - p0) < DRIVE_STUCK_MM:
-                self._fault(rec, loop, Fault("move", f"the drive did not follow the force loop: "
+                self._fault(recorder, loop, Fault("move", f"the drive did not follow the force loop: "
                                                   f"{abs(tick.position_mm - p0):.3g} mm in {span:.2g} s at "
                                                   f"{fc.speed_mm_s:.3g} mm/s commanded"), tick)
                 return False
@@ -917,7 +918,7 @@ class Trial:
             loop.saturated_since = None
         why = check_move(target, fc.speed_mm_s, self.limits)
         if why is not None:
-            self._fault(rec, loop, Fault("move_limit", f"force loop move refused: {why}"), tick)
+            self._fault(recorder, loop, Fault("move_limit", f"force loop move refused: {why}"), tick)
             return False
         step_mm = 1.0 / self.config.slider.steps_per_mm
         # a tick that read status (its turn could wait no longer) leaves the move to the next
@@ -930,7 +931,7 @@ class Trial:
         seq.follow(target)
         return True
 
-    def _force_step_ended(self, rec: Recorder, loop: _Loop, t: float, index: int) -> None:
+    def _force_step_ended(self, recorder: Recorder, loop: _Loop, t: float, index: int) -> None:
         """A force step's figures (overshoot, settling, the hold's RMS error, a ramp's lag) as a
         `force_step` event, said to the operator when beyond `force:`'s warnings; and a force
         step that ended away from its setpoint (its last 0.5 s off by more than SETPOINT_MISS)
@@ -943,7 +944,7 @@ class Trial:
         if meter is not None:
             meter.seek_s, meter.lag_s, meter.reached = loop.sequencer.ended_force or (0.0, 0.0, True)
             loop.carry_peak_N = meter.peak_N if handed_over else -math.inf
-            self._force_figures(rec, loop, t, meter.figures())
+            self._force_figures(recorder, loop, t, meter.figures())
         if not loop.force_recent or handed_over:
             return
         force = float(np.mean([r[1] for r in loop.force_recent]))
@@ -951,14 +952,14 @@ class Trial:
         if abs(force - setpoint) > SETPOINT_MISS * abs(setpoint):
             msg = (f"step {index}: the force step ended at {force:.4g} N (its last 0.5 s) against its "
                    f"setpoint {setpoint:.4g} N")
-            self._event(rec, t, "setpoint_missed", msg,
+            self._event(recorder, t, "setpoint_missed", msg,
                         {"step": index, "force_N": force, "setpoint_N": setpoint})
             self.notices.append(msg)
 
-    def _force_figures(self, rec: Recorder, loop: _Loop, t: float, fig: StepFigures) -> None:
+    def _force_figures(self, recorder: Recorder, loop: _Loop, t: float, fig: StepFigures) -> None:
         fcfg = self.config.force
         loop.figures.append(fig)
-        self._event(rec, t, "force_step", fig.describe(), fig.as_dict())
+        self._event(recorder, t, "force_step", fig.describe(), fig.as_dict())
         self.snapshot = replace(self.snapshot, force_steps=(*self.snapshot.force_steps[-9:], fig.as_dict()))
         said = []
         if fig.kind == "hold_force" and fig.overshoot_share > fcfg.overshoot_warn_share:
@@ -972,7 +973,7 @@ class Trial:
                         f"its target {fig.setpoint_N:.4g} N")
         if said:
             msg = f"step {fig.index} ({fig.kind} {fig.setpoint_N:.4g} N) " + "; ".join(said)
-            self._event(rec, t, "force_step_warning", msg, fig.as_dict())
+            self._event(recorder, t, "force_step_warning", msg, fig.as_dict())
             self.notices.append(msg)
 
     def _estimate(self, loop: _Loop, tick: _Tick):
@@ -996,7 +997,7 @@ class Trial:
         loop.stiffness_N_per_m = max(surface.stiffness_N_per_m, chord) if loop.in_contact else 0.0
         return est
 
-    def _record(self, rec: Recorder, loop: _Loop, tick: _Tick, est) -> None:
+    def _record(self, recorder: Recorder, loop: _Loop, tick: _Tick, est) -> None:
         """One sample queued for the recorder; health now and then; the watchers' snapshot."""
         seq, t = loop.sequencer, tick.t_s
         kind = "fault" if loop.ending.fault else seq.kind
@@ -1014,12 +1015,12 @@ class Trial:
             stiffness_N_per_m=est.stiffness_N_per_m, force_pred_N=est.force_pred_N,
             error_N=est.error_N, forgetting=est.forgetting, contact=est.updated,
             step=seq.index, step_kind=kind, late_ms=round(tick.lateness_s * 1000.0, 4), **model)
-        self._emit(rec, SAMPLE.topic, self.clock.wall_ns(tick.now_s), sample)
+        self._emit(recorder, SAMPLE.topic, self.clock.wall_ns(tick.now_s), sample)
         if abs(tick.force_N) > self._cal_max_N:
-            self._beyond_calibration(rec, t, tick.force_N)
+            self._beyond_calibration(recorder, t, tick.force_N)
         self._samples += 1
         if t >= loop.next_health_s:
-            self._health(rec, t, tick.now_s, loop.health_mark)
+            self._health(recorder, t, tick.now_s, loop.health_mark)
             loop.health_mark = len(self._tick_times)
             loop.next_health_s += self.config.loop.health_every_s
         self.snapshot = Snapshot(
@@ -1031,12 +1032,12 @@ class Trial:
         if self.on_tick is not None:
             self.on_tick(self.snapshot)
 
-    def _beyond_calibration(self, rec: Recorder, t: float, force_N: float) -> None:
+    def _beyond_calibration(self, recorder: Recorder, t: float, force_N: float) -> None:
         """A force beyond the calibrated range, the first time: said in the log and to the operator."""
         cal = self.config.calibration
         msg = (f"force {force_N:.4g} N beyond the load cell's calibrated range ({cal.range_N[0]:g}-"
                f"{cal.range_N[1]:.4g} N, {cal.date[:10]}): read uncalibrated from here")
-        self._event(rec, t, "calibration_range", msg, {"force_N": force_N, "range_N": list(cal.range_N)})
+        self._event(recorder, t, "calibration_range", msg, {"force_N": force_N, "range_N": list(cal.range_N)})
         self.notices.append(msg)
         self._cal_max_N = math.inf
 
@@ -1045,16 +1046,16 @@ class Trial:
         loop.ending.on_stop_sent(t)
         return ok
 
-    def _fault(self, rec: Recorder, loop: _Loop, found: Fault, tick: _Tick) -> None:
+    def _fault(self, recorder: Recorder, loop: _Loop, found: Fault, tick: _Tick) -> None:
         self._send_stop(loop, tick.t_s)  # stop first, explain after
         loop.watch = None
         loop.ending.on_fault(found, tick.t_s)
-        self._event(rec, tick.t_s, "fault", found.message,
+        self._event(recorder, tick.t_s, "fault", found.message,
                     {"kind": found.kind, "seq": self._samples, "force_N": tick.force_N,
                      "position_mm": tick.position_mm - loop.sequencer.zero_mm})
         self.snapshot = replace(self.snapshot, state=TrialState.STOPPING, fault=found.message)
 
-    def _tare_logged(self, rec: Recorder, t: float, tare_N: float, readings: int, zero_N: float,
+    def _tare_logged(self, recorder: Recorder, t: float, tare_N: float, readings: int, zero_N: float,
                      preload_N: float) -> None:
         """The tare, the zero it was measured against and the preload: force_N + preload_N is
         the force the tissue carried."""
@@ -1063,15 +1064,15 @@ class Trial:
                else f"preload {preload_N:+.4f} N against the zero {zero_N:+.4f} N from {z.source}")
         data = {"tare_N": tare_N, "readings": readings, "zero_N": zero_N, "preload_N": preload_N,
                 "zero_source": z.source, "zero_assumed": z.assumed}
-        self._event(rec, t, "tare", f"tare {tare_N:+.4f} N from {readings} readings; {how}", data)
-        rec.write_metadata("tare", {k: f"{v:.6g}" if isinstance(v, float) else v for k, v in data.items()})
+        self._event(recorder, t, "tare", f"tare {tare_N:+.4f} N from {readings} readings; {how}", data)
+        recorder.write_metadata("tare", {k: f"{v:.6g}" if isinstance(v, float) else v for k, v in data.items()})
 
-    def _health(self, rec: Recorder, t: float, now: float, mark: int) -> None:
+    def _health(self, recorder: Recorder, t: float, now: float, mark: int) -> None:
         times = np.asarray(self._tick_times[max(mark - 1, 0):])
         err = np.abs(np.diff(times) - self.period) * 1000.0 if len(times) > 1 else np.zeros(1)
         s = self.slider.stats
         c = self.loadcell.stats if self.loadcell is not None else LinkStats()
-        self._emit(rec, HEALTH.topic, self.clock.wall_ns(now), HEALTH.record(
+        self._emit(recorder, HEALTH.topic, self.clock.wall_ns(now), HEALTH.record(
             t_s=round(t, 6), ticks=self._samples, late_ticks=self._late, missed_ticks=self._missed,
             period_err_p50_ms=float(np.percentile(err, 50)),
             period_err_p99_ms=float(np.percentile(err, 99)),
@@ -1079,7 +1080,7 @@ class Trial:
             bus_transactions=s.transactions, bus_errors=s.errors,
             loadcell_lines_ok=c.lines_ok, loadcell_lines_bad=c.lines_bad,
             loadcell_age_ms=(self._last_age or 0.0) * 1000.0,
-            queue_depth=rec.depth(),
+            queue_depth=recorder.depth(),
             live_dropped=self.live.dropped if self.live is not None else 0,
         ))
 
