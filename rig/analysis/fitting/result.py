@@ -256,6 +256,14 @@ class FitResult:
             "warnings": self.warnings,
         }
 
+    def contact_m(self, k: int) -> float:
+        """Where the fit put record `k`'s contact, in its position's frame (0 when it was not fitted)."""
+        v = self.values
+        for name in (f"x_c_m@{k}", "x_c_m"):
+            if name in v:
+                return float(v[name])
+        return float(v.get("x0_mm", 0.0)) / 1000.0
+
     def placements(self) -> list[dict]:
         """Per record, where the fit put its contact (``contact_point_m``, in its travel from its
         first sample) and, when the record's zero was fitted, its force at rest (``zero_N``), each

@@ -30,15 +30,6 @@ def _runs(held: np.ndarray, phase: np.ndarray) -> list[np.ndarray]:
     return [r for r in np.split(np.arange(len(held)), edges) if held[r[0]]]
 
 
-def _contact_m(res: FitResult, k: int) -> float:
-    """Where the fit put the record's contact, in its position's frame (0 when it was not fitted)."""
-    v = res.values
-    for name in (f"x_c_m@{k}", "x_c_m"):
-        if name in v:
-            return float(v[name])
-    return float(v.get("x0_mm", 0.0)) / 1000.0
-
-
 def creep_json(res: FitResult, indenter: Indenter | None = None, poisson: float = 0.5) -> list[dict]:
     """Per record fitted partly in creep form: its held samples, the position's miss there (RMSE,
     against the length noise), and per held step the creep measured and predicted and, with an
@@ -55,7 +46,7 @@ def creep_json(res: FitResult, indenter: Indenter | None = None, poisson: float 
                      "position_rmse_m": float(np.sqrt(np.mean(miss ** 2))), "length_noise_m": noise_m,
                      "rmse_over_noise": float(np.sqrt(np.mean(miss ** 2)) / noise_m) if noise_m > 0 else None,
                      "steps": []}
-        x0 = _contact_m(res, k)
+        x0 = res.contact_m(k)
         for run in _runs(t.held, t.phase):
             ts, xm, xp, f = t.motion.t_s[run], t.motion.x_m[run], x_pred[run], t.held_force_N[run]
             step = {"t_start_s": float(ts[0] - t.motion.t_s[0]), "t_end_s": float(ts[-1] - t.motion.t_s[0]),

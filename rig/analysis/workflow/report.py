@@ -62,15 +62,6 @@ def plot_trial_fit(res: FitResult, k: int, out: Path, title_extra: str = "") -> 
     return save(fit_figure(res, k, title_extra), out)
 
 
-def fitted_contact_m(res: FitResult, k: int) -> float:
-    """Where the fit put record k's contact, in its position's frame (0 when it was not fitted)."""
-    v = res.values
-    for name in (f"x_c_m@{k}", "x_c_m"):
-        if name in v:
-            return float(v[name])
-    return float(v.get("x0_mm", 0.0)) / 1000.0
-
-
 def has_contact(res: FitResult, k: int) -> bool:
     """Whether record k has an indentation to draw force against: an elastic contact law, a
     fitted contact point, or a contact the analysis found in the record (an AFM curve)."""
@@ -89,7 +80,7 @@ def contact_curve(res: FitResult, k: int) -> dict | None:
         return None
     tr = res.trials[k]
     x = tr.motion.x_m
-    xc = fitted_contact_m(res, k)
+    xc = res.contact_m(k)
     d = x - xc
     deepest = int(np.argmax(x))
     idx = np.arange(len(x))
