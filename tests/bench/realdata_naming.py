@@ -3,7 +3,7 @@ records: the researcher's workflow (the clean record's `--auto` model as the bas
 hidden as tests/test_realdata_explain.py hides it, at its size and at half, and taken out of the
 model if the clean model held it: `--explain` must name it first), and `--auto` from the paper's
 model on the record with the effect (it must add it). Each clean record is a control: `--explain`
-on its `--auto` model must suggest nothing the record cannot support. About 20 minutes on two
+on its `--auto` model must suggest nothing the record cannot support. About 80 minutes on two
 cores: `python tests/bench/realdata_naming.py [RECORD ...]`."""
 
 from __future__ import annotations
@@ -22,8 +22,9 @@ from rig.analysis.trials.data import load_trial
 from rig.models import CATALOGUE, build_model
 from rig.models.core import Model
 
-RECORDS = ["polymergel-creep.jpk-force", "brain-creep.jpk-force", "oocyte-cell1/cell1-0001.jpk-force",
-           "oocyte-cell1/cell1-0005.jpk-force"]
+# the two creep records, and every fourth of the fifteen oocyte relaxations from the first
+RECORDS = ["polymergel-creep.jpk-force", "brain-creep.jpk-force",
+           *(f"oocyte-cell1/cell1-{i:04d}.jpk-force" for i in (1, 5, 9, 13))]
 EFFECTS = ["drift", "friction", "delay"]  # an offset from the first sample is the record's zero
 SIZES = (1.0, 0.5)
 BASE_SIZES = dict(T.SIZES)
