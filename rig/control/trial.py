@@ -398,7 +398,7 @@ class Trial:
             self._start_mm = start.value
         check_limits(self.proto, cfg, start_mm=self._start_mm)
         recorder = Recorder(self.log_path, flush_s=cfg.recorder.flush_s,
-                       compression=cfg.recorder.compression, max_queue=cfg.recorder.max_queue)
+                            compression=cfg.recorder.compression, max_queue=cfg.recorder.max_queue)
         self.recorder = recorder
         self.log_path = recorder.path  # the name the recorder could take (another run may have had ours)
         self.log_named.set()
@@ -450,9 +450,9 @@ class Trial:
             self._event(recorder, t_end, "trial_end", f"trial {outcome}",
                         {"outcome": outcome, "samples": self._samples})
             recorder.close({"outcome": outcome, "samples": str(self._samples),
-                       "late_ticks": str(self._late), "missed_ticks": str(self._missed),
-                       "duration_s": f"{t_end:.3f}", "fault": fault_msg or "",
-                       "end_time": datetime.now(UTC).isoformat()}, timeout_s=self.close_timeout_s)
+                            "late_ticks": str(self._late), "missed_ticks": str(self._missed),
+                            "duration_s": f"{t_end:.3f}", "fault": fault_msg or "",
+                            "end_time": datetime.now(UTC).isoformat()}, timeout_s=self.close_timeout_s)
             if recorder.failure and fault_msg and "recording" not in fault_msg:
                 fault_msg = f"{fault_msg}; {recorder.failure}"
             if recorder.unfinished:
@@ -517,7 +517,7 @@ class Trial:
             from rig.control.calibration import header
 
             recorder.write_metadata("calibration", {**header(self.config.calibration),
-                                               "warnings": " | ".join(self.calibration_warnings)})
+                                                    "warnings": " | ".join(self.calibration_warnings)})
         for w in self.calibration_warnings:
             self._event(recorder, 0.0, "calibration_warning", w)
         recorder.attach("protocol.yaml", "application/yaml", self.proto.source_text.encode(), now_ns)
