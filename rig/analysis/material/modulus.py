@@ -29,11 +29,10 @@ def modulus_vs_depth(res: FitResult) -> list[dict]:
         return []
     law = next(e for e in res.model.effects if e.name == CONTACT)
     E = res.values["E_Pa"]
-    x0 = res.values.get("x_c_m", res.values.get("x0_mm", 0.0) / 1000.0)  # the fitted contact point
     rows: list[dict] = []
-    for t, pred in zip(res.trials, res.predictions, strict=True):
+    for k, (t, pred) in enumerate(zip(res.trials, res.predictions, strict=True)):
         m = t.motion
-        d = m.x_m - x0
+        d = m.x_m - res.contact_m(k)  # the indentation: past the fitted contact point
         contact = law.fn(np.maximum(d, 0.0), m.v_m_s, E_Pa=E)
         others = pred - contact  # offset, drift, friction: what the fit says is not the tissue
         g = contact / E if E else np.zeros_like(d)
