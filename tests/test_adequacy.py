@@ -14,7 +14,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from rig.analysis.diagnosis.explain import _summary
 from rig.analysis.fitting.fit import fit
+from rig.analysis.fitting.result import FitResult
 from rig.analysis.trials.data import prepare
 from rig.models import CATALOGUE, build_model
 from rig.models.catalogue import CONTACT, CONTACT_POINT, contact_effect
@@ -167,3 +169,38 @@ def test_a_verdict_within_the_tolerances_skips_the_simulation_and_is_the_same():
     assert all(floors for _, _, floors in got), got
     # the shortcut is taken, and not always: some verdicts still need the simulated tail
     assert 0 < sum(skipped for skipped, _, _ in got) < len(got), got
+
+
+class _Failing:
+    """A fit's verdict parts alone: the tests it fails, its overall error against the noise."""
+
+    def __init__(self, failed: list[tuple[str, float, float]], rmse_over_noise: float) -> None:
+        from types import SimpleNamespace
+
+        self._failed = lambda: failed
+        self.noise_N, self.overall = 1.0, SimpleNamespace(rmse_N=rmse_over_noise)
+        self.adequate = not failed
+        self.phases = {"ramp": SimpleNamespace(rmse_N=rmse_over_noise), "hold_early": None}
+
+    inadequate_because = FitResult.inadequate_because
+
+    def force_text(self, value_N: float) -> str:
+        return f"{value_N:.4g} N"
+
+
+def test_a_residual_within_the_noise_that_fails_says_what_fails():
+    # a real AFM curve's clean model read "NOT adequate (RMSE 0.008652 nN vs noise 0.008977 nN)" in the
+    # verdict of --explain: below the noise, and not adequate, with nothing said of why
+    shape = _Failing([("correlation", 12.0, 3.0)], 0.96)
+    said = FitResult.verdict(shape)
+    assert said.startswith("NOT adequate (RMSE 0.96x the noise, but the residual is correlated over 12.0"), said
+    assert shape.inadequate_because().endswith("a shape the model misses")
+    verdict = _summary(shape, None, [], False)  # what --explain says of it
+    assert verdict.startswith("the model is NOT adequate (RMSE 0.96 N vs noise 1 N; worst in ramp: 0.96 N; "
+                              "the residual is correlated over 12.0 samples"), verdict
+    phase = _Failing([("ramp", 1.9, 1.4)], 0.9)
+    assert phase.inadequate_because() == "1.9x the noise in ramp, above 1.4x"
+    said = FitResult.verdict(phase)
+    assert said == "NOT adequate (RMSE 0.9x the noise overall, but 1.9x in ramp, above 1.4x)", said
+    assert _Failing([("rmse", 3.0, 1.3), ("correlation", 12.0, 3.0)], 3.0).inadequate_because() == ""
+    assert _Failing([], 0.9).inadequate_because() == ""

@@ -187,9 +187,20 @@ class FitResult:
         if what != "correlation":
             return (f"NOT adequate (RMSE {ratio:.2g}x the noise overall, but {value:.2g}x in {what}, "
                     f"above {limit:.3g}x)")
-        return (f"NOT adequate (RMSE {ratio:.2g}x the noise, but the residual is correlated over "
-                f"{value:.1f} samples beyond the noise's own correlation, where a perfect model's is "
-                f"within {limit:.2g}: a shape the model misses)")
+        return f"NOT adequate (RMSE {ratio:.2g}x the noise, but {self.inadequate_because()})"
+
+    def inadequate_because(self) -> str:
+        """What fails a fit whose overall error passes: a phase's error or the residual's correlation
+        ("" when the fit is adequate or its overall error is what fails). A residual at or below the
+        noise can still hold a shape the model misses, and a verdict must say so, not only the RMSE."""
+        failed = self._failed()
+        if not failed or failed[0][0] == "rmse":
+            return ""
+        what, value, limit = failed[0]
+        if what != "correlation":
+            return f"{value:.2g}x the noise in {what}, above {limit:.3g}x"
+        return (f"the residual is correlated over {value:.1f} samples beyond the noise's own correlation, "
+                f"where a perfect model's is within {limit:.2g}: a shape the model misses")
 
     def report(self) -> str:
         """lmfit-style text report, forces in the record's own unit."""
