@@ -3,7 +3,7 @@ records: the researcher's workflow (the clean record's `--auto` model as the bas
 hidden as tests/test_realdata_explain.py hides it, at its size and at half, and taken out of the
 model if the clean model held it: `--explain` must name it first), and `--auto` from the paper's
 model on the record with the effect (it must add it). Each clean record is a control: `--explain`
-on its `--auto` model must suggest nothing the record cannot support. About 80 minutes on two
+on its `--auto` model must suggest nothing the record cannot support. About 75 minutes on two
 cores: `python tests/bench/realdata_naming.py [RECORD ...]`."""
 
 from __future__ import annotations
