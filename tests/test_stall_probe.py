@@ -17,7 +17,7 @@ def test_the_probe_runs_beside_and_reports_its_stalls():
     kinds = {k for _, _, k in probe.stalls}
     assert kinds == {"wake", "pty"}
     starts = [t for t, _, _ in probe.stalls]
-    assert all(0 < ms < 1000 for _, ms, _ in probe.stalls)
+    assert all(0 < ms <= 1000 for _, ms, _ in probe.stalls)  # a crossing is reported up to 1 s
     assert time.monotonic() - 5 < min(starts) <= max(starts) < time.monotonic()
 
 

@@ -121,12 +121,18 @@ def main(argv: list[str]) -> int:
         time.sleep(0.001)
         b = time.monotonic()
         if b - a - 0.001 > threshold_s:
-            stalls.append((round(a + 0.001, 5), round((b - a - 0.001) * 1000.0, 2), "wake"))
+            stalls.append((round(a + 0.001, 5), _ms(b - a - 0.001), "wake"))
         took = _crossing_s(master, slave, data)
         if took > threshold_s:
-            stalls.append((round(b, 5), round(min(took, 1.0) * 1000.0, 2), "pty"))
+            stalls.append((round(b, 5), _ms(min(took, 1.0)), "pty"))
     print(json.dumps({"realtime": realtime, "stalls": stalls}), flush=True)
     return 0
+
+
+def _ms(s: float) -> float:
+    """A stall in ms to the report's 0.01 ms, never rounded to nought: one above the threshold
+    (which may be zero) lasted something."""
+    return max(round(s * 1000.0, 2), 0.01)
 
 
 if __name__ == "__main__":
