@@ -25,9 +25,10 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.special import gammaincinv
 
 from rig.analysis.diagnosis.residual_shape import describe, not_the_answer
-from rig.analysis.fitting.fit import FEW_PER_PARAM, FitResult, evaluate, fit, negative
+from rig.analysis.fitting.fit import FEW_PER_PARAM, UNPHYSICAL_SE, FitResult, evaluate, fit, negative
 from rig.analysis.stats.criterion import delta_bic
 from rig.analysis.trials.data import PHASES, TrialData, decimate
 from rig.models.catalogue import CONTACT, instrument_effects
@@ -215,7 +216,10 @@ def explain(base: FitResult, registry: dict[str, Effect], trials: list[TrialData
                          dropped=dropped)
         if dropped:
             sug.why += f"; with {' and '.join(dropped)} dropped from the model (fit it: {options(model)})"
-        bad = meaningless(res, base)
+        # without `dropped`, the fit `before` is the candidate's own model with its amplitude at
+        # nought, on the same samples: the sign of a negative amplitude is judged on that too
+        needed = None if dropped else (e, -n_eff * float(np.log(ratio)) if ratio > 0 else np.inf)
+        bad = meaningless(res, base, needed)
         if bad:
             sug.meaningless = bad
             sug.why += f"; but {bad}"
@@ -356,7 +360,7 @@ def _among_passing(passing: list[Suggestion], base: FitResult) -> list[Suggestio
     return sorted(full, key=lambda s: score[id(s)]) + [s for s in passing if not s.full_rate]
 
 
-def meaningless(res: FitResult, base: FitResult) -> str:
+def meaningless(res: FitResult, base: FitResult, needed: tuple[Effect, float] | None = None) -> str:
     """Why the fit `res` of a model with an added effect is physically meaningless, or "".
 
     Every parameter of the model counts, not only the added effect's: an effect that fits only
@@ -364,8 +368,24 @@ def meaningless(res: FitResult, base: FitResult) -> str:
     answer. Negative means significantly so: below zero by more than UNPHYSICAL_SE of its own
     standard errors (`rig.analysis.fitting.fit.negative`); a value slightly negative within its error
     is said (`within`) and does not reject. A parameter already negative in `base`, the fit
-    without the effect, is the base model's own problem (its fit says so) and is left out."""
-    return next((said for _, said, bad in _negatives(res, base) if bad), "")
+    without the effect, is the base model's own problem (its fit says so) and is left out.
+
+    `needed`: the added effect and the likelihood ratio of `res` over the fit without it, on the
+    same samples and N_eff: N_eff ln(RSS without / RSS with). The added effect's amplitude (every parameter that
+    must not be negative is one: at nought its term is gone) is also significantly negative
+    when that ratio passes the same two-sigma level: a standard error is a curvature at the
+    optimum, and where the amplitude trades off with the effect's own shape (Hunt-Crossley's b
+    with its exponent n) it spans zero while the term's sign is settled (a damping of
+    b = -1.1e6 +/- 1.9e6 that took 90 % of an AFM curve's ramp error)."""
+    return next((said for _, said, bad in _negatives(res, base, needed) if bad), "")
+
+
+def unneeded_ratio(effect: Effect) -> float:
+    """The likelihood ratio that a fit with `effect` passes over the fit without it at two sigma:
+    UNPHYSICAL_SE squared for a one-parameter effect, the chi-squared level of the same
+    probability for an effect of more parameters (its shape is free when its amplitude is not)."""
+    k = len(effect.params)
+    return 2.0 * float(gammaincinv(k / 2.0, math.erf(UNPHYSICAL_SE / math.sqrt(2.0))))
 
 
 def within(res: FitResult, base: FitResult) -> str:
@@ -373,15 +393,24 @@ def within(res: FitResult, base: FitResult) -> str:
     return "; ".join(said for _, said, bad in _negatives(res, base) if not bad)
 
 
-def _negatives(res: FitResult, base: FitResult) -> list[tuple[str, str, bool]]:
+def _negatives(res: FitResult, base: FitResult,
+               needed: tuple[Effect, float] | None = None) -> list[tuple[str, str, bool]]:
     """Each parameter of `res` below zero that must not be (and is not in `base`): its effect, what
-    `negative` says of it, and whether it is meaningless."""
+    `negative` says of it (or, for the added effect's amplitude, the likelihood ratio `needed`: see
+    `meaningless`), and whether it is meaningless."""
     out = []
     for p in res.model.params:
         if not (p.warn_negative and res.values[p.name] < 0) or base.values.get(p.name, 0.0) < 0:
             continue
         owner = next((e.name for e in res.model.effects if any(q.name == p.name for q in e.params)), "model")
-        out.append((owner, *negative(f"{owner}.{p.name}", res.values[p.name], p.unit, res.stderr.get(p.name))))
+        v, name = res.values[p.name], f"{owner}.{p.name}"
+        said, bad = negative(name, v, p.unit, res.stderr.get(p.name))
+        if not bad and needed is not None and owner == needed[0].name and needed[1] > unneeded_ratio(needed[0]):
+            said, bad = (f"{name} is negative ({v:.4g} {p.unit}) and its term is needed (likelihood ratio "
+                         f"{needed[1]:.3g} over the fit without it, beyond "
+                         f"{unneeded_ratio(needed[0]):.3g}, two sigma): physically meaningless, "
+                         "whatever its standard error"), True
+        out.append((owner, said, bad))
     return out
 
 
