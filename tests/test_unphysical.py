@@ -59,7 +59,8 @@ def test_a_damping_negative_beyond_its_error_is_meaningless_and_says_why():
     assert why.endswith("physically meaningless"), why
 
 
-MAP = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "afm-fd" / "fmt-jpk-fd_map2x2_extracted.jpk-force-map"
+AFM = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "afm-fd"
+MAP = AFM / "fmt-jpk-fd_map2x2_extracted.jpk-force-map"
 CURVE = ["--curve", "3", "--model", "hertz", "--indenter", "paraboloid:R=10um", "--segment", "approach"]
 
 

@@ -25,7 +25,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import gammaincinv
 
 from rig.analysis.diagnosis.residual_shape import describe, not_the_answer
 from rig.analysis.fitting.fit import FEW_PER_PARAM, UNPHYSICAL_SE, FitResult, evaluate, fit, negative
@@ -384,6 +383,8 @@ def unneeded_ratio(effect: Effect) -> float:
     """The likelihood ratio that a fit with `effect` passes over the fit without it at two sigma:
     UNPHYSICAL_SE squared for a one-parameter effect, the chi-squared level of the same
     probability for an effect of more parameters (its shape is free when its amplitude is not)."""
+    from scipy.special import gammaincinv  # here: a one-curve Hertz analysis imports no scipy
+
     k = len(effect.params)
     return 2.0 * float(gammaincinv(k / 2.0, math.erf(UNPHYSICAL_SE / math.sqrt(2.0))))
 
