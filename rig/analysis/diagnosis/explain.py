@@ -370,8 +370,8 @@ def meaningless(res: FitResult, base: FitResult, needed: tuple[Effect, float] | 
     without the effect, is the base model's own problem (its fit says so) and is left out.
 
     `needed`: the added effect and the likelihood ratio of `res` over the fit without it, on the
-    same samples and N_eff: N_eff ln(RSS without / RSS with). The added effect's amplitude (every parameter that
-    must not be negative is one: at nought its term is gone) is also significantly negative
+    same samples and N_eff: N_eff ln(RSS without / RSS with). The added effect's amplitude (every
+    parameter that must not be negative is one: at nought its term is gone) is also significantly negative
     when that ratio passes the same two-sigma level: a standard error is a curvature at the
     optimum, and where the amplitude trades off with the effect's own shape (Hunt-Crossley's b
     with its exponent n) it spans zero while the term's sign is settled (a damping of
@@ -406,11 +406,12 @@ def _negatives(res: FitResult, base: FitResult,
         owner = next((e.name for e in res.model.effects if any(q.name == p.name for q in e.params)), "model")
         v, name = res.values[p.name], f"{owner}.{p.name}"
         said, bad = negative(name, v, p.unit, res.stderr.get(p.name))
-        if not bad and needed is not None and owner == needed[0].name and needed[1] > unneeded_ratio(needed[0]):
-            said, bad = (f"{name} is negative ({v:.4g} {p.unit}) and its term is needed (likelihood ratio "
-                         f"{needed[1]:.3g} over the fit without it, beyond "
-                         f"{unneeded_ratio(needed[0]):.3g}, two sigma): physically meaningless, "
-                         "whatever its standard error"), True
+        if not bad and needed is not None and owner == needed[0].name:
+            ratio, level = needed[1], unneeded_ratio(needed[0])
+            if ratio > level:
+                said, bad = (f"{name} is negative ({v:.4g} {p.unit}) and its term is needed (likelihood ratio "
+                             f"{ratio:.3g} over the fit without it, beyond {level:.3g}, two sigma): "
+                             "physically meaningless, whatever its standard error"), True
         out.append((owner, said, bad))
     return out
 
